@@ -1,0 +1,324 @@
+"""The tracking objective and its analytic gradient (paper 000, sec. 5.2).
+
+``E = E_sim - w_c E_col - w_d E_dan - w_l E_lim - w_s E_smo`` is maximised over
+the 26 pose parameters.  Overlaps of unnormalised isotropic Gaussians (eq. 4)
+have closed forms: in d dimensions
+
+``D_pq = (2 pi s_p^2 s_q^2 / (s_p^2 + s_q^2))^(d/2) exp(-|mu_p - mu_q|^2 / (2 (s_p^2 + s_q^2)))``.
+
+Choices the paper leaves open (documented here, used everywhere):
+
+* the projected sigma uses ``f = sqrt(fx * fy)``;
+* ``E_col`` counts pairs of Gaussians on different chains, and palm Gaussians
+  against finger Gaussians beyond the first segment (neighbours on one chain
+  overlap by design); ``E(C_h, C_h)`` is computed once per model in the rest pose;
+* ``E_dan`` (eq. 7) measures how far a model Gaussian is from the data with an
+  occlusion-aware distance instead of the plain 3D distance to back-projected
+  quad centres (which calls every occluded or quad-interior Gaussian dangling
+  and pulls a correct pose away): lateral distance in mm at the Gaussian's depth
+  from its projected centre to the quad's extent, combined with how far the
+  data lie *behind* the model's surface (data in front of it are occluders, not
+  evidence of dangling).  The term is made continuous so that the gradient
+  exists almost everywhere: membership of the dangling set ``D`` is a weight
+  that ramps from 0 to 1 as the distance to the nearest data Gaussian grows from
+  ``TAU1_MM`` to ``2 TAU1_MM``; ``phi`` ramps from 0 to 1 between ``TAU1_MM`` and
+  ``TAU2_MM`` (the paper's ramp drops back to 0 beyond ``TAU2_MM``, a jump); the
+  sum over data Gaussians is divided by their number so the term does not grow
+  with image resolution;
+* ``E_smo`` (eq. 9) measures translations in units of ``SMOOTH_TRANSLATION_MM``
+  so that millimetres and radians are weighed alike.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.core.depth_sog import ImageSoG
+from hand_sog_tracker.core.hand_model import N_PARAMS, HandModel, rest_pose
+from hand_sog_tracker.core.kinematics import gaussian_centres
+from hand_sog_tracker.core.types import TrackerConfig
+
+__all__ = ["EnergyTerms", "Objective", "TAU1_MM", "TAU2_MM", "SMOOTH_TRANSLATION_MM"]
+
+TAU1_MM = 15.0
+TAU2_MM = 60.0
+SMOOTH_TRANSLATION_MM = 50.0
+_TWO_PI = 2.0 * np.pi
+_INV_SQRT2 = 1.0 / np.sqrt(2.0)
+
+
+@dataclass(frozen=True)
+class EnergyTerms:
+    """Values of the objective and its terms (unitless)."""
+
+    total: float
+    sim: float
+    col: float
+    dan: float
+    lim: float
+    smo: float
+
+
+@dataclass(frozen=True, eq=False)
+class _ModelConstants:
+    pair_i: NDArray[np.int64]
+    pair_j: NDArray[np.int64]
+    norm_h: float
+
+
+def _collision_pairs(model: HandModel) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    ch, sg = model.g_chain, model.g_segment
+    i, j = np.triu_indices(model.n_gaussians, k=1)
+    fingers = (ch[i] >= 0) & (ch[j] >= 0) & (ch[i] != ch[j])
+    palm_finger = ((ch[i] < 0) & (ch[j] >= 0) & (sg[j] >= 1)) | (
+        (ch[j] < 0) & (ch[i] >= 0) & (sg[i] >= 1)
+    )
+    keep = fingers | palm_finger
+    return i[keep], j[keep]
+
+
+_CONST_CACHE: dict[int, tuple[HandModel, _ModelConstants]] = {}
+
+
+def model_constants(model: HandModel) -> _ModelConstants:
+    """Collision pairs and ``E(C_h, C_h)`` of a model (cached per model object)."""
+    hit = _CONST_CACHE.get(id(model))
+    if hit is not None and hit[0] is model:
+        return hit[1]
+    pi, pj = _collision_pairs(model)
+    centres = gaussian_centres(model, rest_pose())
+    d2 = ((centres[:, None, :] - centres[None, :, :]) ** 2).sum(-1)
+    s2 = model.g_sigmas**2
+    ss = s2[:, None] + s2[None, :]
+    norm_h = float(((_TWO_PI * s2[:, None] * s2[None, :] / ss) ** 1.5 * np.exp(-0.5 * d2 / ss)).sum())
+    const = _ModelConstants(pair_i=pi, pair_j=pj, norm_h=norm_h)
+    if len(_CONST_CACHE) > 32:
+        _CONST_CACHE.clear()
+    _CONST_CACHE[id(model)] = (model, const)
+    return const
+
+
+@lru_cache(maxsize=1)
+def _smooth_scale() -> NDArray[np.float64]:
+    s = np.ones(N_PARAMS)
+    s[:3] = 1.0 / SMOOTH_TRANSLATION_MM
+    return s
+
+
+class Objective:
+    """The objective ``E(theta)`` for one frame.
+
+    Parameters
+    ----------
+    model : HandModel
+    data : ImageSoG
+        The frame's depth Gaussians.
+    config : TrackerConfig
+        Term weights ``w_col``, ``w_dan``, ``w_lim``, ``w_smo``.
+    previous : (theta_{t-1}, theta_{t-2}) or None
+        The two previous poses, shape (26,) each; None disables ``E_smo``.
+    """
+
+    def __init__(
+        self,
+        model: HandModel,
+        data: ImageSoG,
+        config: TrackerConfig,
+        previous: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    ) -> None:
+        self.model = model
+        self.data = data
+        self.config = config
+        self.previous = previous
+        self._const = model_constants(model)
+        intr = data.intrinsics
+        self._f = float(np.sqrt(intr.fx * intr.fy))
+
+    def __call__(
+        self, theta: NDArray[np.float64], gradient: bool = True
+    ) -> tuple[float, NDArray[np.float64] | None]:
+        """Return ``E(theta)`` and, with ``gradient``, ``dE/dtheta`` of shape (26,)."""
+        terms, grad = self.evaluate(theta, gradient)
+        return terms.total, grad
+
+    def evaluate(
+        self, theta: NDArray[np.float64], gradient: bool = True
+    ) -> tuple[EnergyTerms, NDArray[np.float64] | None]:
+        """Return every term of ``E(theta)`` and optionally the gradient, shape (26,)."""
+        cfg = self.config
+        if gradient:
+            P, J = gaussian_centres(self.model, theta, jacobian=True)
+        else:
+            P, J = gaussian_centres(self.model, theta), None
+        g3 = np.zeros_like(P) if gradient else None
+        sim, dan = self._data_terms(P, g3, cfg.w_dan)
+        col = self._collision(P, g3, cfg.w_col)
+        lim, g_lim = self._limits(theta)
+        smo, g_smo = self._smoothness(theta)
+        total = sim - cfg.w_col * col - cfg.w_dan * dan - cfg.w_lim * lim - cfg.w_smo * smo
+        terms = EnergyTerms(total=total, sim=sim, col=col, dan=dan, lim=lim, smo=smo)
+        if not gradient:
+            return terms, None
+        grad = np.einsum("mk,mkj->j", g3, J)
+        grad -= cfg.w_lim * g_lim + cfg.w_smo * g_smo
+        return terms, grad
+
+    # -- terms ---------------------------------------------------------------
+    def _data_terms(
+        self, P: NDArray[np.float64], g3: NDArray[np.float64] | None, w_dan: float
+    ) -> tuple[float, float]:
+        """``E_sim`` and ``E_dan``; adds ``dE/dP`` (with signs and weights) into ``g3``.
+
+        ``E_sim`` is summed over the pairs that can contribute: depth difference
+        under ``2 sigma_h`` (else ``Delta = 0`` exactly) and image distance under
+        6 combined standard deviations (else ``D_pq < 1.6e-8 D_pq^0``).
+        ``E_dan`` is evaluated on the rows of dangling Gaussians only.
+        """
+        data = self.data
+        if data.n == 0 or data.norm <= 0:
+            return 0.0, 0.0
+        intr = data.intrinsics
+        m = P.shape[0]
+        sh = self.model.g_sigmas
+        x, y, z = P[:, 0], P[:, 1], np.maximum(P[:, 2], 1.0)
+        u = intr.fx * x / z + intr.cx
+        v = intr.fy * y / z + intr.cy
+        sp = sh * self._f / z
+        dp = z - sh
+        sq2_all = data.sigma**2
+        # Candidate pairs (dense tests, sparse arithmetic).
+        du_d = u[:, None] - data.mu[None, :, 0]
+        dv_d = v[:, None] - data.mu[None, :, 1]
+        r2_d = du_d * du_d + dv_d * dv_d
+        dd_d = dp[:, None] - data.depth[None, :]
+        mask = (np.abs(dd_d) < 2.0 * sh[:, None]) & (r2_d < 36.0 * ((sp * sp)[:, None] + sq2_all[None, :]))
+        flat = np.flatnonzero(mask)
+        n = data.n
+        pi, qi = flat // n, flat % n
+        du, dv, r2, dd = du_d.take(flat), dv_d.take(flat), r2_d.take(flat), dd_d.take(flat)
+        sp2 = sp[pi] ** 2
+        sq2 = sq2_all[qi]
+        s2 = sp2 + sq2
+        inv_s2 = 1.0 / s2
+        e = np.exp(-0.5 * r2 * inv_s2)
+        D = _TWO_PI * sp2 * sq2 * inv_s2 * e
+        shp = sh[pi]
+        delta = 1.0 - np.abs(dd) / (2.0 * shp)
+        inv_norm = 1.0 / data.norm
+        sim = float((delta * D).sum() * inv_norm)
+        # Dangling Gaussians (eq. 7): distance from each model Gaussian to the
+        # data, occlusion-aware (see the module docstring).
+        half = data.sigma * _INV_SQRT2  # half the quad side, px
+        r_d = np.sqrt(r2_d)
+        lat_px = np.maximum(r_d - half[None, :], 0.0)
+        scale = (z / self._f)[:, None]  # mm per px at the model's depth
+        lat = lat_px * scale
+        behind = np.maximum(-dd_d, 0.0)  # data farther than the model's surface
+        dist = np.sqrt(lat * lat + behind * behind)
+        nearest = dist.argmin(axis=1)
+        dmin = dist[np.arange(m), nearest]
+        wdang = np.clip((dmin - TAU1_MM) / TAU1_MM, 0.0, 1.0)
+        rows = np.nonzero(wdang > 0.0)[0]
+        dan = 0.0
+        if rows.size:
+            dist_r = dist[rows]
+            phi = np.clip((dist_r - TAU1_MM) / (TAU2_MM - TAU1_MM), 0.0, 1.0)
+            s2r = (sp[rows] ** 2)[:, None] + sq2_all[None, :]
+            er = np.exp(-0.5 * r2_d[rows] / s2r)
+            per_p = (phi * (1.0 - er)).sum(1) / data.n
+            dan = float((wdang[rows] * per_p).sum())
+        if g3 is None:
+            return sim, dan
+        # d/d(u, v, sigma_p, d_p) of E_sim, accumulated per model Gaussian.
+        wD = delta * D * inv_norm
+        spp = sp[pi]
+        g_u = np.bincount(pi, weights=-wD * du * inv_s2, minlength=m)
+        g_v = np.bincount(pi, weights=-wD * dv * inv_s2, minlength=m)
+        g_sp = np.bincount(
+            pi, weights=wD * (2.0 / spp - 2.0 * spp * inv_s2 + r2 * spp * inv_s2 * inv_s2), minlength=m
+        )
+        g_dp = np.bincount(pi, weights=D * (-np.sign(dd) / (2.0 * shp)), minlength=m) * inv_norm
+        g_z = np.zeros(m)  # explicit z-dependence of the dangle distances
+        if rows.size and w_dan > 0:
+            wn = (w_dan * wdang[rows] / data.n)[:, None]
+            pe = wn * phi * er
+            inv_s2r = 1.0 / s2r
+            spr = sp[rows][:, None]
+            du_r, dv_r = du_d[rows], dv_d[rows]
+            # d(1 - e)/du = e du / s2 ; d(1 - e)/dsp = -e r2 sp / s2^2
+            g_u[rows] -= (pe * du_r * inv_s2r).sum(1)
+            g_v[rows] -= (pe * dv_r * inv_s2r).sum(1)
+            g_sp[rows] += (pe * r2_d[rows] * spr * inv_s2r * inv_s2r).sum(1)
+            # Derivatives of the distance: lat = max(r - half, 0) z / f, behind = max(dq - dp, 0).
+            lat_r, beh_r, r_r = lat[rows], behind[rows], np.maximum(r_d[rows], 1e-9)
+            inv_dist = 1.0 / np.maximum(dist_r, 1e-9)
+            on_lat = lat_px[rows] > 0.0
+            k_u = np.where(on_lat, lat_r * scale[rows] / r_r, 0.0) * inv_dist  # d dist / du per du
+            k_z = np.where(on_lat, lat_r * lat_px[rows] / self._f, 0.0) * inv_dist
+            k_dp = -beh_r * inv_dist  # d dist / d dp
+            ramp = (dist_r > TAU1_MM) & (dist_r < TAU2_MM)
+            c_phi = wn * np.where(ramp, 1.0 / (TAU2_MM - TAU1_MM), 0.0) * (1.0 - er)
+            # Through the dangling weight: d dmin / d(.) at the nearest data Gaussian.
+            on_ramp = (dmin[rows] > TAU1_MM) & (dmin[rows] < 2.0 * TAU1_MM)
+            c_min = np.zeros_like(c_phi)
+            c_min[np.arange(rows.size), nearest[rows]] = w_dan * on_ramp * per_p / TAU1_MM
+            c = c_phi + c_min
+            g_u[rows] -= (c * k_u * du_r).sum(1)
+            g_v[rows] -= (c * k_u * dv_r).sum(1)
+            g_z[rows] -= (c * k_z).sum(1)
+            g_dp[rows] -= (c * k_dp).sum(1)
+        f = self._f
+        g3[:, 0] += g_u * intr.fx / z
+        g3[:, 1] += g_v * intr.fy / z
+        g3[:, 2] += (
+            -g_u * intr.fx * x / (z * z)
+            - g_v * intr.fy * y / (z * z)
+            - g_sp * sh * f / (z * z)
+            + g_dp
+            + g_z
+        )
+        return sim, dan
+
+    def _collision(
+        self, P: NDArray[np.float64], g3: NDArray[np.float64] | None, w_col: float
+    ) -> float:
+        """``E_col`` (eq. 6); adds ``-w_col dE_col/dP`` into ``g3``."""
+        c = self._const
+        i, j = c.pair_i, c.pair_j
+        sh2 = self.model.g_sigmas**2
+        diff = P[i] - P[j]
+        r2 = (diff * diff).sum(1)
+        s2 = sh2[i] + sh2[j]
+        D = (_TWO_PI * sh2[i] * sh2[j] / s2) ** 1.5 * np.exp(-0.5 * r2 / s2)
+        col = float(D.sum() / c.norm_h)
+        if g3 is not None and w_col > 0:
+            g = (-(D / s2)[:, None] * diff) / c.norm_h  # dE_col/dP_i
+            m = P.shape[0]
+            for k in range(3):
+                g3[:, k] -= w_col * (
+                    np.bincount(i, weights=g[:, k], minlength=m)
+                    - np.bincount(j, weights=g[:, k], minlength=m)
+                )
+        return col
+
+    def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        """``E_lim`` (eq. 8) and its gradient, shape (26,)."""
+        q = theta[6:]
+        lo = np.minimum(q - self.model.limits_low, 0.0)
+        hi = np.maximum(q - self.model.limits_high, 0.0)
+        g = np.zeros(N_PARAMS)
+        g[6:] = 2.0 * (lo + hi)
+        return float((lo * lo).sum() + (hi * hi).sum()), g
+
+    def _smoothness(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        """``E_smo`` (eq. 9) and its gradient, shape (26,)."""
+        if self.previous is None:
+            return 0.0, np.zeros(N_PARAMS)
+        p1, p2 = self.previous
+        s = _smooth_scale()
+        r = s * (0.5 * (p2 + theta) - p1)
+        return float((r * r).sum()), r * s

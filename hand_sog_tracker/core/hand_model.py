@@ -1,0 +1,306 @@
+"""Kinematic skeleton and Sum-of-Gaussians volume of the hand (paper 000, sec. 4.2).
+
+Units: millimetres for every length, radians for every angle.
+
+Hand frame (right hand): origin at the wrist joint, ``x`` points across the
+palm toward the thumb side (radial), ``y`` points along the middle finger
+(distal), ``z`` is the palmar normal (out of the palm).  Flexion is a positive
+rotation about a segment's local ``x`` axis (it bends the finger toward the
+palm), abduction a rotation about the segment's local ``z`` axis.
+
+Pose vector (26,): ``tx ty tz`` (mm, camera optical frame), ``rx ry rz``
+(rad, global rotation ``R = Rz(rz) @ Rx(rx) @ Ry(ry)``), then for each chain in
+the order thumb, index, middle, ring, little: ``flex1 abd flex2 flex3``
+(thumb: CMC flexion, CMC abduction, MCP flexion, IP flexion; fingers: MCP
+flexion, MCP abduction, PIP flexion, DIP flexion).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Final
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.errors import InputError
+
+__all__ = [
+    "FINGERS",
+    "JOINT_NAMES",
+    "PARAM_NAMES",
+    "N_PARAMS",
+    "N_JOINTS",
+    "HandShape",
+    "HandModel",
+    "default_hand_model",
+    "rest_pose",
+    "rot_x",
+    "rot_y",
+    "rot_z",
+]
+
+FINGERS: Final[tuple[str, ...]] = ("thumb", "index", "middle", "ring", "little")
+_THUMB_JOINTS: Final = ("cmc_flex", "cmc_abd", "mcp_flex", "ip_flex")
+_FINGER_JOINTS: Final = ("mcp_flex", "mcp_abd", "pip_flex", "dip_flex")
+
+#: The 20 joint-angle names, in pose-vector order (published on JointState).
+JOINT_NAMES: Final[tuple[str, ...]] = tuple(
+    f"thumb_{j}" for j in _THUMB_JOINTS
+) + tuple(f"{f}_{j}" for f in FINGERS[1:] for j in _FINGER_JOINTS)
+#: All 26 pose-parameter names.
+PARAM_NAMES: Final[tuple[str, ...]] = ("tx", "ty", "tz", "rx", "ry", "rz") + JOINT_NAMES
+N_PARAMS: Final[int] = 26
+N_JOINTS: Final[int] = 20
+
+# Offsets inside one finger's 4-block of the pose vector.
+FLEX1, ABD, FLEX2, FLEX3 = 0, 1, 2, 3
+
+
+def rot_x(a: float) -> NDArray[np.float64]:
+    """Rotation matrix (3, 3) about x by ``a`` radians."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(a: float) -> NDArray[np.float64]:
+    """Rotation matrix (3, 3) about y by ``a`` radians."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(a: float) -> NDArray[np.float64]:
+    """Rotation matrix (3, 3) about z by ``a`` radians."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class HandShape:
+    """The four user-specific scale factors of paper 000, sec. 5.4 (unitless).
+
+    ``length`` scales lengths along the fingers and palm (hand y), ``width``
+    scales positions across the palm (hand x), ``depth`` scales the palm
+    thickness (hand z offsets) and ``sigma`` scales every Gaussian's standard
+    deviation (finger thickness).
+    """
+
+    length: float = 1.0
+    width: float = 1.0
+    depth: float = 1.0
+    sigma: float = 1.0
+
+    def as_array(self) -> NDArray[np.float64]:
+        """Return ``[length, width, depth, sigma]``, shape (4,)."""
+        return np.array([self.length, self.width, self.depth, self.sigma])
+
+    def __post_init__(self) -> None:
+        for name in ("length", "width", "depth", "sigma"):
+            v = float(getattr(self, name))
+            if not (0.3 <= v <= 3.0) or not np.isfinite(v):
+                raise InputError(f"HandShape.{name} must be in [0.3, 3.0], got {v!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class HandModel:
+    """A hand skeleton with isotropic 3D Gaussians attached to its bones.
+
+    Attributes
+    ----------
+    bases : array, shape (5, 3), mm
+        Position of each chain's first joint (thumb CMC, finger MCPs) in the hand frame.
+    rest_rotations : array, shape (5, 3, 3)
+        Orientation of each chain's first segment in the hand frame at zero angles.
+    lengths : array, shape (5, 3), mm
+        Segment lengths of each chain (thumb: metacarpal, proximal, distal).
+    g_chain : int array, shape (m,)
+        Chain (0 thumb .. 4 little) of each Gaussian, -1 for the palm.
+    g_segment : int array, shape (m,)
+        Segment (0, 1, 2) of each Gaussian along its chain; 0 for the palm.
+    g_offsets : array, shape (m, 3), mm
+        Gaussian centre in its segment's frame (palm: hand frame).
+    g_sigmas : array, shape (m,), mm
+        Standard deviation of each Gaussian; its 1-sigma sphere is the skin.
+    tip_index : int array, shape (5,)
+        Index of the Gaussian whose centre is each fingertip (the sphere that
+        rounds off the distal end, one finger radius inside the skin).
+    limits_low, limits_high : array, shape (20,), rad
+        Anatomical joint limits.
+    right : bool
+        ``False`` mirrors the model into a left hand (hand x is negated).
+    shape : HandShape
+        The scale factors this model was built with.
+    """
+
+    bases: NDArray[np.float64]
+    rest_rotations: NDArray[np.float64]
+    lengths: NDArray[np.float64]
+    g_chain: NDArray[np.int64]
+    g_segment: NDArray[np.int64]
+    g_offsets: NDArray[np.float64]
+    g_sigmas: NDArray[np.float64]
+    tip_index: NDArray[np.int64]
+    limits_low: NDArray[np.float64]
+    limits_high: NDArray[np.float64]
+    right: bool = True
+    shape: HandShape = field(default_factory=HandShape)
+
+    @property
+    def n_gaussians(self) -> int:
+        """Number of model Gaussians ``m``."""
+        return int(self.g_sigmas.shape[0])
+
+    @property
+    def tip_radii(self) -> NDArray[np.float64]:
+        """Radius (mm) of each fingertip sphere, shape (5,)."""
+        return self.g_sigmas[self.tip_index]
+
+    def scaled(self, shape: HandShape) -> "HandModel":
+        """Return the default hand of the same handedness scaled by ``shape``.
+
+        Scaling is always applied to the unscaled default geometry, so
+        ``m.scaled(a).scaled(b)`` equals ``m.scaled(b)``.
+        """
+        return _apply_shape(default_hand_model(self.right), shape)
+
+    def mirrored(self, right: bool) -> "HandModel":
+        """Return this model as a right (``True``) or left (``False``) hand."""
+        return replace(self, right=right)
+
+
+def _apply_shape(base: HandModel, shape: HandShape) -> HandModel:
+    s = np.array([shape.width, shape.length, shape.depth])
+    # Segment directions are rotated copies of y; scale lengths by the
+    # length factor and offsets along a segment the same way.
+    offsets = base.g_offsets.copy()
+    palm = base.g_chain < 0
+    offsets[palm] *= s
+    offsets[~palm, 1] *= shape.length
+    out = replace(
+        base,
+        bases=base.bases * s,
+        lengths=base.lengths * shape.length,
+        g_offsets=offsets,
+        g_sigmas=base.g_sigmas * shape.sigma,
+        shape=shape,
+    )
+    # Fingertip Gaussians sit one radius before the segment end: keep that
+    # relation exact after scaling length and sigma independently.
+    tips = base.tip_index
+    out.g_offsets[tips, 1] = out.lengths[:, 2] - out.g_sigmas[tips]
+    return out
+
+
+def _finger_gaussians(
+    chain: int, lengths: NDArray[np.float64], radii: NDArray[np.float64]
+) -> tuple[list[int], list[int], list[list[float]], list[float], int]:
+    """Gaussians along one chain: 2 on the first segment, 1-2 on the middle, 2 on the distal."""
+    seg, off, sig = [], [], []
+    l0, l1, l2 = lengths
+    r0, r1, r2 = radii
+    for frac in (0.3, 0.75):
+        seg.append(0), off.append([0.0, frac * l0, 0.0]), sig.append(r0)
+    n_mid = 2 if l1 > 2.2 * r1 else 1
+    for frac in ((0.3, 0.8) if n_mid == 2 else (0.55,)):
+        seg.append(1), off.append([0.0, frac * l1, 0.0]), sig.append(r1)
+    seg.append(2), off.append([0.0, 0.3 * l2, 0.0]), sig.append(r2)
+    seg.append(2), off.append([0.0, l2 - r2, 0.0]), sig.append(r2)
+    tip_local = len(seg) - 1
+    return [chain] * len(seg), seg, off, sig, tip_local
+
+
+def default_hand_model(right: bool = True) -> HandModel:
+    """Build the default adult right (or left) hand, about 185 mm wrist to middle tip.
+
+    Returns
+    -------
+    HandModel
+        Unscaled model (``HandShape()``), 41 Gaussians.
+    """
+    # Chain bases in the hand frame (mm): thumb CMC, then the four MCP joints.
+    bases = np.array(
+        [
+            [20.0, 24.0, 6.0],
+            [29.0, 86.0, 0.0],
+            [9.0, 90.0, 0.0],
+            [-10.0, 86.0, 0.0],
+            [-28.0, 78.0, 0.0],
+        ]
+    )
+    lengths = np.array(
+        [
+            [44.0, 32.0, 27.0],  # thumb metacarpal, proximal, distal
+            [40.0, 24.0, 21.0],
+            [45.0, 28.0, 22.0],
+            [42.0, 27.0, 22.0],
+            [33.0, 19.0, 19.0],
+        ]
+    )
+    radii = np.array(
+        [
+            [12.0, 10.0, 9.0],
+            [9.0, 8.0, 7.5],
+            [9.5, 8.5, 8.0],
+            [9.0, 8.0, 7.5],
+            [8.0, 7.0, 6.5],
+        ]
+    )
+    rest = np.empty((5, 3, 3))
+    # Thumb: points radially and distally, pronated so it flexes across the palm.
+    rest[0] = rot_z(-0.75) @ rot_y(0.9) @ rot_x(0.25)
+    # Fingers: slight fan-out, pointing along hand y.
+    for i, spread in enumerate((-0.08, 0.0, 0.07, 0.16), start=1):
+        rest[i] = rot_z(spread)
+    chains, segs, offs, sigs, tips = [], [], [], [], []
+    # Palm: a 4 x 3 grid of Gaussians from the wrist to the MCP row.
+    palm_rows = (18.0, 45.0, 70.0)
+    palm_cols = (24.0, 7.0, -10.0, -25.0)
+    for y in palm_rows:
+        for x in palm_cols:
+            x_at = x * (0.85 if y < 30 else 1.0)
+            chains.append(-1), segs.append(0), offs.append([x_at, y, 0.0]), sigs.append(12.5)
+    for c in range(5):
+        ch, sg, of, si, tip_local = _finger_gaussians(c, lengths[c], radii[c])
+        tips.append(len(chains) + tip_local)
+        chains += ch
+        segs += sg
+        offs += of
+        sigs += si
+    deg = np.deg2rad
+    # Limits in pose order per chain: flex1, abd, flex2, flex3.
+    low = np.array(
+        [deg(-20), deg(-45), deg(-20), deg(-25)]
+        + [deg(-25), deg(-25), deg(-5), deg(-10)] * 4
+    )
+    high = np.array(
+        [deg(60), deg(45), deg(80), deg(90)]
+        + [deg(95), deg(25), deg(110), deg(90)] * 4
+    )
+    return HandModel(
+        bases=bases,
+        rest_rotations=rest,
+        lengths=lengths,
+        g_chain=np.array(chains, dtype=np.int64),
+        g_segment=np.array(segs, dtype=np.int64),
+        g_offsets=np.array(offs, dtype=np.float64),
+        g_sigmas=np.array(sigs, dtype=np.float64),
+        tip_index=np.array(tips, dtype=np.int64),
+        limits_low=low,
+        limits_high=high,
+        right=right,
+    )
+
+
+def rest_pose(translation_mm: tuple[float, float, float] = (0.0, 0.0, 400.0)) -> NDArray[np.float64]:
+    """Open flat hand, palm toward the camera, fingers pointing up in the image.
+
+    Returns
+    -------
+    array, shape (26,)
+        Pose vector (mm, rad).
+    """
+    theta = np.zeros(N_PARAMS)
+    theta[:3] = translation_mm
+    theta[3] = np.pi  # Rx(pi): hand y -> camera -y (up), palm normal -> camera -z.
+    theta[6 + FLEX1] = 0.1
+    return theta

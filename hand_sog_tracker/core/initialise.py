@@ -1,0 +1,200 @@
+"""Automatic initialisation: find the hand in a depth image and propose start poses.
+
+No rest pose is required.  The nearest sizeable blob of in-range depth is taken
+as hand (plus forearm).  Its 3D principal axis gives the arm direction; the end
+of the blob that touches the image border is the forearm, so the hand lies at
+the other end (when neither end touches the border both are tried).  Start
+poses then combine palm toward / away from the camera, open / closed hand and
+in-plane rotations; the tracker keeps the one with the best objective.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.core.depth_sog import Preprocessed
+from hand_sog_tracker.core.hand_model import N_PARAMS, HandModel
+from hand_sog_tracker.core.types import TrackerConfig
+
+__all__ = ["HandBlob", "find_hand", "initial_hypotheses", "euler_from_matrix"]
+
+#: Smallest blob accepted as a hand: area in mm^2 at its depth (a palm is ~ 6000).
+MIN_BLOB_AREA_MM2 = 2500.0
+#: A blob reaching this far beyond its thickest point (and 1.4x farther than
+#: on the other side) is taken to hold a forearm on that side.
+FOREARM_MIN_EXTENT_MM = 150.0
+
+
+@dataclass(frozen=True, eq=False)
+class HandBlob:
+    """A hand candidate in the depth image (mm, camera frame).
+
+    Attributes
+    ----------
+    palm : array, shape (3,)
+        Estimated centre of the palm's bones (behind the visible surface).
+    directions : list of arrays, shape (3,)
+        Candidate unit vectors from the wrist toward the fingers, most likely first.
+    """
+
+    palm: NDArray[np.float64]
+    directions: list[NDArray[np.float64]]
+
+
+def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
+    depth = pre.depth_mm
+    mask = (depth > 0).astype(np.uint8)
+    if not mask.any():
+        return None
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    intr = pre.intrinsics
+    best, best_z = -1, np.inf
+    for lab in range(1, n):
+        area_px = stats[lab, cv2.CC_STAT_AREA]
+        if area_px < 20:
+            continue
+        z = float(np.median(depth[labels == lab]))
+        area_mm2 = area_px * (z / intr.fx) * (z / intr.fy)
+        if area_mm2 >= MIN_BLOB_AREA_MM2 and z < best_z:
+            best, best_z = lab, z
+    return None if best < 0 else labels == best
+
+
+def _in_plane(direction: NDArray[np.float64], angle: float) -> NDArray[np.float64]:
+    """Rotate a direction about the camera z axis by ``angle`` radians."""
+    c, s = np.cos(angle), np.sin(angle)
+    d = np.array([c * direction[0] - s * direction[1], s * direction[0] + c * direction[1], direction[2]])
+    return d / np.linalg.norm(d)
+
+
+def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
+    """Locate the nearest sizeable depth blob, its palm and candidate hand directions.
+
+    The palm centre is the point of the blob farthest from its outline
+    (distance-transform maximum), searched at the hand end when a forearm is
+    recognised.  Returns None when nothing in range is large enough to be a hand.
+    """
+    blob = _nearest_blob(pre)
+    if blob is None:
+        return None
+    depth = pre.depth_mm
+    intr = pre.intrinsics
+    vs, us = np.nonzero(blob)
+    zs = depth[vs, us].astype(np.float64)
+    pts = intr.backproject(np.stack([us, vs], 1).astype(np.float64), zs)
+    c = pts.mean(axis=0)
+    _, V = np.linalg.eigh(np.cov((pts - c).T))
+    axis = V[:, -1].copy()
+    axis[2] = 0.0
+    if np.linalg.norm(axis) < 1e-6:
+        axis = np.array([0.0, -1.0, 0.0])
+    axis /= np.linalg.norm(axis)
+    t = (pts - c) @ axis
+    h, w = depth.shape
+    border = (us <= 1) | (vs <= 1) | (us >= w - 2) | (vs >= h - 2)
+    dist = cv2.distanceTransform(blob.astype(np.uint8), cv2.DIST_L2, 5)
+    # Extent of the blob on either side of its thickest point along the axis:
+    # fingers reach about a hand length from the palm, a forearm much farther,
+    # and a forearm usually leaves the image.
+    k0 = int(np.argmax(dist[vs, us]))
+    t0 = t[k0]
+    ext_pos = float(np.percentile(t, 99) - t0)
+    ext_neg = float(t0 - np.percentile(t, 1))
+    sign = 0.0
+    if border.sum() >= 3 and abs(t[border].mean() - t0) > 30.0:
+        sign = -float(np.sign(t[border].mean() - t0))
+    elif max(ext_pos, ext_neg) > FOREARM_MIN_EXTENT_MM and max(ext_pos, ext_neg) > 1.4 * min(ext_pos, ext_neg):
+        sign = 1.0 if ext_pos < ext_neg else -1.0
+    if sign != 0.0:
+        # The hand end is the far side from the forearm.
+        hand_end = sign * t > np.percentile(sign * t, 40)
+        main = sign * axis
+        angles = (0.0, 0.6, -0.6, 1.2, -1.2)
+    else:
+        hand_end = np.ones_like(t, dtype=bool)
+        main = axis if -axis[1] >= 0 else -axis  # prefer fingers up in the image
+        angles = (0.0, np.pi, np.pi / 2, -np.pi / 2, np.pi / 4, -np.pi / 4, 3 * np.pi / 4, -3 * np.pi / 4)
+    dvals = dist[vs, us] * hand_end
+    k = int(np.argmax(dvals))
+    near = (np.abs(us - us[k]) <= 3) & (np.abs(vs - vs[k]) <= 3)
+    palm_surface = intr.backproject(
+        np.array([[us[k], vs[k]]], dtype=np.float64), np.array([np.median(zs[near])])
+    )[0]
+    palm = palm_surface + np.array([0.0, 0.0, 12.0])  # bones lie behind the skin
+    return HandBlob(palm=palm, directions=[_in_plane(main, a) for a in angles])
+
+
+def euler_from_matrix(R: NDArray[np.float64], rx_ref: float = np.pi) -> tuple[float, float, float]:
+    """Angles ``(rx, ry, rz)`` with ``R = Rz(rz) @ Rx(rx) @ Ry(ry)``.
+
+    Of the two solutions the one whose ``rx`` is nearer ``rx_ref`` is returned.
+    """
+    sx = float(np.clip(R[2, 1], -1.0, 1.0))
+    cx_abs = float(np.hypot(R[2, 0], R[2, 2]))
+    cands = []
+    for cx in (cx_abs, -cx_abs):
+        rx = float(np.arctan2(sx, cx))
+        if abs(cx) < 1e-9:
+            ry, rz = 0.0, float(np.arctan2(R[1, 0], R[0, 0]))
+        else:
+            ry = float(np.arctan2(-R[2, 0] / cx, R[2, 2] / cx))
+            rz = float(np.arctan2(-R[0, 1] / cx, R[1, 1] / cx))
+        d = np.angle(np.exp(1j * (rx - rx_ref)))
+        cands.append((abs(d), rx_ref + d, ry, rz))
+    _, rx, ry, rz = min(cands)
+    return rx, ry, rz
+
+
+def _frame(y_dir: NDArray[np.float64], palm_to_camera: bool, roll: float) -> NDArray[np.float64]:
+    """Hand-frame axes in camera coordinates (columns x, y, z)."""
+    y = y_dir / np.linalg.norm(y_dir)
+    view = np.array([0.0, 0.0, -1.0]) if palm_to_camera else np.array([0.0, 0.0, 1.0])
+    z = view - (view @ y) * y
+    if np.linalg.norm(z) < 1e-6:
+        z = np.array([1.0, 0.0, 0.0]) - y[0] * y
+    z /= np.linalg.norm(z)
+    x = np.cross(y, z)
+    R = np.stack([x, y, z], axis=1)
+    # Roll about the finger axis.
+    c, s = np.cos(roll), np.sin(roll)
+    Ry = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return R @ Ry
+
+
+_CLOSED = np.array(
+    [0.5, 0.3, 0.6, 0.6] + [1.3, 0.0, 1.5, 0.9] * 4
+)
+_HALF = np.array([0.2, 0.2, 0.3, 0.3] + [0.6, 0.0, 0.7, 0.4] * 4)
+_OPEN = np.array([0.1, 0.0, 0.1, 0.1] + [0.05, 0.0, 0.05, 0.05] * 4)
+
+
+def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray[np.float64]]:
+    """Up to ``n`` start poses (26,) for the hand in ``blob``, most likely first.
+
+    Each direction is tried with the palm toward and away from the camera,
+    open; the closed hand is added for the most likely direction.
+    """
+    palm_local = np.array([0.0, 0.55 * float(model.bases[2, 1]), 0.0])
+    combos = []
+    for i, d in enumerate(blob.directions):
+        combos.append((d, True, _OPEN))
+        combos.append((d, False, _OPEN))
+        if i == 0:
+            combos.append((d, True, _CLOSED))
+            combos.append((d, False, _CLOSED))
+    out = []
+    for d, palm, joints in combos:
+        # The mirror of a left hand acts inside the hand frame, so the same
+        # proper rotation puts a left or right hand's fingers along d.
+        R = _frame(d, palm, 0.0)
+        rx, ry, rz = euler_from_matrix(R)
+        theta = np.zeros(N_PARAMS)
+        theta[:3] = blob.palm - R @ palm_local
+        theta[3:6] = rx, ry, rz
+        theta[6:] = joints
+        out.append(theta)
+    return out[:n]

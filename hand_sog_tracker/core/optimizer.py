@@ -1,0 +1,134 @@
+"""Gradient ascent with adaptive, per-parameter step lengths (paper 000, sec. 5.3).
+
+The paper adopts the conditioned gradient ascent of Stoll et al. (2011): every
+parameter has its own step length, which grows while the gradient keeps its
+sign and shrinks when it flips.  We use that rule in its Rprop form (iRprop-):
+a step moves each parameter by its step length in the direction of its partial
+derivative, so millimetres and radians need no common scale, and a sign flip
+halves the step and skips that parameter once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.core.hand_model import N_PARAMS
+
+__all__ = ["OptimizeResult", "StepSizes", "maximise"]
+
+#: Objective signature: theta (26,) -> (value, gradient (26,)).
+ObjectiveFn = Callable[[NDArray[np.float64]], tuple[float, NDArray[np.float64] | None]]
+
+
+@dataclass(frozen=True)
+class StepSizes:
+    """Initial, minimum and maximum step lengths: translation (mm), global rotation
+    (rad) and joint angles (rad)."""
+
+    initial: tuple[float, float, float] = (2.0, 0.03, 0.06)
+    minimum: tuple[float, float, float] = (0.02, 2e-4, 5e-4)
+    maximum: tuple[float, float, float] = (15.0, 0.25, 0.4)
+    grow: float = 1.2
+    shrink: float = 0.5
+
+    def expand(self, which: tuple[float, float, float]) -> NDArray[np.float64]:
+        """Per-parameter vector, shape (26,), from a (translation, rotation, joint) triple."""
+        out = np.empty(N_PARAMS)
+        out[:3], out[3:6], out[6:] = which
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class OptimizeResult:
+    """Outcome of :func:`maximise`, with ``scipy.optimize.OptimizeResult`` field names.
+
+    Attributes
+    ----------
+    x : array, shape (26,)
+        Best pose found.
+    fun : float
+        Objective at ``x``.
+    nit : int
+        Iterations run.
+    success : bool
+        ``True`` when the objective did not decrease from the start.
+    status : int
+        0 iterations exhausted, 1 steps became negligible.
+    message : str
+    history : array, shape (nit + 1,)
+        Objective at the start and after each iteration.
+    """
+
+    x: NDArray[np.float64]
+    fun: float
+    nit: int
+    success: bool
+    status: int
+    message: str
+    history: NDArray[np.float64]
+
+
+def maximise(
+    fun: ObjectiveFn,
+    x0: NDArray[np.float64],
+    iterations: int = 10,
+    steps: StepSizes = StepSizes(),
+    active: NDArray[np.bool_] | None = None,
+    initial_scale: float = 1.0,
+) -> OptimizeResult:
+    """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps.
+
+    Parameters
+    ----------
+    fun : callable
+        ``theta -> (value, gradient)``.
+    x0 : array, shape (26,)
+        Start pose.
+    iterations : int
+        Gradient evaluations after the first.
+    steps : StepSizes
+    active : bool array, shape (26,), optional
+        Parameters allowed to move (default: all).
+    initial_scale : float
+        Multiplies the initial step lengths (e.g. larger when initialising).
+    """
+    x = np.array(x0, dtype=np.float64)
+    step = steps.expand(steps.initial) * initial_scale
+    lo, hi = steps.expand(steps.minimum), steps.expand(steps.maximum)
+    mask = np.ones(N_PARAMS, bool) if active is None else np.asarray(active, bool)
+    val, grad = fun(x)
+    assert grad is not None
+    best_x, best_val = x.copy(), val
+    history = [val]
+    prev_sign = np.zeros(N_PARAMS)
+    status, nit = 0, 0
+    for nit in range(1, iterations + 1):
+        sign = np.sign(grad) * mask
+        agree = sign * prev_sign
+        step = np.where(agree > 0, np.minimum(step * steps.grow, hi), step)
+        step = np.where(agree < 0, np.maximum(step * steps.shrink, lo), step)
+        sign = np.where(agree < 0, 0.0, sign)
+        x = x + step * sign
+        prev_sign = sign
+        val, grad = fun(x)
+        assert grad is not None
+        history.append(val)
+        if val > best_val:
+            best_x, best_val = x.copy(), val
+        if np.all((step <= lo * 1.0001) | ~mask):
+            status = 1
+            break
+    start = history[0]
+    return OptimizeResult(
+        x=best_x,
+        fun=float(best_val),
+        nit=nit,
+        success=bool(best_val >= start),
+        status=status,
+        message="step lengths became negligible" if status == 1 else "iterations exhausted",
+        history=np.asarray(history),
+    )

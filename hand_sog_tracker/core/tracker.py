@@ -1,0 +1,335 @@
+"""Frame-to-frame hand tracker: depth in, 26-DOF pose and fingertips out.
+
+Units: depth images and every position in millimetres, camera optical frame
+(x right, y down, z forward); angles in radians.
+
+Per frame (paper 000, sec. 5): preprocess and cluster the depth near the last
+hand position into Gaussians, start from the pose extrapolated from the last
+two frames, and run the adaptive gradient ascent on the objective.  When there
+is no track yet (first frame, or after a loss) the tracker finds the hand in
+the depth by itself and tries several starting poses (see :mod:`.initialise`).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess, quadtree_sog
+from hand_sog_tracker.core.energy import Objective
+from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
+from hand_sog_tracker.core.initialise import find_hand, initial_hypotheses
+from hand_sog_tracker.core.kinematics import (
+    fingertips,
+    gaussian_centres,
+    global_rotation,
+    skeleton_points,
+)
+from hand_sog_tracker.core.optimizer import OptimizeResult, maximise
+from hand_sog_tracker.core.types import (
+    Intrinsics,
+    TrackerConfig,
+    TrackerStatus,
+    TrackResult,
+)
+
+__all__ = ["Tracker", "coverage", "hand_roi"]
+
+#: Velocity extrapolation factor of the start pose (paper: alpha = 0.5).
+ALPHA = 0.5
+#: Iterations per hypothesis while initialising, and for the best one after.
+INIT_ITERATIONS = (12, 30)
+#: A fingertip this far from all data (mm) triggers a restart of its finger.
+RESTART_TIP_MM = 25.0
+RESTART_ITERATIONS = 5
+_EXTENDED = np.array([0.1, 0.0, 0.1, 0.1])
+_CURLED = np.array([1.3, 0.0, 1.5, 0.9])
+#: Data farther than this beyond the wrist plane are treated as forearm (mm).
+WRIST_MARGIN_MM = 15.0
+
+
+def gaussian_support(model: HandModel, theta: NDArray[np.float64], data: ImageSoG) -> NDArray[np.float64]:
+    """How well the data explain each model Gaussian at ``theta``, shape (m,), in [0, 1].
+
+    For Gaussian ``p`` the depth-weighted overlap with the data,
+    ``sum_q Delta_pq D_pq``, divided by its value under a gap-free data tiling
+    at the right depth (``2 pi^2 sigma_p^2``, px), capped at 1.
+    """
+    if data.n == 0:
+        return np.zeros(model.n_gaussians)
+    intr = data.intrinsics
+    P = gaussian_centres(model, theta)
+    z = np.maximum(P[:, 2], 1.0)
+    uv = np.stack([intr.fx * P[:, 0] / z + intr.cx, intr.fy * P[:, 1] / z + intr.cy], 1)
+    sp2 = (model.g_sigmas * np.sqrt(intr.fx * intr.fy) / z)[:, None] ** 2
+    sq2 = data.sigma[None, :] ** 2
+    s2 = sp2 + sq2
+    r2 = ((uv[:, None, :] - data.mu[None, :, :]) ** 2).sum(-1)
+    D = 2 * np.pi * sp2 * sq2 / s2 * np.exp(-0.5 * r2 / s2)
+    dd = np.abs((z - model.g_sigmas)[:, None] - data.depth[None, :])
+    delta = np.clip(1.0 - dd / (2.0 * model.g_sigmas[:, None]), 0.0, None)
+    support = (delta * D).sum(1) / (2 * np.pi**2 * sp2[:, 0])
+    return np.minimum(support, 1.0)
+
+
+def coverage(model: HandModel, theta: NDArray[np.float64], data: ImageSoG) -> float:
+    """How well the data explain the model at ``theta``, in [0, 1].
+
+    The mean :func:`gaussian_support` over the best-supported two thirds of
+    the Gaussians (the rest may be legitimately occluded).
+    """
+    support = np.sort(gaussian_support(model, theta, data))[::-1]
+    keep = max(1, (2 * support.size) // 3)
+    return float(support[:keep].mean())
+
+
+def hand_roi(
+    model: HandModel, theta: NDArray[np.float64], intr: Intrinsics, radius_mm: float
+) -> tuple[tuple[int, int, int, int], tuple[float, float]]:
+    """Pixel box and depth window around the hand at ``theta``.
+
+    Returns
+    -------
+    roi : (u0, v0, u1, v1)
+        End-exclusive pixel box at the resolution of ``intr``.
+    window : (near_mm, far_mm)
+    """
+    P = gaussian_centres(model, theta)
+    c = P.mean(axis=0)
+    z = max(c[2], 50.0)
+    uv = intr.project(c[None, :])[0]
+    r_px = radius_mm * max(intr.fx, intr.fy) / max(z - radius_mm * 0.5, 50.0)
+    roi = (
+        int(np.floor(uv[0] - r_px)),
+        int(np.floor(uv[1] - r_px)),
+        int(np.ceil(uv[0] + r_px)) + 1,
+        int(np.ceil(uv[1] + r_px)) + 1,
+    )
+    return roi, (c[2] - radius_mm, c[2] + radius_mm)
+
+
+class Tracker:
+    """Tracks one hand through a depth sequence.
+
+    Parameters
+    ----------
+    config : TrackerConfig, optional
+    model : HandModel, optional
+        Hand model (mm); default: the default adult hand of ``config.right_hand``.
+    """
+
+    def __init__(self, config: TrackerConfig | None = None, model: HandModel | None = None) -> None:
+        self._config = config or TrackerConfig()
+        base = model if model is not None else default_hand_model(self._config.right_hand)
+        self._model = base.mirrored(self._config.right_hand)
+        self._prev: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+        self._low_frames = 0
+        self._status = TrackerStatus.NO_HAND
+
+    @property
+    def config(self) -> TrackerConfig:
+        """The tracker's configuration."""
+        return self._config
+
+    @property
+    def model(self) -> HandModel:
+        """The hand model in use (handedness applied)."""
+        return self._model
+
+    @property
+    def status(self) -> TrackerStatus:
+        """Status after the last processed frame."""
+        return self._status
+
+    @property
+    def last_pose(self) -> NDArray[np.float64] | None:
+        """Pose (26,) of the last tracked frame, or None."""
+        return None if self._prev is None else self._prev[0].copy()
+
+    def set_model(self, model: HandModel) -> None:
+        """Use another hand model (e.g. after calibration); keeps the track."""
+        self._model = model.mirrored(self._config.right_hand)
+
+    def set_config(self, config: TrackerConfig) -> None:
+        """Change the configuration; a handedness change also resets the track."""
+        if config.right_hand != self._config.right_hand:
+            self._model = self._model.mirrored(config.right_hand)
+            self.reset()
+        self._config = config
+
+    def reset(self) -> None:
+        """Forget the track: the next frame initialises from scratch."""
+        self._prev = None
+        self._low_frames = 0
+        self._status = TrackerStatus.NO_HAND
+
+    def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
+        """Track the hand in one depth frame.
+
+        Parameters
+        ----------
+        depth_mm : array, shape (H, W)
+            Depth in millimetres; 0, NaN and Inf are invalid.
+        intrinsics : Intrinsics
+            Intrinsics of this image (same H, W).
+
+        Raises
+        ------
+        DepthImageError, IntrinsicsError
+            When the frame cannot be used; the track is left untouched.
+        """
+        t0 = time.perf_counter()
+        cfg = self._config
+        pre = preprocess(depth_mm, intrinsics, cfg)  # raises before any state change
+        t1 = time.perf_counter()
+        if self._prev is not None:
+            result = self._track(pre)
+        else:
+            result = self._initialise(pre)
+        t2 = time.perf_counter()
+        result.timings_ms["preprocess"] = (t1 - t0) * 1e3
+        result.timings_ms.setdefault("quadtree", 0.0)
+        result.timings_ms["optimise"] = (t2 - t1) * 1e3 - result.timings_ms["quadtree"]
+        result.timings_ms["total"] = (t2 - t0) * 1e3
+        return result
+
+    # -- internals -----------------------------------------------------------
+    def _data_near(self, pre: Preprocessed, theta: NDArray[np.float64]) -> ImageSoG:
+        """Data Gaussians around the hand at ``theta``, without the forearm.
+
+        Quads beyond the wrist (more than ``WRIST_MARGIN_MM`` on the arm side of
+        the plane through the wrist normal to the hand's long axis) are
+        dropped: the model has no forearm, and forearm data would pull the palm
+        down the arm.
+        """
+        roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
+        data = quadtree_sog(
+            pre, self._config.quadtree_threshold_mm, roi, window, self._config.min_quad_px
+        )
+        if data.n == 0:
+            return data
+        axis = global_rotation(theta)[:, 1]
+        along = (data.points - theta[:3]) @ axis
+        keep = along > -WRIST_MARGIN_MM
+        return data if keep.all() else data.subset(keep)
+
+    def _track(self, pre: Preprocessed) -> TrackResult:
+        cfg = self._config
+        assert self._prev is not None
+        p1, p2 = self._prev
+        # The paper prints Theta_{t-1} + alpha Theta_{t-2}; we read it as a
+        # constant-velocity extrapolation damped by alpha.
+        x0 = p1 + ALPHA * (p1 - p2)
+        tq = time.perf_counter()
+        data = self._data_near(pre, x0)
+        tq2 = time.perf_counter()
+        obj = Objective(self._model, data, cfg, previous=(p1, p2))
+        res = maximise(obj, x0, iterations=cfg.iterations)
+        res = self._finger_restarts(obj, res, data)
+        conf = coverage(self._model, res.x, data)
+        if conf < cfg.lost_confidence:
+            self._low_frames += 1
+        else:
+            self._low_frames = 0
+        if self._low_frames >= cfg.lost_frames or data.n == 0:
+            self._prev = None
+            self._low_frames = 0
+            self._status = TrackerStatus.LOST
+            return self._result(None, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3})
+        self._prev = (res.x, p1)
+        self._status = TrackerStatus.TRACKING
+        return self._result(res.x, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3})
+
+    def _finger_restarts(self, obj: Objective, res: OptimizeResult, data: ImageSoG) -> OptimizeResult:
+        """Restart a dangling finger from other configurations (seed 004).
+
+        When a fingertip is farther than ``RESTART_TIP_MM`` from every data
+        point, the finger hangs in empty space (typically left extended over a
+        fist).  The chain whose tip is farthest is re-set to an extended, a
+        curled and (for the four fingers) the other fingers' mean
+        configuration; each candidate gets ``RESTART_ITERATIONS`` iterations
+        and the best objective wins.  At most one chain per frame.
+        """
+        if data.n == 0:
+            return res
+        tips = fingertips(self._model, res.x)
+        d2 = ((tips[:, None, :] - data.points[None, :, :]) ** 2).sum(-1)
+        far = np.sqrt(d2.min(axis=1))
+        c = int(np.argmax(far))
+        if far[c] < RESTART_TIP_MM:
+            return res
+        sl = slice(6 + 4 * c, 10 + 4 * c)
+        candidates = [_EXTENDED, _CURLED]
+        if c > 0:
+            others = [k for k in range(1, 5) if k != c]
+            candidates.append(np.mean([res.x[6 + 4 * k : 10 + 4 * k] for k in others], axis=0))
+        best = res
+        for joints in candidates:
+            x0 = res.x.copy()
+            x0[sl] = joints
+            cand = maximise(obj, x0, iterations=RESTART_ITERATIONS)
+            if cand.fun > best.fun:
+                best = cand
+        return best
+
+    def _initialise(self, pre: Preprocessed) -> TrackResult:
+        cfg = self._config
+        blob = find_hand(pre, cfg)
+        if blob is None:
+            self._status = TrackerStatus.NO_HAND
+            return self._result(None, 0.0, 0.0, 0, {})
+        best = None
+        for x0 in initial_hypotheses(self._model, blob, cfg.init_hypotheses):
+            data = self._data_near(pre, x0)
+            if data.n == 0:
+                continue
+            obj = Objective(self._model, data, cfg)
+            res = maximise(obj, x0, iterations=INIT_ITERATIONS[0], initial_scale=2.0)
+            if best is None or res.fun > best[0].fun:
+                best = (res, data)
+        if best is None:
+            self._status = TrackerStatus.NO_HAND
+            return self._result(None, 0.0, 0.0, 0, {})
+        res0, _ = best
+        data = self._data_near(pre, res0.x)
+        res = maximise(Objective(self._model, data, cfg), res0.x, iterations=INIT_ITERATIONS[1])
+        conf = coverage(self._model, res.x, data)
+        if conf < cfg.lost_confidence:
+            self._status = TrackerStatus.NO_HAND
+            return self._result(None, conf, res.fun, data.n, {})
+        self._prev = (res.x, res.x)
+        self._low_frames = 0
+        self._status = TrackerStatus.TRACKING
+        return self._result(res.x, conf, res.fun, data.n, {})
+
+    def _result(
+        self,
+        theta: NDArray[np.float64] | None,
+        conf: float,
+        energy: float,
+        n: int,
+        timings: dict[str, float],
+    ) -> TrackResult:
+        if theta is None:
+            return TrackResult(
+                status=self._status,
+                pose=None,
+                fingertips_mm=None,
+                skeleton_mm=None,
+                confidence=float(conf),
+                energy=float(energy),
+                n_image_gaussians=n,
+                timings_ms=dict(timings),
+            )
+        return TrackResult(
+            status=self._status,
+            pose=theta.copy(),
+            fingertips_mm=fingertips(self._model, theta),
+            skeleton_mm=skeleton_points(self._model, theta),
+            confidence=float(conf),
+            energy=float(energy),
+            n_image_gaussians=n,
+            timings_ms=dict(timings),
+        )

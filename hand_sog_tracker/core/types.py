@@ -1,0 +1,149 @@
+"""Value types shared by the core, the ROS layer and the tools."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.errors import InputError, IntrinsicsError
+
+__all__ = ["Intrinsics", "TrackerConfig", "TrackerStatus", "TrackResult"]
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of a depth image (pixels).
+
+    ``fx, fy`` focal lengths, ``cx, cy`` principal point, ``width, height``
+    image size the intrinsics belong to.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        vals = (self.fx, self.fy, self.cx, self.cy)
+        if not all(np.isfinite(v) for v in vals) or self.fx <= 0 or self.fy <= 0:
+            raise IntrinsicsError(
+                f"focal lengths must be finite and positive, got fx={self.fx}, fy={self.fy}"
+            )
+        if self.width <= 0 or self.height <= 0:
+            raise IntrinsicsError(f"image size must be positive, got {self.width}x{self.height}")
+
+    def scaled(self, factor: float) -> "Intrinsics":
+        """Intrinsics of the image resized by ``factor`` (pixel centres kept aligned)."""
+        return Intrinsics(
+            fx=self.fx * factor,
+            fy=self.fy * factor,
+            cx=(self.cx + 0.5) * factor - 0.5,
+            cy=(self.cy + 0.5) * factor - 0.5,
+            width=int(round(self.width * factor)),
+            height=int(round(self.height * factor)),
+        )
+
+    def project(self, points_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Project camera-frame points, shape (k, 3) mm, to pixels, shape (k, 2)."""
+        p = np.asarray(points_mm, dtype=np.float64)
+        z = p[:, 2]
+        return np.stack([self.fx * p[:, 0] / z + self.cx, self.fy * p[:, 1] / z + self.cy], axis=1)
+
+    def backproject(self, uv: NDArray[np.float64], z_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Back-project pixels (k, 2) at depths (k,) mm to camera points (k, 3) mm."""
+        uv = np.asarray(uv, dtype=np.float64)
+        z = np.asarray(z_mm, dtype=np.float64)
+        x = (uv[:, 0] - self.cx) * z / self.fx
+        y = (uv[:, 1] - self.cy) * z / self.fy
+        return np.stack([x, y, z], axis=1)
+
+
+class TrackerStatus(enum.Enum):
+    """Per-frame state of the tracker."""
+
+    NO_HAND = "no_hand"  #: nothing hand-like in range; no pose output
+    TRACKING = "tracking"  #: pose valid
+    LOST = "lost"  #: the model no longer explains the data; re-initialising
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Every tunable of the core tracker (units in the names)."""
+
+    near_mm: float = 150.0
+    far_mm: float = 600.0
+    quadtree_threshold_mm: float = 20.0
+    min_quad_px: int = 4  #: smallest quadtree leaf side at processing resolution: 2, 4 or 8
+    median_kernel: int = 3  #: 0 or 1 disables the median filter; else odd 3 or 5
+    max_width_px: int = 320  #: images wider than this are decimated first
+    iterations: int = 10
+    w_col: float = 1.0
+    w_dan: float = 0.1
+    w_lim: float = 0.2
+    w_smo: float = 0.0  #: paper: 1.0; see energy.py for why the default is 0
+    right_hand: bool = True
+    roi_radius_mm: float = 160.0  #: data farther than this from the last hand centre is ignored
+    lost_confidence: float = 0.35  #: confidence below this for ``lost_frames`` frames means LOST
+    lost_frames: int = 3
+    init_hypotheses: int = 16  #: starting poses tried when (re)initialising
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.near_mm < self.far_mm):
+            raise InputError(f"need 0 < near_mm < far_mm, got {self.near_mm}, {self.far_mm}")
+        if self.quadtree_threshold_mm <= 0:
+            raise InputError("quadtree_threshold_mm must be positive")
+        if self.min_quad_px not in (2, 4, 8):
+            raise InputError(f"min_quad_px must be 2, 4 or 8, got {self.min_quad_px}")
+        if self.median_kernel not in (0, 1, 3, 5):
+            raise InputError(f"median_kernel must be 0, 1, 3 or 5, got {self.median_kernel}")
+        if self.max_width_px < 80:
+            raise InputError("max_width_px must be at least 80")
+        if not (1 <= self.iterations <= 200):
+            raise InputError("iterations must be in [1, 200]")
+        for w in ("w_col", "w_dan", "w_lim", "w_smo"):
+            if getattr(self, w) < 0:
+                raise InputError(f"{w} must be >= 0")
+        if self.roi_radius_mm <= 0:
+            raise InputError("roi_radius_mm must be positive")
+        if not (0.0 <= self.lost_confidence <= 1.0):
+            raise InputError("lost_confidence must be in [0, 1]")
+        if self.lost_frames < 1 or self.init_hypotheses < 1:
+            raise InputError("lost_frames and init_hypotheses must be >= 1")
+
+
+@dataclass(frozen=True, eq=False)
+class TrackResult:
+    """Output of :meth:`Tracker.process` for one frame.
+
+    Attributes
+    ----------
+    status : TrackerStatus
+    pose : array, shape (26,) or None
+        Pose vector (mm, rad); ``None`` unless ``status`` is TRACKING.
+    fingertips_mm : array, shape (5, 3) or None
+        Fingertip centres, camera optical frame, mm (thumb .. little).
+    skeleton_mm : array, shape (21, 3) or None
+        Skeleton joints (see :func:`kinematics.skeleton_points`), mm.
+    confidence : float
+        In [0, 1]: how well the model explains the data near the hand.
+    energy : float
+        Objective value E of the final pose.
+    n_image_gaussians : int
+        Quadtree leaves used as data.
+    timings_ms : dict
+        Wall time per stage: ``preprocess``, ``quadtree``, ``optimise``, ``total``.
+    """
+
+    status: TrackerStatus
+    pose: NDArray[np.float64] | None
+    fingertips_mm: NDArray[np.float64] | None
+    skeleton_mm: NDArray[np.float64] | None
+    confidence: float
+    energy: float
+    n_image_gaussians: int
+    timings_ms: dict[str, float] = field(default_factory=dict)

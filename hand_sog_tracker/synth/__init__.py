@@ -1,0 +1,23 @@
+"""Synthetic depth data with ground truth: a ray-cast surface hand (not the tracker's Gaussians).
+
+NumPy only.  See :mod:`~hand_sog_tracker.synth.render` (the renderer),
+:mod:`~hand_sog_tracker.synth.motions` (scripted Dexter-1-like motions) and
+:mod:`~hand_sog_tracker.synth.sequence` (rendered sequences with ground truth).
+"""
+
+from __future__ import annotations
+
+from hand_sog_tracker.synth.motions import MOTIONS, default_start_pose, motion_poses
+from hand_sog_tracker.synth.render import RenderOptions, render_depth
+from hand_sog_tracker.synth.sequence import SyntheticFrame, default_intrinsics, synthetic_sequence
+
+__all__ = [
+    "MOTIONS",
+    "RenderOptions",
+    "SyntheticFrame",
+    "default_intrinsics",
+    "default_start_pose",
+    "motion_poses",
+    "render_depth",
+    "synthetic_sequence",
+]

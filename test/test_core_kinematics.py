@@ -1,0 +1,134 @@
+"""Forward kinematics, Jacobians and the hand model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hand_sog_tracker.core.hand_model import (
+    JOINT_NAMES,
+    N_PARAMS,
+    PARAM_NAMES,
+    HandShape,
+    default_hand_model,
+    rest_pose,
+)
+from hand_sog_tracker.core.initialise import euler_from_matrix
+from hand_sog_tracker.core.kinematics import (
+    attached_points,
+    fingertips,
+    gaussian_centres,
+    global_rotation,
+    skeleton_points,
+)
+from hand_sog_tracker.errors import InputError
+
+
+def random_pose(rng: np.random.Generator) -> np.ndarray:
+    theta = rest_pose((rng.uniform(-50, 50), rng.uniform(-50, 50), rng.uniform(300, 500)))
+    theta[3:6] += rng.uniform(-1.5, 1.5, 3)
+    theta[6:] = rng.uniform(-0.4, 1.2, 20)
+    return theta
+
+
+def test_parameter_names() -> None:
+    assert len(PARAM_NAMES) == N_PARAMS == 26
+    assert len(JOINT_NAMES) == 20 and len(set(JOINT_NAMES)) == 20
+    assert JOINT_NAMES[:4] == ("thumb_cmc_flex", "thumb_cmc_abd", "thumb_mcp_flex", "thumb_ip_flex")
+    assert JOINT_NAMES[4:8] == ("index_mcp_flex", "index_mcp_abd", "index_pip_flex", "index_dip_flex")
+    assert JOINT_NAMES[-1] == "little_dip_flex"
+
+
+@pytest.mark.parametrize("right", [True, False])
+def test_jacobian_matches_central_differences(right: bool) -> None:
+    rng = np.random.default_rng(11 if right else 12)
+    model = default_hand_model(right)
+    for _ in range(5):
+        theta = random_pose(rng)
+        _, J = gaussian_centres(model, theta, jacobian=True)
+        Jn = np.zeros_like(J)
+        for j in range(N_PARAMS):
+            e = np.zeros(N_PARAMS)
+            e[j] = 1e-6
+            Jn[:, :, j] = (gaussian_centres(model, theta + e) - gaussian_centres(model, theta - e)) / 2e-6
+        np.testing.assert_allclose(J, Jn, atol=1e-5 * max(1.0, np.abs(Jn).max()))
+
+
+def test_batched_points_equal_one_at_a_time() -> None:
+    rng = np.random.default_rng(3)
+    model = default_hand_model()
+    theta = random_pose(rng)
+    all_pts = gaussian_centres(model, theta)
+    for k in rng.choice(model.n_gaussians, 6, replace=False):
+        one = attached_points(
+            model, theta, model.g_chain[k : k + 1], model.g_segment[k : k + 1], model.g_offsets[k : k + 1]
+        )
+        np.testing.assert_allclose(one[0], all_pts[k])
+
+
+def test_rest_pose_geometry() -> None:
+    model = default_hand_model()
+    theta = rest_pose((0.0, 0.0, 400.0))
+    skel = skeleton_points(model, theta)
+    assert skel.shape == (21, 3)
+    # Palm toward the camera, fingers up (-y in the image), all at the wrist depth.
+    tips = fingertips(model, theta)
+    assert np.all(tips[1:, 1] < -120.0)
+    np.testing.assert_allclose(tips[1:, 2], 400.0, atol=1e-9)
+    # Index on the thumb side (+x for a right hand seen palm-on), little on the other.
+    assert tips[1, 0] > tips[4, 0]
+    # Fingertip = one tip radius back from the bone end along the distal bone.
+    bone_end = skel[[4, 8, 12, 16, 20]]
+    np.testing.assert_allclose(np.linalg.norm(bone_end - tips, axis=1), model.tip_radii, rtol=1e-9)
+
+
+def test_left_hand_is_mirror_image() -> None:
+    theta = rest_pose((0.0, 0.0, 400.0))
+    right = fingertips(default_hand_model(True), theta)
+    left = fingertips(default_hand_model(False), theta)
+    np.testing.assert_allclose(left[:, 0], -right[:, 0])
+    np.testing.assert_allclose(left[:, 1:], right[:, 1:])
+
+
+def test_flexion_bends_toward_palm() -> None:
+    model = default_hand_model()
+    theta = rest_pose((0.0, 0.0, 400.0))
+    bent = theta.copy()
+    bent[6 + 4 * 2 + 0] = 1.2  # middle MCP flexion
+    # The palm faces the camera (-z), so flexion brings the tip closer to it.
+    assert fingertips(model, bent)[2, 2] < fingertips(model, theta)[2, 2] - 50.0
+
+
+def test_shape_scaling() -> None:
+    base = default_hand_model()
+    big = base.scaled(HandShape(length=1.1, width=1.2, depth=1.0, sigma=0.9))
+    np.testing.assert_allclose(big.lengths, base.lengths * 1.1)
+    np.testing.assert_allclose(big.bases[:, 0], base.bases[:, 0] * 1.2)
+    np.testing.assert_allclose(big.g_sigmas, base.g_sigmas * 0.9)
+    # Re-scaling starts from the default, not from the scaled model.
+    again = big.scaled(HandShape())
+    np.testing.assert_allclose(again.g_offsets, base.g_offsets)
+    with pytest.raises(InputError):
+        HandShape(length=5.0)
+
+
+def test_euler_round_trip() -> None:
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        theta = np.zeros(N_PARAMS)
+        theta[3:6] = rng.uniform(-3.0, 3.0, 3)
+        R = global_rotation(theta)
+        rx, ry, rz = euler_from_matrix(R, rx_ref=float(theta[3]))
+        back = theta.copy()
+        back[3:6] = rx, ry, rz
+        np.testing.assert_allclose(global_rotation(back), R, atol=1e-9)
+
+
+def test_bad_pose_rejected() -> None:
+    model = default_hand_model()
+    with pytest.raises(InputError):
+        gaussian_centres(model, np.zeros(25))
+    bad = rest_pose()
+    bad[7] = np.nan
+    with pytest.raises(InputError):
+        gaussian_centres(model, bad)

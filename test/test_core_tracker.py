@@ -1,0 +1,87 @@
+"""The tracker end to end on rendered sequences with ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hand_sog_tracker.core.hand_model import HandShape
+from hand_sog_tracker.core.tracker import Tracker
+from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
+from hand_sog_tracker.errors import DepthImageError, IntrinsicsError
+from hand_sog_tracker.synth.render import RenderOptions
+from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
+
+
+def track(motion: str, n: int, **kw) -> tuple[np.ndarray, list[TrackerStatus]]:
+    """Mean fingertip error (mm) per frame, and the statuses."""
+    intr = kw.pop("intrinsics", default_intrinsics())
+    config = kw.pop("config", TrackerConfig())
+    tracker = Tracker(config)
+    errs, statuses = [], []
+    for frame in synthetic_sequence(motion, n, intrinsics=intr, **kw):
+        res = tracker.process(frame.depth_mm, intr)
+        statuses.append(res.status)
+        if res.fingertips_mm is None:
+            errs.append(np.inf)
+        else:
+            errs.append(float(np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).mean()))
+    return np.asarray(errs), statuses
+
+
+def test_tracks_finger_articulation_from_an_automatic_start() -> None:
+    errs, statuses = track("flexex", 30, seed=1)
+    assert all(s is TrackerStatus.TRACKING for s in statuses)
+    assert errs.mean() < 12.0, errs.round(1)
+
+
+def test_left_hand_and_640x480() -> None:
+    errs, statuses = track(
+        "abdadd",
+        15,
+        seed=2,
+        right=False,
+        intrinsics=default_intrinsics(640, 480),
+        config=TrackerConfig(right_hand=False),
+    )
+    assert statuses[-1] is TrackerStatus.TRACKING
+    assert errs.mean() < 15.0, errs.round(1)
+
+
+def test_no_hand_and_bad_frames_leave_the_state_alone() -> None:
+    intr = default_intrinsics()
+    tracker = Tracker()
+    empty = np.zeros((intr.height, intr.width), np.float32)
+    res = tracker.process(empty, intr)
+    assert res.status is TrackerStatus.NO_HAND and res.pose is None and res.fingertips_mm is None
+    frames = list(synthetic_sequence("fingerwave", 4, intrinsics=intr, seed=3))
+    assert tracker.process(frames[0].depth_mm, intr).status is TrackerStatus.TRACKING
+    before = tracker.last_pose
+    with pytest.raises(IntrinsicsError):
+        tracker.process(np.zeros((10, 10), np.float32), intr)
+    with pytest.raises(DepthImageError):
+        tracker.process(np.zeros((intr.height, intr.width, 2), np.float32), intr)
+    np.testing.assert_array_equal(tracker.last_pose, before)
+    res = tracker.process(frames[1].depth_mm, intr)
+    assert res.status is TrackerStatus.TRACKING
+    assert np.linalg.norm(res.fingertips_mm - frames[1].fingertips_mm, axis=1).mean() < 15.0
+
+
+def test_hand_leaving_the_view_is_reported_lost_then_found_again() -> None:
+    intr = default_intrinsics()
+    frames = list(synthetic_sequence("fingerwave", 12, intrinsics=intr, seed=4))
+    tracker = Tracker()
+    empty = np.zeros((intr.height, intr.width), np.float32)
+    for f in frames[:4]:
+        assert tracker.process(f.depth_mm, intr).status is TrackerStatus.TRACKING
+    statuses = [tracker.process(empty, intr).status for _ in range(4)]
+    assert TrackerStatus.LOST in statuses and statuses[-1] is TrackerStatus.NO_HAND
+    res = tracker.process(frames[8].depth_mm, intr)
+    assert res.status is TrackerStatus.TRACKING
+    assert np.linalg.norm(res.fingertips_mm - frames[8].fingertips_mm, axis=1).mean() < 15.0
+
+
+def test_results_are_deterministic() -> None:
+    a, _ = track("pinch", 6, seed=5)
+    b, _ = track("pinch", 6, seed=5)
+    np.testing.assert_array_equal(a, b)
