@@ -215,7 +215,7 @@ def default_hand_model(right: bool = True) -> HandModel:
     Returns
     -------
     HandModel
-        Unscaled model (``HandShape()``), 41 Gaussians.
+        Unscaled model (``HandShape()``), 46 Gaussians.
     """
     # Chain bases in the hand frame (mm): thumb CMC, then the four MCP joints.
     bases = np.array(
@@ -253,11 +253,11 @@ def default_hand_model(right: bool = True) -> HandModel:
         rest[i] = rot_z(spread)
     chains, segs, offs, sigs, tips = [], [], [], [], []
     # Palm: a 4 x 3 grid of Gaussians from the wrist to the MCP row.
-    palm_rows = (18.0, 45.0, 70.0)
+    palm_rows = (8.0, 32.0, 56.0, 76.0)
     palm_cols = (24.0, 7.0, -10.0, -25.0)
     for y in palm_rows:
         for x in palm_cols:
-            x_at = x * (0.85 if y < 30 else 1.0)
+            x_at = x * (0.8 if y < 20 else 1.0)
             chains.append(-1), segs.append(0), offs.append([x_at, y, 0.0]), sigs.append(12.5)
     for c in range(5):
         ch, sg, of, si, tip_local = _finger_gaussians(c, lengths[c], radii[c])

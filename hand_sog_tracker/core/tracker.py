@@ -47,7 +47,7 @@ RESTART_ITERATIONS = 5
 _EXTENDED = np.array([0.1, 0.0, 0.1, 0.1])
 _CURLED = np.array([1.3, 0.0, 1.5, 0.9])
 #: Data farther than this beyond the wrist plane are treated as forearm (mm).
-WRIST_MARGIN_MM = 15.0
+WRIST_MARGIN_MM = 0.0
 
 
 def gaussian_support(model: HandModel, theta: NDArray[np.float64], data: ImageSoG) -> NDArray[np.float64]:
