@@ -51,6 +51,11 @@ _TWO_PI = 2.0 * np.pi
 _INV_SQRT2 = 1.0 / np.sqrt(2.0)
 
 
+def _accumulate(index: NDArray[np.int64], weights: NDArray[np.float64], size: int) -> NDArray[np.float64]:
+    """Sum ``weights`` per ``index`` into a float array of length ``size`` (empty-safe)."""
+    return np.bincount(index, weights=weights, minlength=size).astype(np.float64, copy=False)
+
+
 @dataclass(frozen=True)
 class EnergyTerms:
     """Values of the objective and its terms (unitless)."""
@@ -236,12 +241,10 @@ class Objective:
         # d/d(u, v, sigma_p, d_p) of E_sim, accumulated per model Gaussian.
         wD = delta * D * inv_norm
         spp = sp[pi]
-        g_u = np.bincount(pi, weights=-wD * du * inv_s2, minlength=m)
-        g_v = np.bincount(pi, weights=-wD * dv * inv_s2, minlength=m)
-        g_sp = np.bincount(
-            pi, weights=wD * (2.0 / spp - 2.0 * spp * inv_s2 + r2 * spp * inv_s2 * inv_s2), minlength=m
-        )
-        g_dp = np.bincount(pi, weights=D * (-np.sign(dd) / (2.0 * shp)), minlength=m) * inv_norm
+        g_u = _accumulate(pi, -wD * du * inv_s2, m)
+        g_v = _accumulate(pi, -wD * dv * inv_s2, m)
+        g_sp = _accumulate(pi, wD * (2.0 / spp - 2.0 * spp * inv_s2 + r2 * spp * inv_s2 * inv_s2), m)
+        g_dp = _accumulate(pi, D * (-np.sign(dd) / (2.0 * shp)), m) * inv_norm
         g_z = np.zeros(m)  # explicit z-dependence of the dangle distances
         if rows.size and w_dan > 0:
             wn = (w_dan * wdang[rows] / data.n)[:, None]
@@ -300,8 +303,8 @@ class Objective:
             m = P.shape[0]
             for k in range(3):
                 g3[:, k] -= w_col * (
-                    np.bincount(i, weights=g[:, k], minlength=m)
-                    - np.bincount(j, weights=g[:, k], minlength=m)
+                    _accumulate(i, g[:, k], m)
+                    - _accumulate(j, g[:, k], m)
                 )
         return col
 

@@ -105,8 +105,8 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     ext_pos = float(np.percentile(t, 99) - t0)
     ext_neg = float(t0 - np.percentile(t, 1))
     sign = 0.0
-    if border.sum() >= 3 and abs(t[border].mean() - t0) > 30.0:
-        sign = -float(np.sign(t[border].mean() - t0))
+    if border.sum() >= 3 and abs(t[border].mean()) > 30.0:
+        sign = -float(np.sign(t[border].mean()))
     elif max(ext_pos, ext_neg) > FOREARM_MIN_EXTENT_MM and max(ext_pos, ext_neg) > 1.4 * min(ext_pos, ext_neg):
         sign = 1.0 if ext_pos < ext_neg else -1.0
     if sign != 0.0:
