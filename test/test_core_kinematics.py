@@ -101,10 +101,12 @@ def test_flexion_bends_toward_palm() -> None:
 
 def test_shape_scaling() -> None:
     base = default_hand_model()
-    big = base.scaled(HandShape(length=1.1, width=1.2, depth=1.0, sigma=0.9))
+    big = base.scaled(HandShape(length=1.1, width=1.2, depth=1.3, sigma=0.9))
     np.testing.assert_allclose(big.lengths, base.lengths * 1.1)
     np.testing.assert_allclose(big.bases[:, 0], base.bases[:, 0] * 1.2)
-    np.testing.assert_allclose(big.g_sigmas, base.g_sigmas * 0.9)
+    palm = base.g_chain < 0
+    np.testing.assert_allclose(big.g_sigmas[~palm], base.g_sigmas[~palm] * 0.9)
+    np.testing.assert_allclose(big.g_sigmas[palm], base.g_sigmas[palm] * 1.3)
     # Re-scaling starts from the default, not from the scaled model.
     again = big.scaled(HandShape())
     np.testing.assert_allclose(again.g_offsets, base.g_offsets)

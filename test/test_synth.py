@@ -137,10 +137,10 @@ def test_scaled_hand_is_longer() -> None:
     tip = fingertips(big, theta)[2]
     v, u = _px(intr, tip)
     assert d1[v, u] == pytest.approx(tip[2] - big.tip_radii[2], abs=1.0)
-    # Thicker palm (depth and sigma scale it): the palm surface is nearer.
+    # Thicker palm (shape.depth scales it): the palm surface is nearer.
     c = theta[:3] + np.array([0.0, -50.0 * 1.1, 0.0])
     v, u = _px(intr, c)
-    assert d1[v, u] == pytest.approx(theta[2] - 12.5 * 1.1 * 1.2, abs=0.7)
+    assert d1[v, u] == pytest.approx(theta[2] - 12.5 * 1.2, abs=0.7)
 
 
 def test_forearm_option() -> None:

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess, quadtree_sog
 from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import HandModel, HandShape
-from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
+from hand_sog_tracker.core.kinematics import attached_points, gaussian_centres, global_rotation
 from hand_sog_tracker.core.optimizer import maximise
 from hand_sog_tracker.core.tracker import Tracker, coverage, hand_roi
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
@@ -44,6 +44,9 @@ _ORDER = ("length", "width", "sigma", "depth")
 _COARSE = 10
 _FINE_STEP = 0.01
 _POSE_ITERATIONS = 4
+_REFIT_ITERATIONS = 15
+_OPEN_JOINTS = np.array([0.1, 0.0, 0.1, 0.1] + [0.05, 0.0, 0.05, 0.05] * 4)
+_STRIDE = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,48 +75,96 @@ class CalibrationResult:
     seconds: float
 
 
+def _skin(model: HandModel, theta: NDArray[np.float64]):
+    """Capsules of the model's skin: centres (k, 3) mm, radii (k,) mm, index pairs (a, b).
+
+    Consecutive Gaussians along each chain are joined, starting at the chain's
+    first joint (spheres alone leave gaps along a finger); neighbouring palm
+    Gaussians are joined too, so the palm is a filled plate.
+    """
+    m = model.n_gaussians
+    centres = gaussian_centres(model, theta)
+    bases = attached_points(model, theta, np.arange(5), np.zeros(5, np.int64), np.zeros((5, 3)))
+    radii = np.concatenate([model.g_sigmas, np.zeros(5)])
+    a_idx, b_idx = [], []
+    palm = np.flatnonzero(model.g_chain < 0)
+    off = model.g_offsets[palm]
+    near = np.linalg.norm(off[:, None, :] - off[None, :, :], axis=-1)
+    spacing = np.sort(near + np.eye(palm.size) * 1e9, axis=1)[:, 0].max() * 1.5
+    for i in range(palm.size):
+        for j in range(i, palm.size):
+            if near[i, j] <= spacing:
+                a_idx.append(palm[i]), b_idx.append(palm[j])
+    for c in range(5):
+        ks = np.flatnonzero(model.g_chain == c)
+        order = ks[np.lexsort((model.g_offsets[ks, 1], model.g_segment[ks]))]
+        radii[m + c] = model.g_sigmas[order[0]]
+        chain = [m + c, *order]
+        for k0, k1 in zip(chain[:-1], chain[1:]):
+            a_idx.append(k0), b_idx.append(k1)
+    return np.concatenate([centres, bases]), radii, np.array(a_idx), np.array(b_idx)
+
+
 def shape_score(
     model: HandModel,
     theta: NDArray[np.float64],
     pre: Preprocessed,
     roi: tuple[int, int, int, int],
     tolerance_mm: float = 12.0,
+    stride: int = 2,
 ) -> float:
     """Depth-aware overlap of the model's silhouette with the hand's, in [0, 1].
 
-    The model is drawn as the union of its Gaussians' 1-sigma spheres (the
-    skin), exactly: a pixel is covered when its ray meets a sphere, with the
-    front depth of the nearest one.  Data pixels count if they lie inside
-    ``roi`` and on the finger side of the wrist (the forearm is not part of
-    the model).  Score = pixels covered by both with depths within
-    ``tolerance_mm``, divided by pixels covered by either.
+    The model's skin is drawn as capsules joining consecutive Gaussians of each
+    chain and neighbouring palm Gaussians (radii = their sigmas), projected
+    into the image; each covered pixel gets the capsule's front depth.  Data
+    pixels count if they lie inside ``roi`` and on the finger side of the
+    wrist (the forearm is not part of the model).  Score = pixels covered by
+    both with depths within ``tolerance_mm``, divided by pixels covered by
+    either, on every ``stride``-th pixel.
     """
     intr = pre.intrinsics
     u0, v0, u1, v1 = (max(0, roi[0]), max(0, roi[1]), min(intr.width, roi[2]), min(intr.height, roi[3]))
     if u1 <= u0 or v1 <= v0:
         return 0.0
-    depth = pre.depth_mm[v0:v1, u0:u1].astype(np.float64)
-    vv, uu = np.mgrid[v0:v1, u0:u1]
-    P = gaussian_centres(model, theta)
-    sig = model.g_sigmas
+    vv, uu = np.mgrid[v0:v1:stride, u0:u1:stride]
+    pix = np.stack([uu.reshape(-1), vv.reshape(-1)], 1).astype(np.float64)  # (k, 2)
+    d = pre.depth_mm[v0:v1:stride, u0:u1:stride].astype(np.float64).reshape(-1)
+    P, radii, ia, ib = _skin(model, theta)
     z = np.maximum(P[:, 2], 1.0)
     uv = intr.project(P)
-    # Lateral distance (mm, at each sphere's depth) between a pixel ray and a centre.
-    du = (uu.reshape(-1)[None, :] - uv[:, 0:1]) * (z[:, None] / intr.fx)
-    dv = (vv.reshape(-1)[None, :] - uv[:, 1:2]) * (z[:, None] / intr.fy)
-    rho2 = du * du + dv * dv
-    inside = rho2 < sig[:, None] ** 2
-    front = np.where(inside, z[:, None] - np.sqrt(np.maximum(sig[:, None] ** 2 - rho2, 0.0)), np.inf)
+    rad = radii * intr.fx / z
+    a, b = uv[ia], uv[ib]  # (c, 2)
+    ab = b - a
+    len2 = np.maximum((ab * ab).sum(1), 1e-9)
+    t = np.clip(((pix[None, :, :] - a[:, None, :]) * ab[:, None, :]).sum(-1) / len2[:, None], 0.0, 1.0)
+    closest = a[:, None, :] + t[:, :, None] * ab[:, None, :]
+    dist2 = ((pix[None, :, :] - closest) ** 2).sum(-1)
+    r_px = rad[ia][:, None] + t * (rad[ib] - rad[ia])[:, None]
+    inside = dist2 < r_px * r_px
+    r_mm = radii[ia][:, None] + t * (radii[ib] - radii[ia])[:, None]
+    z_c = z[ia][:, None] + t * (z[ib] - z[ia])[:, None]
+    bulge = np.sqrt(np.maximum(1.0 - dist2 / np.maximum(r_px * r_px, 1e-9), 0.0))
+    front = np.where(inside, z_c - r_mm * bulge, np.inf)
     model_depth = front.min(axis=0)
     covered = np.isfinite(model_depth)
-    d = depth.reshape(-1)
-    data_pts = intr.backproject(np.stack([uu.reshape(-1), vv.reshape(-1)], 1).astype(np.float64), d)
+    data_pts = intr.backproject(pix, d)
     R = global_rotation(theta)
     beyond_wrist = (data_pts - theta[:3]) @ R[:, 1] > 0.0
     data = (d > 0) & beyond_wrist
     both = covered & data & (np.abs(model_depth - d) < tolerance_mm)
     union = covered | data
     return float(both.sum() / max(union.sum(), 1))
+
+
+def _keep_palm_centre(theta: NDArray[np.float64], old: HandModel, new: HandModel) -> NDArray[np.float64]:
+    """Move the wrist so that the palm centre stays put when the model is rescaled."""
+    palm = old.g_chain < 0
+    c_old = gaussian_centres(old, theta)[palm].mean(axis=0)
+    c_new = gaussian_centres(new, theta)[palm].mean(axis=0)
+    out = theta.copy()
+    out[:3] += c_old - c_new
+    return out
 
 
 def _refine(model: HandModel, theta: NDArray[np.float64], data: ImageSoG, config: TrackerConfig, iters: int):
@@ -172,29 +223,36 @@ def calibrate(
 
     def evaluate(shape: HandShape, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         m = mirrored.scaled(shape)
-        th = _refine(m, theta, datas[0], config, _POSE_ITERATIONS)
-        return sum(shape_score(m, th, p, roi) for p in pres) / len(pres), th
+        th = _keep_palm_centre(theta, current_model[0], m)
+        th[6:] = _OPEN_JOINTS  # the user holds an open hand: start every candidate open
+        th = _refine(m, th, datas[0], config, _POSE_ITERATIONS)
+        return sum(shape_score(m, th, p, roi, stride=_STRIDE) for p in pres) / len(pres), th
 
     current = model.shape
-    pose = _refine(mirrored.scaled(current), pose, datas[0], config, 15)
+    current_model = [mirrored.scaled(current)]
+    pose = _refine(current_model[0], pose, datas[0], config, 20)
     before, _ = evaluate(current, pose)
     best_val, best_shape, best_pose = before, current, pose
-    grids = [np.linspace(*SEARCH_RANGE, _COARSE)]
     for pass_no in range(2):
         for name in _ORDER:
+            # Re-fit the pose to the best shape so far before searching the next factor.
+            # Every candidate, the current shape included, is scored the same way
+            # from the same start pose, so none is favoured by a better-fitted pose.
+            start = _refine(current_model[0], best_pose, datas[0], config, _REFIT_ITERATIONS)
+            best_val, best_pose = evaluate(best_shape, start)
             if pass_no == 0:
-                grid = grids[0]
+                grid = np.linspace(*SEARCH_RANGE, _COARSE)
             else:
                 c = getattr(best_shape, name)
                 grid = np.clip(c + _FINE_STEP * np.arange(-3, 4), *SEARCH_RANGE)
             for value in grid:
                 cand = HandShape(**{**best_shape.__dict__, name: float(value)})
-                val, th = evaluate(cand, best_pose)
+                val, th = evaluate(cand, start)
                 if val > best_val:
                     best_val, best_shape, best_pose = val, cand, th
+                    current_model[0] = mirrored.scaled(best_shape)
     fitted = mirrored.scaled(best_shape)
-    best_pose = _refine(fitted, best_pose, datas[0], config, 15)
-    after = sum(shape_score(fitted, best_pose, p, roi) for p in pres) / len(pres)
+    after = best_val
     if not after > before:
         raise CalibrationError(
             f"fit not better than the current model (score {after:.4f} <= {before:.4f})"

@@ -81,8 +81,8 @@ class HandShape:
 
     ``length`` scales lengths along the fingers and palm (hand y), ``width``
     scales positions across the palm (hand x), ``depth`` scales the palm
-    thickness (hand z offsets) and ``sigma`` scales every Gaussian's standard
-    deviation (finger thickness).
+    thickness (the palm Gaussians' standard deviation) and ``sigma`` scales
+    the finger Gaussians' standard deviation (finger thickness).
     """
 
     length: float = 1.0
@@ -169,7 +169,7 @@ class HandModel:
 
 
 def _apply_shape(base: HandModel, shape: HandShape) -> HandModel:
-    s = np.array([shape.width, shape.length, shape.depth])
+    s = np.array([shape.width, shape.length, 1.0])
     # Segment directions are rotated copies of y; scale lengths by the
     # length factor and offsets along a segment the same way.
     offsets = base.g_offsets.copy()
@@ -181,7 +181,7 @@ def _apply_shape(base: HandModel, shape: HandShape) -> HandModel:
         bases=base.bases * s,
         lengths=base.lengths * shape.length,
         g_offsets=offsets,
-        g_sigmas=base.g_sigmas * shape.sigma,
+        g_sigmas=base.g_sigmas * np.where(palm, shape.depth, shape.sigma),
         shape=shape,
     )
     # Fingertip Gaussians sit one radius before the segment end: keep that
@@ -254,7 +254,7 @@ def default_hand_model(right: bool = True) -> HandModel:
     chains, segs, offs, sigs, tips = [], [], [], [], []
     # Palm: a 4 x 3 grid of Gaussians from the wrist to the MCP row.
     palm_rows = (8.0, 32.0, 56.0, 76.0)
-    palm_cols = (24.0, 7.0, -10.0, -25.0)
+    palm_cols = (27.0, 9.0, -9.0, -26.0)
     for y in palm_rows:
         for x in palm_cols:
             x_at = x * (0.8 if y < 20 else 1.0)

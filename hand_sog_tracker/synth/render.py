@@ -8,7 +8,7 @@ surface made of
   ends so that its end-sphere centre is the fingertip of
   :func:`hand_sog_tracker.core.kinematics.fingertips`,
 * a palm that is a rounded slab: a convex polygon (wrist, palm sides, the MCP
-  row) swept by a sphere of radius ``palm sigma x shape.depth``,
+  row) swept by a sphere of radius ``palm sigma`` (which ``shape.depth`` scales),
 * optionally a forearm: a tapered round cone with an elliptic cross-section
   running about 250 mm from the wrist away from the fingers.
 
@@ -217,7 +217,7 @@ def hand_primitives(model: HandModel, theta: NDArray[np.float64], forearm: bool 
     G = (palm_pts[n_out + 1 :] - origin).T  # columns: hand x, y, z in camera frame (mirror-aware)
     normal = G[:, 2]
     palm_sig = model.g_sigmas[model.g_chain < 0]
-    r_palm = (float(np.mean(palm_sig)) if palm_sig.size else 12.5 * model.shape.sigma) * model.shape.depth
+    r_palm = float(np.mean(palm_sig)) if palm_sig.size else 12.5 * model.shape.depth
     centroid = verts.mean(axis=0)
     planes = [np.append(normal, normal @ centroid + r_palm), np.append(-normal, -normal @ centroid + r_palm)]
     for i in range(n_out):

@@ -1,0 +1,37 @@
+# Two entry points that need no set-up: "make demo" and "make test".
+# Both build .venv with python3.11 (else python3) and pip-install this package with its test
+# extras; the stamp file makes re-runs fast (it is rebuilt when the package sources change).
+
+PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3)
+VENV := .venv
+VENV_PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+# A sample bag bundled in bags/ (written by make_sample_bags).
+DEMO_BAG ?= bags/fingerwave
+# Tests use DDS on loopback only, in their own domain.
+TEST_DOMAIN_ID ?= 73
+LOOPBACK_PROFILE := $(CURDIR)/hand_sog_tracker/data/fastdds_loopback.xml
+
+SOURCES := setup.py setup.cfg package.xml $(wildcard config/*.yaml) \
+	$(shell find hand_sog_tracker -name '*.py' -o -name '*.xml' 2>/dev/null)
+
+.PHONY: demo test venv clean
+
+venv: $(STAMP)
+
+$(VENV_PY):
+	$(PYTHON) -m venv $(VENV)
+
+$(STAMP): $(SOURCES) | $(VENV_PY)
+	$(VENV_PY) -m pip install --quiet --disable-pip-version-check '.[test]'
+	touch $@
+
+demo: $(STAMP)
+	$(VENV)/bin/evaluate_bag $(DEMO_BAG)
+
+test: $(STAMP)
+	FASTRTPS_DEFAULT_PROFILES_FILE=$(LOOPBACK_PROFILE) ROS_DOMAIN_ID=$(TEST_DOMAIN_ID) \
+		$(VENV_PY) -m pytest -q test
+
+clean:
+	rm -rf $(VENV) build *.egg-info

@@ -1,0 +1,668 @@
+"""The ``hand_sog_tracker`` ROS 2 node: depth images in, hand pose out.
+
+Topics (relative names, so a namespace or remapping moves them):
+
+========================================  =====================================================
+``camera/depth/image_rect_raw`` (sub)     ``sensor_msgs/Image`` 16UC1/mono16 (mm) or 32FC1 (m)
+``camera/depth/camera_info`` (sub)        ``sensor_msgs/CameraInfo`` (K; binning honoured, ROI rejected)
+``hand/joint_states``                     ``sensor_msgs/JointState``, 20 angles (rad)
+``hand/pose``                             ``geometry_msgs/PoseStamped``, wrist pose (m)
+``hand/fingertips``                       ``visualization_msgs/MarkerArray`` fingertips + skeleton
+``hand/debug_image``                      ``sensor_msgs/Image`` bgr8, only while subscribed
+                                          (or with ``debug_image: true``)
+``/diagnostics``                          ``diagnostic_msgs/DiagnosticArray`` at 1 Hz
+``~/calibrate`` (service)                 ``std_srvs/Trigger``: fit the hand model to the last frames
+========================================  =====================================================
+
+Every output is stamped with the input image's header (stamp and frame_id).
+
+Real time: the subscriptions use sensor-data QoS with depth 1 (overridable via
+``qos_overrides.*`` parameters).  The image callback (input callback group)
+only stores the newest frame and wakes the processing callback (work group)
+through a guard condition; a frame replaced before it was processed is
+counted as dropped, so there is never a backlog.  ``~/calibrate`` runs in a
+third group, so tracking goes on during a fit.  :func:`main` spins a
+three-thread executor (one thread per group; no other threads).  With a
+single-threaded executor the node works the same, except that DDS (depth 1)
+drops frames arriving during processing before the node can count them, and
+a calibration pauses tracking.
+
+Robustness: a bad frame (encoding, size, truncated data, no CameraInfo yet,
+stamps going backwards, resolution change, any error from the core) is
+skipped with a throttled warning naming the problem and counted as rejected;
+the tracker state is reset only where the track cannot continue.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import re
+import sys
+import threading
+import time
+import traceback
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from numpy.typing import NDArray
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.context import Context
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.impl.rcutils_logger import RcutilsLogger
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.utilities import remove_ros_args
+from sensor_msgs.msg import CameraInfo, Image, JointState
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from hand_sog_tracker.core.calibration import calibrate
+from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
+from hand_sog_tracker.core.model_io import load_hand_shape, save_hand_shape
+from hand_sog_tracker.core.overlay import draw_overlay
+from hand_sog_tracker.core.tracker import Tracker
+from hand_sog_tracker.core.types import Intrinsics, TrackerStatus, TrackResult
+from hand_sog_tracker.errors import (
+    CalibrationError,
+    DepthImageError,
+    HandSogError,
+    IntrinsicsError,
+    ModelFileError,
+)
+from hand_sog_tracker.ros.conversions import (
+    bgr_to_image_msg,
+    camera_info_to_intrinsics,
+    delete_all_markers,
+    diagnostic_array,
+    fingertip_markers,
+    image_to_depth_mm,
+    joint_state_msg,
+    pose_msg,
+    stamp_to_ns,
+)
+from hand_sog_tracker.ros.params import (
+    NodeSettings,
+    declare_node_parameters,
+    read_settings,
+    validate_parameter_change,
+)
+
+__all__ = ["TrackerNode", "NodeStats", "TrackerExecutor", "make_executor", "main", "NODE_NAME"]
+
+NODE_NAME = "hand_sog_tracker"
+IMAGE_TOPIC = "camera/depth/image_rect_raw"
+INFO_TOPIC = "camera/depth/camera_info"
+#: Minimum seconds between two warnings of the same kind.
+WARN_THROTTLE_S = 2.0
+_NUMBERS = re.compile(r"\d+(\.\d+)?")
+
+
+@dataclass(frozen=True)
+class NodeStats:
+    """Counters of the node since start (a snapshot).
+
+    Attributes
+    ----------
+    received : int
+        Depth images received by the image callback.
+    processed : int
+        Frames the tracker ran on.
+    dropped : int
+        Frames replaced by a newer one before they could be processed.
+    rejected : int
+        Frames skipped because of bad input.
+    last_problem : str
+        Why the last frame was rejected ("" if none was).
+    status : TrackerStatus
+        Tracker status after the last processed frame.
+    confidence : float
+        Confidence of the last processed frame.
+    """
+
+    received: int
+    processed: int
+    dropped: int
+    rejected: int
+    last_problem: str
+    status: TrackerStatus
+    confidence: float
+
+
+class _Counters:
+    """Mutable counters shared by the callbacks (guarded by the node's lock)."""
+
+    def __init__(self) -> None:
+        self.received = 0
+        self.processed = 0
+        self.dropped = 0
+        self.rejected = 0
+        self.last_problem = ""
+        self.status = TrackerStatus.NO_HAND
+        self.confidence = 0.0
+        # Window since the last diagnostics message.
+        self.win_received = 0
+        self.win_processed = 0
+        self.win_rejected = 0
+        self.win_proc_ms = 0.0
+        self.win_latency_ms = 0.0
+        self.win_start = time.monotonic()
+
+
+class TrackerNode(Node):
+    """Sum-of-Gaussians hand tracker node (see the module docstring).
+
+    Parameters
+    ----------
+    **kwargs
+        Passed to :class:`rclpy.node.Node` (``context``, ``parameter_overrides``,
+        ``cli_args``, ``namespace`` ...).
+
+    Raises
+    ------
+    InputError
+        Invalid start-up parameters (message names the parameter).
+    rclpy.exceptions.InvalidParameterValueException
+        A start-up value is outside its declared range.
+    """
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        try:
+            self._settings: NodeSettings = declare_node_parameters(self)
+        except BaseException:
+            self.destroy_node()
+            raise
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._on_parameters_set)
+
+        self._lock = threading.Lock()  # frame slot, intrinsics, counters
+        self._tracker_lock = threading.Lock()  # the tracker: processing vs. calibration
+        self._warn_loggers: dict[str, RcutilsLogger] = {}
+        self._counters = _Counters()
+        self._pending: Image | None = None
+        self._intrinsics: Intrinsics | None = None
+        self._intrinsics_problem = ""
+        # State touched only by the work group (processing and calibration).
+        self._tracker = Tracker(self._settings.tracker, self._initial_model())
+        self._last_stamp_ns: int | None = None
+        self._last_shape: tuple[int, int] | None = None
+        self._markers_shown = False
+        self._frame_id = ""
+        self._calib_frames: deque[tuple[NDArray[np.float32], Intrinsics]] = deque(maxlen=3)
+
+        self._input_group = MutuallyExclusiveCallbackGroup()
+        self._work_group = MutuallyExclusiveCallbackGroup()
+        self._calib_group = MutuallyExclusiveCallbackGroup()
+        sensor_qos = copy.copy(qos_profile_sensor_data)
+        sensor_qos.depth = 1
+        out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        overrides = QoSOverridingOptions.with_default_policies()
+
+        self._image_sub = self.create_subscription(
+            Image, IMAGE_TOPIC, self._on_image, sensor_qos,
+            callback_group=self._input_group, qos_overriding_options=overrides,
+        )
+        self._info_sub = self.create_subscription(
+            CameraInfo, INFO_TOPIC, self._on_camera_info, sensor_qos,
+            callback_group=self._input_group, qos_overriding_options=overrides,
+        )
+        self._joint_pub = self.create_publisher(
+            JointState, "hand/joint_states", out_qos, qos_overriding_options=overrides
+        )
+        self._pose_pub = self.create_publisher(
+            PoseStamped, "hand/pose", out_qos, qos_overriding_options=overrides
+        )
+        self._marker_pub = self.create_publisher(
+            MarkerArray, "hand/fingertips", out_qos, qos_overriding_options=overrides
+        )
+        self._debug_pub = self.create_publisher(
+            Image, "hand/debug_image", QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+        )
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+
+        self._frame_ready = self.create_guard_condition(
+            self._process_pending, callback_group=self._work_group
+        )
+        self._calibrate_srv = self.create_service(
+            Trigger, "~/calibrate", self._on_calibrate, callback_group=self._calib_group
+        )
+        self._diag_timer = self.create_timer(
+            1.0, self._publish_diagnostics, callback_group=self._input_group
+        )
+        self.get_logger().info(
+            f"tracking the {'right' if self._settings.tracker.right_hand else 'left'} hand from "
+            f"{self._image_sub.topic_name} + {self._info_sub.topic_name}"
+        )
+
+    # -- public -----------------------------------------------------------------
+    @property
+    def settings(self) -> NodeSettings:
+        """The current (validated, frozen) parameter values."""
+        return self._settings
+
+    @property
+    def stats(self) -> NodeStats:
+        """A snapshot of the node's counters."""
+        with self._lock:
+            c = self._counters
+            return NodeStats(
+                received=c.received,
+                processed=c.processed,
+                dropped=c.dropped,
+                rejected=c.rejected,
+                last_problem=c.last_problem,
+                status=c.status,
+                confidence=c.confidence,
+            )
+
+    @property
+    def intrinsics(self) -> Intrinsics | None:
+        """Intrinsics from the last usable CameraInfo (None before one arrived or after a bad one)."""
+        with self._lock:
+            return self._intrinsics
+
+    @property
+    def hand_model(self) -> HandModel:
+        """The hand model the tracker uses."""
+        with self._tracker_lock:
+            return self._tracker.model
+
+    # -- parameters -------------------------------------------------------------
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        result = validate_parameter_change(self, params)
+        if not result.successful:
+            self.get_logger().warning(f"rejected parameter change: {result.reason}")
+        return result
+
+    def _on_parameters_set(self, params: list[Parameter]) -> None:
+        # Validated in _on_set_parameters; the work group applies it on the next frame.
+        self._settings = read_settings(self)
+
+    def _initial_model(self) -> HandModel | None:
+        """The user's calibrated model if its file exists and is valid, else None (default hand)."""
+        path = self._settings.user_model_path
+        right = self._settings.tracker.right_hand
+        if not path.exists():
+            self.get_logger().info(f"no user hand model at {path}: using the default hand")
+            return None
+        try:
+            shape, file_right = load_hand_shape(path)
+        except ModelFileError as err:
+            self.get_logger().warning(f"ignoring the user hand model: {err}; using the default hand")
+            return None
+        if file_right != right:
+            self.get_logger().warning(
+                f"{path} was calibrated on a {'right' if file_right else 'left'} hand; using its "
+                f"shape for the {'right' if right else 'left'} hand (handedness parameter)"
+            )
+        self.get_logger().info(f"loaded hand model {shape} from {path}")
+        return default_hand_model(right).scaled(shape)
+
+    # -- input group ------------------------------------------------------------
+    def _on_image(self, msg: Image) -> None:
+        with self._lock:
+            self._counters.received += 1
+            self._counters.win_received += 1
+            if self._pending is not None:
+                self._counters.dropped += 1
+            self._pending = msg
+        self._frame_ready.trigger()
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            intr = camera_info_to_intrinsics(msg)
+        except IntrinsicsError as err:
+            with self._lock:
+                self._intrinsics = None
+                self._intrinsics_problem = f"unusable CameraInfo: {err}"
+            self._warn(f"unusable CameraInfo on {self._info_sub.topic_name}: {err}")
+            return
+        with self._lock:
+            self._intrinsics = intr
+            self._intrinsics_problem = ""
+
+    def _publish_diagnostics(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            c = self._counters
+            dt = max(now - c.win_start, 1e-3)
+            n_proc = c.win_processed
+            values = {
+                "input_rate_hz": c.win_received / dt,
+                "output_rate_hz": n_proc / dt,
+                "processing_ms": c.win_proc_ms / n_proc if n_proc else 0.0,
+                "latency_ms": c.win_latency_ms / n_proc if n_proc else 0.0,
+                "status": c.status.value,
+                "confidence": c.confidence,
+                "frames_received": c.received,
+                "frames_processed": c.processed,
+                "frames_dropped": c.dropped,
+                "frames_rejected": c.rejected,
+                "last_problem": c.last_problem,
+            }
+            win_received, win_rejected, last_problem = c.win_received, c.win_rejected, c.last_problem
+            c.win_received = c.win_processed = c.win_rejected = 0
+            c.win_proc_ms = c.win_latency_ms = 0.0
+            c.win_start = now
+        if win_received == 0:
+            level, message = DiagnosticStatus.WARN, "no depth images received"
+        elif win_rejected:
+            level, message = DiagnosticStatus.WARN, f"{win_rejected} frames rejected: {last_problem}"
+        else:
+            level, message = DiagnosticStatus.OK, f"{values['status']}"
+        self._diag_pub.publish(
+            diagnostic_array(
+                self.get_clock().now().to_msg(),
+                f"{NODE_NAME}: {self.get_fully_qualified_name()}",
+                self._frame_id,
+                level,
+                message,
+                values,
+            )
+        )
+
+    # -- work group -------------------------------------------------------------
+    def _process_pending(self) -> None:
+        with self._lock:
+            msg, self._pending = self._pending, None
+            intr, intr_problem = self._intrinsics, self._intrinsics_problem
+        if msg is None:
+            return
+        t0 = time.perf_counter()
+        try:
+            with self._tracker_lock:
+                processed = self._process(msg, intr, intr_problem)
+            if processed:
+                with self._lock:
+                    self._counters.win_proc_ms += (time.perf_counter() - t0) * 1e3
+        except Exception as err:  # noqa: BLE001 - a bug in one frame must not kill the node
+            if not self.context.ok():
+                return
+            with self._tracker_lock:
+                self._tracker.reset()
+            tb = traceback.extract_tb(err.__traceback__)[-1]
+            where = f"{Path(tb.filename).name}:{tb.lineno}"
+            self._reject(f"internal error, tracker reset: {err!r} at {where}")
+            self.get_logger().error(
+                f"internal error while processing a frame (tracker reset): {err!r} at {where}",
+                throttle_duration_sec=WARN_THROTTLE_S,
+            )
+            self.get_logger().debug(traceback.format_exc())
+
+    def _warn(self, text: str) -> None:
+        """Per-frame warning, throttled per kind of problem (the text with its numbers masked).
+
+        rclpy throttles per call site and logger object; one logger object (same name, so the
+        output and /rosout look the same) per kind keeps different problems from hiding each other.
+        """
+        kind = _NUMBERS.sub("#", text)
+        with self._lock:
+            logger = self._warn_loggers.get(kind)
+            if logger is None:
+                if len(self._warn_loggers) > 64:
+                    self._warn_loggers.clear()
+                logger = self._warn_loggers[kind] = get_logger(self.get_logger().name)
+        logger.warning(text, throttle_duration_sec=WARN_THROTTLE_S)
+
+    def _reject(self, problem: str) -> None:
+        with self._lock:
+            self._counters.rejected += 1
+            self._counters.win_rejected += 1
+            self._counters.last_problem = problem
+
+    def _process(self, msg: Image, intr: Intrinsics | None, intr_problem: str) -> bool:
+        """Track one frame and publish; False when the frame was rejected."""
+        header = msg.header
+        settings = self._settings
+        if settings.tracker != self._tracker.config:
+            self._tracker.set_config(settings.tracker)
+        self._calib_frames = _resized(self._calib_frames, settings.calibration_frames)
+
+        stamp = stamp_to_ns(header.stamp)
+        if self._last_stamp_ns is not None and stamp < self._last_stamp_ns:
+            back_s = (self._last_stamp_ns - stamp) * 1e-9
+            self._last_stamp_ns = stamp
+            self._reset_track(header)
+            self._reject(f"stamp went backwards by {back_s:.3f} s")
+            self._warn(
+                f"image stamp went backwards by {back_s:.3f} s (bag loop or clock reset?): "
+                "tracker reset, frame skipped"
+            )
+            return False
+        self._last_stamp_ns = stamp
+
+        if intr is None:
+            problem = intr_problem or f"no CameraInfo received yet on {self._info_sub.topic_name}"
+            self._reject(problem)
+            self._warn(f"{problem}: frame skipped")
+            return False
+
+        try:
+            depth = image_to_depth_mm(msg)
+        except DepthImageError as err:
+            self._reject(f"bad depth image: {err}")
+            self._warn(f"bad depth image: {err}: frame skipped")
+            return False
+
+        shape = (int(depth.shape[0]), int(depth.shape[1]))
+        if self._last_shape is not None and shape != self._last_shape:
+            self._warn(
+                f"depth resolution changed from {self._last_shape[1]}x{self._last_shape[0]} to "
+                f"{shape[1]}x{shape[0]}: tracker reset"
+            )
+            self._reset_track(header)
+            self._calib_frames.clear()
+        self._last_shape = shape
+        if shape != (intr.height, intr.width):
+            problem = (
+                f"image is {shape[1]}x{shape[0]} but CameraInfo is {intr.width}x{intr.height}; "
+                "waiting for a matching CameraInfo"
+            )
+            self._reject(problem)
+            self._warn(f"{problem}: frame skipped")
+            return False
+
+        if not np.any(depth > 0.0):
+            self._warn("depth image has no valid pixels (all 0, NaN or Inf)")
+
+        try:
+            result = self._tracker.process(depth, intr)
+        except HandSogError as err:
+            self._reject(f"tracker rejected the frame: {err}")
+            self._warn(f"tracker rejected the frame: {err}")
+            return False
+
+        self._frame_id = header.frame_id
+        self._publish_result(header, result, depth, intr)
+        self._calib_frames.append((depth, intr))
+        latency_ms = (self.get_clock().now().nanoseconds - stamp) * 1e-6
+        with self._lock:
+            c = self._counters
+            c.processed += 1
+            c.win_processed += 1
+            c.win_latency_ms += latency_ms
+            c.status = result.status
+            c.confidence = float(result.confidence)
+        return True
+
+    def _reset_track(self, header: Header) -> None:
+        self._tracker.reset()
+        if self._markers_shown:
+            self._marker_pub.publish(delete_all_markers(header))
+            self._markers_shown = False
+
+    def _publish_result(
+        self, header: Header, result: TrackResult, depth: NDArray[np.float32], intr: Intrinsics
+    ) -> None:
+        if result.pose is not None and result.fingertips_mm is not None:
+            self._joint_pub.publish(joint_state_msg(header, result.pose))
+            self._pose_pub.publish(pose_msg(header, result.pose))
+            self._marker_pub.publish(
+                fingertip_markers(
+                    header, result.fingertips_mm, result.skeleton_mm, self._tracker.model.tip_radii
+                )
+            )
+            self._markers_shown = True
+        elif self._markers_shown:
+            self._marker_pub.publish(delete_all_markers(header))
+            self._markers_shown = False
+        if self._settings.debug_image or self._debug_pub.get_subscription_count() > 0:
+            cfg = self._tracker.config
+            bgr = draw_overlay(
+                depth,
+                intr,
+                self._tracker.model if result.pose is not None else None,
+                result.pose,
+                near_mm=cfg.near_mm,
+                far_mm=cfg.far_mm,
+                label=f"{result.status.value} conf {result.confidence:.2f}",
+            )
+            self._debug_pub.publish(bgr_to_image_msg(header, bgr))
+
+    def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Fit the hand model to the last frames; tracking goes on meanwhile (own callback group)."""
+        with self._tracker_lock:  # a consistent snapshot: frames, pose and model of the same moment
+            frames = list(self._calib_frames)[::-1]  # newest first: it matches the last pose
+            start = self._tracker.last_pose if self._tracker.status is TrackerStatus.TRACKING else None
+            model = self._tracker.model
+        if not frames:
+            response.success = False
+            response.message = (
+                "no depth frames received yet: start the camera and hold an open hand in view"
+            )
+            self.get_logger().warning(f"calibration refused: {response.message}")
+            return response
+        intr = frames[0][1]
+        depths = [d for d, i in frames if i == intr]
+        settings = self._settings
+        self.get_logger().info(f"calibrating the hand model on {len(depths)} frames ...")
+        try:
+            res = calibrate(depths, intr, settings.tracker, model, start_pose=start)
+        except HandSogError as err:
+            kind = "calibration failed" if isinstance(err, CalibrationError) else "calibration error"
+            response.success = False
+            response.message = f"{kind}: {err}"
+            self.get_logger().warning(response.message)
+            return response
+        with self._tracker_lock:
+            self._tracker.set_model(res.model)
+        s = res.shape
+        try:
+            path = save_hand_shape(
+                settings.user_model_path,
+                s,
+                right=settings.tracker.right_hand,
+                extra={
+                    "energy_before": float(res.energy_before),
+                    "energy_after": float(res.energy_after),
+                    "frames": len(depths),
+                },
+            )
+            saved = f"saved to {path}"
+        except HandSogError as err:
+            saved = f"NOT saved: {err}"
+            self.get_logger().warning(f"calibrated model could not be saved: {err}")
+        response.success = True
+        response.message = (
+            f"length={s.length:.3f} width={s.width:.3f} depth={s.depth:.3f} sigma={s.sigma:.3f}; "
+            f"energy {res.energy_before:.4f} -> {res.energy_after:.4f} "
+            f"({len(depths)} frames, {res.seconds:.2f} s); {saved}"
+        )
+        self.get_logger().info(f"calibrated: {response.message}")
+        return response
+
+
+def _resized(
+    frames: deque[tuple[NDArray[np.float32], Intrinsics]], n: int
+) -> deque[tuple[NDArray[np.float32], Intrinsics]]:
+    return frames if frames.maxlen == n else deque(frames, maxlen=n)
+
+
+class TrackerExecutor(MultiThreadedExecutor):
+    """A :class:`MultiThreadedExecutor` that shuts down cleanly.
+
+    rclpy 7.1 (Jazzy) destroys the executor's guard condition in ``shutdown`` while callbacks
+    already handed to its thread pool may still trigger it, which leaves a "cannot use
+    Destroyable because destruction was requested" exception behind.  This executor first lets
+    the running callbacks finish (and drops the ones not started yet), then shuts down.
+    """
+
+    def shutdown(self, timeout_sec: float | None = None) -> bool:
+        pool = getattr(self, "_executor", None)  # the ThreadPoolExecutor of rclpy 7.1
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+        return super().shutdown(timeout_sec)
+
+
+def make_executor(context: Context | None = None) -> TrackerExecutor:
+    """The executor :func:`main` uses: three threads, one per callback group of the node.
+
+    Inputs (image, CameraInfo, diagnostics), processing and calibration each have their own
+    mutually exclusive group, so frames are counted while a frame is processed and tracking
+    goes on while the model is calibrated.
+    """
+    return TrackerExecutor(num_threads=3, context=context)
+
+
+def _parse_cli(argv: Sequence[str]) -> None:
+    parser = argparse.ArgumentParser(
+        prog="tracker_node",
+        description="Sum-of-Gaussians hand tracker (ROS 2 node). Configure it with ROS "
+        "parameters: --ros-args --params-file config/hand_sog_tracker.yaml, -p name:=value; "
+        "remap topics with -r from:=to.",
+        epilog="Subscribes camera/depth/image_rect_raw and camera/depth/camera_info; publishes "
+        "hand/joint_states, hand/pose, hand/fingertips, hand/debug_image and /diagnostics; "
+        "service ~/calibrate (see calibrate_hand).",
+    )
+    parser.parse_args(list(argv))
+
+
+def main(args: list[str] | None = None) -> None:
+    """Run the node until Ctrl-C or an external shutdown.
+
+    Parameters
+    ----------
+    args : list of str, optional
+        Command line (default ``sys.argv``); ROS arguments after ``--ros-args``.
+    """
+    argv = sys.argv if args is None else args
+    _parse_cli(remove_ros_args(args=argv)[1:])  # only --help; configuration is by parameters
+    rclpy.init(args=argv)
+    node: TrackerNode | None = None
+    executor: TrackerExecutor | None = None
+    failed = False
+    try:
+        node = TrackerNode()
+        executor = make_executor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (HandSogError, InvalidParameterValueException) as err:
+        get_logger(NODE_NAME).error(f"cannot start: {err}")
+        failed = True
+    finally:
+        if executor is not None:
+            executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    if failed:
+        raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,308 @@
+"""ROS parameters of the tracker node: specs, descriptors, validation, freezing.
+
+Every tunable of :class:`~hand_sog_tracker.core.types.TrackerConfig` becomes a
+parameter of the same name (units in the name), except ``right_hand`` which is
+the string parameter ``handedness`` (``right`` / ``left``).  Node-only
+parameters: ``user_model_path``, ``debug_image`` and ``calibration_frames``.
+
+The values are validated as a whole by building a :class:`NodeSettings` (which
+builds a ``TrackerConfig``), both at start-up and in the on-set callback, so a
+rejected change names the reason (e.g. ``need 0 < near_mm < far_mm``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Union
+
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from hand_sog_tracker.core.model_io import default_model_path
+from hand_sog_tracker.core.types import TrackerConfig
+from hand_sog_tracker.errors import InputError
+
+__all__ = [
+    "ParamSpec",
+    "NodeSettings",
+    "PARAM_SPECS",
+    "PARAM_NAMES",
+    "settings_from_values",
+    "declare_node_parameters",
+    "read_settings",
+    "validate_parameter_change",
+    "params_yaml",
+]
+
+Value = Union[bool, int, float, str]
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One node parameter.
+
+    Attributes
+    ----------
+    name : str
+    default : bool, int, float or str
+        Also fixes the parameter type.
+    description : str
+        Shown by ``ros2 param describe``; states the unit.
+    low, high : int or float, optional
+        Inclusive range (both or neither), enforced by rclpy itself.
+    read_only : bool
+        Settable only at start-up (params file, ``-p``).
+    choices : tuple of str
+        Allowed values of a string parameter (checked by :func:`settings_from_values`).
+    """
+
+    name: str
+    default: Value
+    description: str
+    low: float | None = None
+    high: float | None = None
+    read_only: bool = False
+    choices: tuple[str, ...] = ()
+
+    def descriptor(self) -> ParameterDescriptor:
+        """The ``rcl_interfaces/ParameterDescriptor`` of this parameter."""
+        d = ParameterDescriptor(description=self.description, read_only=self.read_only)
+        d.type = _param_type(self.default)
+        if self.choices:
+            d.additional_constraints = "one of: " + ", ".join(self.choices)
+        if self.low is not None and self.high is not None:
+            if isinstance(self.default, bool):
+                raise TypeError(f"bool parameter {self.name} cannot have a range")
+            if isinstance(self.default, int):
+                d.integer_range = [IntegerRange(from_value=int(self.low), to_value=int(self.high), step=1)]
+            else:
+                d.floating_point_range = [
+                    FloatingPointRange(from_value=float(self.low), to_value=float(self.high), step=0.0)
+                ]
+        return d
+
+
+def _param_type(value: Value) -> int:
+    if isinstance(value, bool):
+        return ParameterType.PARAMETER_BOOL
+    if isinstance(value, int):
+        return ParameterType.PARAMETER_INTEGER
+    if isinstance(value, float):
+        return ParameterType.PARAMETER_DOUBLE
+    return ParameterType.PARAMETER_STRING
+
+
+# Descriptions and ranges of the TrackerConfig fields; an unknown future field still becomes a
+# parameter (with a generic description and no range).
+_TRACKER_META: dict[str, tuple[str, float | None, float | None]] = {
+    "near_mm": ("Depth below this is ignored (mm).", 10.0, 5000.0),
+    "far_mm": ("Depth beyond this is ignored (mm); must exceed near_mm.", 20.0, 10000.0),
+    "quadtree_threshold_mm": (
+        "Quadtree split threshold: a cell whose depth range exceeds this is split (mm).", 1.0, 200.0),
+    "min_quad_px": ("Smallest quadtree leaf side at processing resolution (px): 2, 4 or 8.", 2, 8),
+    "median_kernel": ("Median filter size on the depth image: 0 or 1 = off, 3 or 5.", 0, 5),
+    "max_width_px": ("Wider images are decimated to at most this width first (px).", 80, 4096),
+    "iterations": ("Gradient-ascent iterations per frame.", 1, 200),
+    "w_col": ("Weight of the self-collision term.", 0.0, 100.0),
+    "w_dan": ("Weight of the dominant-angle (pose prior) term.", 0.0, 100.0),
+    "w_lim": ("Weight of the joint-limit term.", 0.0, 100.0),
+    "w_smo": ("Weight of the temporal smoothness term.", 0.0, 100.0),
+    "roi_radius_mm": ("Depth data farther than this from the last hand centre is ignored (mm).", 20.0, 1000.0),
+    "lost_confidence": ("Confidence below this for lost_frames frames means the track is lost.", 0.0, 1.0),
+    "lost_frames": ("Consecutive low-confidence frames before the track is declared lost.", 1, 1000),
+    "init_hypotheses": ("Starting poses tried when (re)initialising.", 1, 256),
+}
+
+
+def _tracker_specs() -> tuple[ParamSpec, ...]:
+    defaults = TrackerConfig()
+    specs = []
+    for f in dataclasses.fields(TrackerConfig):
+        if f.name == "right_hand":
+            specs.append(
+                ParamSpec(
+                    "handedness",
+                    "right" if defaults.right_hand else "left",
+                    "Which hand is tracked: right or left.",
+                    choices=("right", "left"),
+                )
+            )
+            continue
+        default = getattr(defaults, f.name)
+        desc, low, high = _TRACKER_META.get(f.name, (f"Tracker setting {f.name}.", None, None))
+        if isinstance(default, int) and not isinstance(default, bool):
+            low = None if low is None else int(low)
+            high = None if high is None else int(high)
+        specs.append(ParamSpec(f.name, default, desc, low, high))
+    return tuple(specs)
+
+
+#: All parameters of the node, in declaration order.
+PARAM_SPECS: tuple[ParamSpec, ...] = _tracker_specs() + (
+    ParamSpec(
+        "user_model_path",
+        "",
+        "Calibrated hand model file (read at start-up, written by ~/calibrate); "
+        "empty = $ROS_HOME/hand_sog_tracker/hand_model.yaml (ROS_HOME defaults to ~/.ros).",
+        read_only=True,
+    ),
+    ParamSpec(
+        "debug_image",
+        False,
+        "Always render /hand/debug_image (otherwise only while someone subscribes).",
+    ),
+    ParamSpec(
+        "calibration_frames",
+        3,
+        "Number of most recent depth frames the ~/calibrate service fits the hand model to.",
+        1,
+        3,
+    ),
+)
+PARAM_NAMES: tuple[str, ...] = tuple(s.name for s in PARAM_SPECS)
+_SPEC_BY_NAME = {s.name: s for s in PARAM_SPECS}
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """All parameters of the node, validated and frozen.
+
+    Attributes
+    ----------
+    tracker : TrackerConfig
+        Handed to the core tracker.
+    user_model_path : Path
+        Expanded path of the user hand-model file.
+    debug_image : bool
+    calibration_frames : int
+    """
+
+    tracker: TrackerConfig
+    user_model_path: Path
+    debug_image: bool
+    calibration_frames: int
+
+
+def settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
+    """Validate a full set of parameter values and freeze them.
+
+    Parameters
+    ----------
+    values : mapping
+        Name -> value for every name in :data:`PARAM_NAMES` (missing names take
+        their defaults; unknown names are ignored).
+
+    Raises
+    ------
+    InputError
+        A value has the wrong type, is out of range or the combination is
+        invalid; the message names the parameter.
+    """
+    v = {s.name: values.get(s.name, s.default) for s in PARAM_SPECS}
+    for s in PARAM_SPECS:
+        x = v[s.name]
+        expected = type(s.default)
+        ok = isinstance(x, expected) and not (expected is not bool and isinstance(x, bool))
+        if expected is float and isinstance(x, int) and not isinstance(x, bool):
+            x = v[s.name] = float(x)
+            ok = True
+        if not ok:
+            raise InputError(f"parameter {s.name} must be {expected.__name__}, got {x!r}")
+        if s.low is not None and s.high is not None and not (s.low <= x <= s.high):
+            raise InputError(f"parameter {s.name}={x!r} is outside [{s.low}, {s.high}]")
+        if s.choices and x not in s.choices:
+            raise InputError(f"parameter {s.name} must be one of {', '.join(s.choices)}, got {x!r}")
+    tracker_kwargs = {
+        f.name: v[f.name] for f in dataclasses.fields(TrackerConfig) if f.name != "right_hand"
+    }
+    tracker_kwargs["right_hand"] = v["handedness"] == "right"
+    tracker = TrackerConfig(**tracker_kwargs)  # raises InputError naming the problem
+    path = Path(v["user_model_path"]).expanduser() if v["user_model_path"] else default_model_path()
+    return NodeSettings(
+        tracker=tracker,
+        user_model_path=path,
+        debug_image=bool(v["debug_image"]),
+        calibration_frames=int(v["calibration_frames"]),
+    )
+
+
+def declare_node_parameters(node: Node) -> NodeSettings:
+    """Declare every parameter in one batch (overrides applied) and return the settings.
+
+    Raises
+    ------
+    InputError
+        The start-up values (params file, ``-p``, ``parameter_overrides``) are invalid.
+    rclpy.exceptions.InvalidParameterValueException
+        A value is outside a descriptor range.
+    """
+    node.declare_parameters("", [(s.name, s.default, s.descriptor()) for s in PARAM_SPECS])
+    return read_settings(node)
+
+
+def read_settings(node: Node) -> NodeSettings:
+    """Freeze the node's current parameter values into :class:`NodeSettings`."""
+    return settings_from_values({p.name: p.value for p in node.get_parameters(PARAM_NAMES)})
+
+
+def validate_parameter_change(node: Node, changed: list[Parameter]) -> SetParametersResult:
+    """On-set callback body: accept ``changed`` only if the resulting settings are valid.
+
+    Parameters that are not ours (``use_sim_time``, QoS overrides) are accepted untouched.
+    """
+    mine = [p for p in changed if p.name in _SPEC_BY_NAME]
+    if not mine:
+        return SetParametersResult(successful=True)
+    values = {p.name: p.value for p in node.get_parameters(PARAM_NAMES)}
+    for p in mine:
+        values[p.name] = p.value
+    try:
+        settings_from_values(values)
+    except InputError as err:
+        return SetParametersResult(successful=False, reason=str(err))
+    return SetParametersResult(successful=True)
+
+
+def _yaml_value(value: Value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, int):
+        return str(value)
+    return f'"{value}"'
+
+
+def params_yaml(node_name: str = "hand_sog_tracker") -> str:
+    """A ROS 2 params file with every parameter at its default.
+
+    ``config/hand_sog_tracker.yaml`` is this text (a test checks it); regenerate it with
+    ``python -m hand_sog_tracker.ros.params > config/hand_sog_tracker.yaml``.
+    """
+    lines = [
+        "# Parameters of the hand_sog_tracker node (all of them, at their defaults).",
+        "# ros2 run hand_sog_tracker tracker_node --ros-args --params-file <this file>",
+        f"{node_name}:",
+        "  ros__parameters:",
+    ]
+    for s in PARAM_SPECS:
+        rng = f" [{s.low} .. {s.high}]" if s.low is not None else ""
+        ro = " (read-only)" if s.read_only else ""
+        lines.append(f"    # {s.description}{rng}{ro}")
+        lines.append(f"    {s.name}: {_yaml_value(s.default)}")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":  # regenerate the shipped file: python -m hand_sog_tracker.ros.params
+    import sys
+
+    sys.stdout.write(params_yaml())

@@ -1,0 +1,110 @@
+"""Packaging and layering: package.xml vs setup.py, console scripts, the core without ROS."""
+
+from __future__ import annotations
+
+import configparser
+import importlib
+import os
+import runpy
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+import setuptools
+
+REPO = Path(__file__).resolve().parents[1]
+
+CONSOLE_SCRIPTS = {
+    "tracker_node": "hand_sog_tracker.ros.node:main",
+    "calibrate_hand": "hand_sog_tracker.ros.calibrate_client:main",
+    "evaluate_bag": "hand_sog_tracker.tools.evaluate_bag:main",
+    "replay_bag": "hand_sog_tracker.tools.replay_bag:main",
+    "make_sample_bags": "hand_sog_tracker.tools.make_sample_bags:main",
+    "benchmark": "hand_sog_tracker.tools.benchmark:main",
+}
+
+
+@pytest.fixture(scope="module")
+def setup_kwargs() -> dict:
+    """The keyword arguments setup.py passes to setuptools.setup (setup.py is not executed for real)."""
+    captured: dict = {}
+    original = setuptools.setup
+    setuptools.setup = lambda **kw: captured.update(kw)
+    cwd = Path.cwd()
+    try:
+        os.chdir(REPO)
+        runpy.run_path(str(REPO / "setup.py"), run_name="__main__")
+    finally:
+        os.chdir(cwd)
+        setuptools.setup = original
+    return captured
+
+
+def test_core_never_imports_rclpy() -> None:
+    code = (
+        "import importlib, pkgutil, sys\n"
+        "import hand_sog_tracker.core as core\n"
+        "names = [m.name for m in pkgutil.iter_modules(core.__path__, 'hand_sog_tracker.core.')]\n"
+        "for n in names: importlib.import_module(n)\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('rclpy', 'rosbags', 'sensor_msgs'))\n"
+        "assert len(names) >= 8, names\n"
+        "assert not bad, bad\n"
+        "print(len(names))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout) >= 8
+
+
+def test_package_xml_and_setup_agree(setup_kwargs: dict) -> None:
+    root = ET.parse(REPO / "package.xml").getroot()
+    assert root.tag == "package" and root.get("format") == "3"
+    assert root.findtext("name") == setup_kwargs["name"] == "hand_sog_tracker"
+    assert root.findtext("version") == setup_kwargs["version"]
+    assert root.findtext("export/build_type") == "ament_python"
+    exec_deps = {e.text for e in root.findall("exec_depend")}
+    assert {"rclpy", "sensor_msgs", "geometry_msgs", "visualization_msgs", "std_srvs", "diagnostic_msgs",
+            "python3-numpy", "python3-opencv"} <= exec_deps
+    assert "tests_require" not in setup_kwargs
+    assert setup_kwargs["extras_require"]["test"] == ["pytest"]
+    reqs = set(setup_kwargs["install_requires"])
+    assert {"numpy", "opencv-python-headless", "rosbags"} <= reqs
+
+
+def test_console_scripts_are_declared_and_resolve(setup_kwargs: dict) -> None:
+    declared = dict(
+        (name.strip(), target.strip())
+        for name, target in (s.split("=") for s in setup_kwargs["entry_points"]["console_scripts"])
+    )
+    assert declared == CONSOLE_SCRIPTS
+    for name, target in declared.items():
+        module, func = target.split(":")
+        assert callable(getattr(importlib.import_module(module), func)), name
+
+
+def test_installed_files(setup_kwargs: dict) -> None:
+    data = {dest: list(files) for dest, files in setup_kwargs["data_files"]}
+    assert data["share/ament_index/resource_index/packages"] == ["resource/hand_sog_tracker"]
+    assert (REPO / "resource" / "hand_sog_tracker").is_file()
+    assert data["share/hand_sog_tracker"] == ["package.xml"]
+    assert "config/hand_sog_tracker.yaml" in data["share/hand_sog_tracker/config"]
+    assert setup_kwargs["package_data"]["hand_sog_tracker"] == ["data/*.xml"]
+    cfg = configparser.ConfigParser()
+    cfg.read(REPO / "setup.cfg")
+    assert cfg["develop"]["script_dir"] == "$base/lib/hand_sog_tracker"
+    assert cfg["install"]["install_scripts"] == "$base/lib/hand_sog_tracker"
+
+
+def test_shipped_dds_profile_is_loopback_only() -> None:
+    path = REPO / "hand_sog_tracker" / "data" / "fastdds_loopback.xml"
+    root = ET.parse(path).getroot()
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    addresses = [a.text for a in root.iter("{%s}address" % ns["f"])]
+    assert len(addresses) >= 4 and set(addresses) == {"127.0.0.1"}
+    assert root.find(".//f:useBuiltinTransports", ns).text == "false"
+    participant = root.find("f:participant", ns)
+    assert participant.get("is_default_profile") == "true"
+    types = {t.text for t in root.iter("{%s}type" % ns["f"])}
+    assert types <= {"UDPv4", "SHM"}

@@ -1,0 +1,384 @@
+"""The tracker node in-process: outputs, robustness, parameters, calibration, latency.
+
+Each test has its own rclpy context, a unique namespace (so concurrent test runs on the same
+machine and domain never see each other's topics) and loopback-only DDS (conftest.py).
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, JointState
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
+
+from hand_sog_tracker.core.hand_model import JOINT_NAMES, HandShape, default_hand_model, rest_pose
+from hand_sog_tracker.core.kinematics import fingertips
+from hand_sog_tracker.core.model_io import load_hand_shape, save_hand_shape
+from hand_sog_tracker.core.tracker import Tracker
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
+from hand_sog_tracker.ros.conversions import stamp_to_ns
+from hand_sog_tracker.ros.node import TrackerNode, make_executor
+from hand_sog_tracker.synth.render import RenderOptions, render_depth
+
+INTR = Intrinsics(fx=287.26, fy=287.26, cx=159.5, cy=119.5, width=320, height=240)
+FRAME = "depth_optical"
+T0_NS = 1_700_000_000 * 10**9
+
+
+def hand_poses(n: int) -> list[np.ndarray]:
+    """An open hand at 420 mm slowly closing its index and middle fingers."""
+    out = []
+    for i in range(n):
+        th = rest_pose((5.0, 10.0, 420.0))
+        th[6 + 4 * 1] = th[6 + 4 * 2] = 0.03 * i
+        out.append(th)
+    return out
+
+
+def hand_depth(theta: np.ndarray, seed: int, intr: Intrinsics = INTR, model=None) -> np.ndarray:
+    """A rendered depth frame rounded to whole mm (what a 16UC1 camera sends)."""
+    model = model or default_hand_model()
+    d = render_depth(model, theta, intr, RenderOptions(noise_mm=1.0), rng=np.random.default_rng(seed))
+    return np.round(d).astype(np.float32)
+
+
+def image_msg(depth_mm: np.ndarray, stamp_ns: int, encoding: str = "16UC1", frame: str = FRAME) -> Image:
+    msg = Image(height=depth_mm.shape[0], width=depth_mm.shape[1], encoding=encoding, is_bigendian=0)
+    if encoding == "32FC1":
+        data = (depth_mm / 1000.0).astype("<f4")
+    else:
+        data = np.round(np.nan_to_num(depth_mm)).astype("<u2")
+    msg.step = depth_mm.shape[1] * data.itemsize
+    msg.data = data.tobytes()
+    msg.header.frame_id = frame
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 10**9)
+    return msg
+
+
+def info_msg(intr: Intrinsics = INTR, k: list[float] | None = None) -> CameraInfo:
+    msg = CameraInfo(width=intr.width, height=intr.height, distortion_model="plumb_bob")
+    msg.k = k if k is not None else [intr.fx, 0.0, intr.cx, 0.0, intr.fy, intr.cy, 0.0, 0.0, 1.0]
+    msg.header.frame_id = FRAME
+    return msg
+
+
+class Rig:
+    """The node under test plus a helper node that plays camera and listener."""
+
+    def __init__(self, context, tmp_path: Path, **params) -> None:
+        self.ns = f"/t{uuid.uuid4().hex[:10]}"
+        overrides = [Parameter("user_model_path", value=str(tmp_path / "hand_model.yaml"))]
+        overrides += [Parameter(k, value=v) for k, v in params.items()]
+        self.node = TrackerNode(context=context, namespace=self.ns, parameter_overrides=overrides)
+        self.io = Node("rig", context=context, namespace=self.ns)
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.image_pub = self.io.create_publisher(Image, "camera/depth/image_rect_raw", reliable)
+        self.info_pub = self.io.create_publisher(CameraInfo, "camera/depth/camera_info", reliable)
+        self.joints: list[tuple[JointState, float]] = []
+        self.poses: list[PoseStamped] = []
+        self.markers: list[MarkerArray] = []
+        self.diagnostics: list[DiagnosticArray] = []
+        self.io.create_subscription(JointState, "hand/joint_states", lambda m: self.joints.append((m, time.perf_counter())), reliable)
+        self.io.create_subscription(PoseStamped, "hand/pose", self.poses.append, reliable)
+        self.io.create_subscription(MarkerArray, "hand/fingertips", self.markers.append, reliable)
+        self.io.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, reliable)
+        self.calib = self.io.create_client(Trigger, f"{self.ns}/hand_sog_tracker/calibrate")
+        self.executor = make_executor(context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.io)
+        pubs = {p.topic_name: p for p in self.node.publishers}
+        assert self.spin_until(
+            lambda: self.image_pub.get_subscription_count() > 0
+            and self.info_pub.get_subscription_count() > 0
+            and all(pubs[f"{self.ns}/hand/{t}"].get_subscription_count() > 0 for t in ("joint_states", "pose", "fingertips"))
+        ), "DDS discovery on loopback did not complete"
+
+    def spin_until(self, cond: Callable[[], bool], timeout: float = 15.0) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if cond():
+                return True
+            self.executor.spin_once(timeout_sec=0.01)
+        return cond()
+
+    def send_info(self, msg: CameraInfo | None = None) -> None:
+        msg = msg or info_msg()
+        self.info_pub.publish(msg)
+        want = None if not any(msg.k) else (msg.width, msg.height)
+        self.spin_until(lambda: (self.node.intrinsics and (self.node.intrinsics.width, self.node.intrinsics.height)) == want or want is None, 5.0)
+
+    def send(self, msg: Image) -> None:
+        """Publish one image and wait until the node has processed or rejected it."""
+        s = self.node.stats
+        before = s.processed + s.rejected
+        self.image_pub.publish(msg)
+        assert self.spin_until(lambda: self.node.stats.processed + self.node.stats.rejected > before), "frame lost"
+
+    def wait_joint(self, stamp_ns: int, timeout: float = 10.0) -> JointState:
+        assert self.spin_until(lambda: any(stamp_to_ns(m.header.stamp) == stamp_ns for m, _ in self.joints), timeout)
+        return next(m for m, _ in self.joints if stamp_to_ns(m.header.stamp) == stamp_ns)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.io.destroy_node()
+
+
+@pytest.fixture
+def rig(ros_context, tmp_path: Path):
+    r = Rig(ros_context, tmp_path)
+    yield r
+    r.close()
+
+
+def test_outputs_carry_the_input_stamp_and_frame_and_match_the_core(rig: Rig) -> None:
+    rig.send_info()
+    reference = Tracker(TrackerConfig())
+    model = default_hand_model()
+    for i, theta in enumerate(hand_poses(3)):
+        depth = hand_depth(theta, seed=i)
+        stamp = T0_NS + i * 33_333_333
+        rig.send(image_msg(depth, stamp))
+        js = rig.wait_joint(stamp)
+        expected = reference.process(depth, INTR)
+        assert expected.status is TrackerStatus.TRACKING
+        assert js.header.frame_id == FRAME and tuple(js.name) == JOINT_NAMES
+        np.testing.assert_allclose(js.position, expected.pose[6:], atol=1e-9)
+    assert rig.spin_until(lambda: len(rig.poses) == 3 and len(rig.markers) == 3, 5.0)
+    pose, markers = rig.poses[-1], rig.markers[-1]
+    assert stamp_to_ns(pose.header.stamp) == stamp and pose.header.frame_id == FRAME
+    p = pose.pose.position
+    np.testing.assert_allclose([p.x, p.y, p.z], expected.pose[:3] / 1000.0, atol=1e-12)
+    assert abs(p.z - 0.420) < 0.03  # metres, near the rendered hand
+    tips = [m for m in markers.markers if m.ns == "fingertips"]
+    assert [m.id for m in tips] == [0, 1, 2, 3, 4] and all(m.type == Marker.SPHERE for m in tips)
+    assert all(stamp_to_ns(m.header.stamp) == stamp and m.header.frame_id == FRAME for m in markers.markers)
+    got = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in tips]) * 1000.0
+    np.testing.assert_allclose(got, expected.fingertips_mm, atol=1e-6)
+    # Units and frame: the published fingertips sit on the rendered hand (metres -> mm).
+    assert np.linalg.norm(got.mean(axis=0) - fingertips(model, theta).mean(axis=0)) < 40.0
+    assert [m.type for m in markers.markers if m.ns == "skeleton"] == [Marker.LINE_LIST]
+    s = rig.node.stats
+    assert (s.received, s.processed, s.dropped, s.rejected) == (3, 3, 0, 0)
+    assert s.status is TrackerStatus.TRACKING and s.confidence > 0.35
+
+
+def test_bad_inputs_are_skipped_with_a_reason_and_the_next_good_frame_is_tracked(rig: Rig, capfd) -> None:
+    good = hand_depth(hand_poses(1)[0], seed=7)
+    stamp = T0_NS
+
+    def expect_rejected(msg: Image, words: str) -> None:
+        nonlocal stamp
+        rejected = rig.node.stats.rejected
+        rig.send(msg)
+        s = rig.node.stats
+        assert s.rejected == rejected + 1, (words, s)
+        assert words in s.last_problem, (words, s.last_problem)
+
+    def next_stamp() -> int:
+        nonlocal stamp
+        stamp += 33_333_333
+        return stamp
+
+    expect_rejected(image_msg(good, next_stamp()), "no CameraInfo received yet")
+    rig.send_info()
+    wrong = image_msg(good, next_stamp())
+    wrong.encoding = "rgb8"
+    expect_rejected(wrong, "unsupported depth encoding 'rgb8'")
+    short = image_msg(good, next_stamp())
+    short.data = bytes(short.data)[: len(short.data) // 2]
+    expect_rejected(short, "truncated")
+    narrow = image_msg(good, next_stamp())
+    narrow.step = 100
+    expect_rejected(narrow, "step 100 is smaller")
+    empty = image_msg(good, next_stamp())
+    empty.height, empty.width, empty.step, empty.data = 0, 0, 0, b""
+    expect_rejected(empty, "zero size")
+    expect_rejected(image_msg(good[::2, ::2].copy(), next_stamp()), "image is 160x120 but CameraInfo is 320x240")
+    expect_rejected(image_msg(good, stamp - 10**9), "stamp went backwards")
+    rig.send_info(info_msg(k=[0.0] * 9))
+    expect_rejected(image_msg(good, next_stamp()), "K is all zeros")
+    rig.send_info()
+
+    # Frames that are valid but useless: processed, no hand, no crash.
+    processed = rig.node.stats.processed
+    rig.send(image_msg(np.zeros_like(good), next_stamp()))
+    all_nan = np.full_like(good, np.nan)
+    rig.send(image_msg(all_nan, next_stamp(), encoding="32FC1"))
+    holes = good.copy()
+    holes[::3] = np.inf
+    rig.send(image_msg(holes, next_stamp(), encoding="32FC1"))
+    assert rig.node.stats.processed == processed + 3
+
+    last = next_stamp()
+    rig.send(image_msg(good, last))
+    js = rig.wait_joint(last)
+    assert js.header.frame_id == FRAME and len(js.position) == 20
+    s = rig.node.stats
+    assert s.rejected == 8 and s.status is TrackerStatus.TRACKING
+    err = capfd.readouterr().err
+    for words in ("no CameraInfo received yet", "unsupported depth encoding", "truncated", "zero size",
+                  "CameraInfo is 320x240", "resolution changed", "went backwards", "K is all zeros",
+                  "no valid pixels"):
+        assert words in err, words
+
+
+def test_lost_hand_clears_the_markers(rig: Rig) -> None:
+    rig.send_info()
+    depth = hand_depth(hand_poses(1)[0], seed=3)
+    rig.send(image_msg(depth, T0_NS))
+    rig.wait_joint(T0_NS)
+    for k in range(1, 5):  # the hand leaves: the tracker reports LOST / NO_HAND within a few frames
+        rig.send(image_msg(np.zeros_like(depth), T0_NS + k * 10**8))
+    assert rig.spin_until(lambda: any(m.action == Marker.DELETEALL for a in rig.markers for m in a.markers), 5.0)
+    assert rig.node.stats.status is not TrackerStatus.TRACKING
+
+
+def test_resolution_change_needs_a_matching_camera_info(rig: Rig) -> None:
+    rig.send_info()
+    theta = hand_poses(1)[0]
+    rig.send(image_msg(hand_depth(theta, seed=1), T0_NS))
+    rig.wait_joint(T0_NS)
+    big = INTR.scaled(2.0)
+    frame = image_msg(hand_depth(theta, seed=2, intr=big), T0_NS + 10**8)
+    rig.send(frame)
+    assert "image is 640x480 but CameraInfo is 320x240" in rig.node.stats.last_problem
+    rig.send_info(info_msg(big))
+    stamp = T0_NS + 2 * 10**8
+    rig.send(image_msg(hand_depth(theta, seed=3, intr=big), stamp))
+    js = rig.wait_joint(stamp)
+    assert len(js.position) == 20 and rig.node.stats.rejected == 1
+
+
+def test_runtime_parameter_changes_reach_the_tracker(rig: Rig) -> None:
+    bad = rig.node.set_parameters([Parameter("far_mm", value=100.0)])[0]
+    assert not bad.successful and "near_mm < far_mm" in bad.reason
+    assert rig.node.set_parameters([Parameter("iterations", value=4)])[0].successful
+    rig.send_info()
+    rig.send(image_msg(hand_depth(hand_poses(1)[0], seed=1), T0_NS))
+    assert rig.node._tracker.config.iterations == 4
+
+
+def test_no_backlog_under_a_burst(rig: Rig) -> None:
+    """Frames sent faster than they can be processed are dropped; the newest is processed."""
+    rig.send_info()
+    frames = [hand_depth(th, seed=i) for i, th in enumerate(hand_poses(12))]
+    for i, d in enumerate(frames):
+        rig.image_pub.publish(image_msg(d, T0_NS + i * 10**7))
+    last = T0_NS + 11 * 10**7
+    rig.wait_joint(last)
+    rig.spin_until(lambda: False, 0.3)  # let anything still in flight arrive
+    s = rig.node.stats
+    assert s.processed + s.dropped + s.rejected == s.received
+    assert s.processed < 12 and s.rejected == 0
+    stamps = [stamp_to_ns(m.header.stamp) for m, _ in rig.joints]
+    assert stamps == sorted(stamps) and stamps[-1] == last
+
+
+def test_calibrate_fails_cleanly_without_frames(rig: Rig) -> None:
+    assert rig.calib.wait_for_service(timeout_sec=5.0)
+    future = rig.calib.call_async(Trigger.Request())
+    assert rig.spin_until(future.done, 10.0)
+    answer = future.result()
+    assert answer.success is False and "no depth frames received yet" in answer.message
+
+
+def test_calibrate_fits_saves_and_a_new_node_loads_the_model(ros_context, tmp_path: Path) -> None:
+    """The service plumbing: fit on the last frame, switch the tracker, save, reload on start.
+
+    (How well the fit recovers the true shape is the core's business: test_core_calibration.)
+    """
+    model = default_hand_model().scaled(HandShape(length=1.1, width=1.05, depth=1.0, sigma=1.0))
+    rig = Rig(ros_context, tmp_path, calibration_frames=1)
+    try:
+        rig.send_info()
+        th = rest_pose((0.0, 20.0, 430.0))
+        for i in range(2):
+            rig.send(image_msg(hand_depth(th, seed=i, model=model), T0_NS + i * 10**8))
+        future = rig.calib.call_async(Trigger.Request())
+        rig.spin_until(lambda: False, 0.3)  # the fit is under way ...
+        stamp = T0_NS + 5 * 10**8
+        rig.image_pub.publish(image_msg(hand_depth(th, seed=9, model=model), stamp))
+        rig.wait_joint(stamp, timeout=5.0)  # ... and tracking goes on meanwhile
+        assert rig.spin_until(future.done, 90.0)
+        answer = future.result()
+        assert answer.success, answer.message
+        assert "(1 frames" in answer.message and "saved to" in answer.message
+        shape, right = load_hand_shape(tmp_path / "hand_model.yaml")
+        assert right and f"length={shape.length:.3f} width={shape.width:.3f}" in answer.message
+        before, after = (float(x) for x in answer.message.split("energy ")[1].split(" (")[0].split(" -> "))
+        assert after > before
+        assert rig.node.hand_model.shape == shape
+    finally:
+        rig.close()
+    again = Rig(ros_context, tmp_path)
+    try:
+        assert again.node.hand_model.shape == shape
+    finally:
+        again.close()
+
+
+def test_malformed_user_model_is_ignored_with_a_warning(ros_context, tmp_path: Path, capfd) -> None:
+    (tmp_path / "hand_model.yaml").write_text("format: something else\n")
+    node = TrackerNode(
+        context=ros_context, parameter_overrides=[Parameter("user_model_path", value=str(tmp_path / "hand_model.yaml"))]
+    )
+    try:
+        assert node.hand_model.shape == HandShape()
+    finally:
+        node.destroy_node()
+    assert "ignoring the user hand model" in capfd.readouterr().err
+    save_hand_shape(tmp_path / "left.yaml", HandShape(sigma=1.2), right=False)
+    node = TrackerNode(
+        context=ros_context, parameter_overrides=[Parameter("user_model_path", value=str(tmp_path / "left.yaml"))]
+    )
+    try:
+        assert node.hand_model.shape == HandShape(sigma=1.2) and node.hand_model.right
+    finally:
+        node.destroy_node()
+    assert "calibrated on a left hand" in capfd.readouterr().err
+
+
+def test_diagnostics_report_rates_and_counters(rig: Rig) -> None:
+    rig.send_info()
+    for i in range(3):
+        rig.send(image_msg(hand_depth(hand_poses(1)[0], seed=i), T0_NS + i * 10**8))
+    name = f"hand_sog_tracker: {rig.ns}/hand_sog_tracker"
+    assert rig.spin_until(lambda: any(s.name == name for d in rig.diagnostics for s in d.status), 3.0)
+    status = next(s for d in rig.diagnostics for s in d.status if s.name == name)
+    values = {kv.key: kv.value for kv in status.values}
+    assert {"input_rate_hz", "output_rate_hz", "processing_ms", "latency_ms", "status", "confidence",
+            "frames_dropped", "frames_rejected"} <= set(values)
+    assert values["frames_processed"] == "3" and values["frames_rejected"] == "0"
+    assert float(values["processing_ms"]) > 0 and status.hardware_id == FRAME
+
+
+def test_end_to_end_latency(rig: Rig) -> None:
+    """Publish -> JointState receipt while tracking, one frame at a time (numbers in the report)."""
+    rig.send_info()
+    frames = [hand_depth(th, seed=i) for i, th in enumerate(hand_poses(15))]
+    lat = []
+    for i, d in enumerate(frames):
+        stamp = T0_NS + i * 33_333_333
+        msg = image_msg(d, stamp)
+        t0 = time.perf_counter()
+        rig.image_pub.publish(msg)
+        rig.wait_joint(stamp)
+        t1 = next(t for m, t in rig.joints if stamp_to_ns(m.header.stamp) == stamp)
+        lat.append((t1 - t0) * 1e3)
+    tracking = np.array(lat[1:])  # the first frame initialises the track
+    print(f"latency ms: first {lat[0]:.1f}, tracking median {np.median(tracking):.1f}, "
+          f"p95 {np.percentile(tracking, 95):.1f}")
+    assert np.median(tracking) < 150.0

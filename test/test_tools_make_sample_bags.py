@@ -1,0 +1,106 @@
+"""make_sample_bags: deterministic content, bag convention, CLI (tiny images, few frames)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hand_sog_tracker.synth.motions import MOTIONS
+from hand_sog_tracker.synth.render import RenderOptions
+from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
+from hand_sog_tracker.tools import bagio
+from hand_sog_tracker.tools.bagio import DepthBagReader
+from hand_sog_tracker.tools.make_sample_bags import (
+    BASE_STAMP_NS,
+    bag_digest,
+    main,
+    motion_seed,
+    write_sample_bag,
+)
+
+
+def test_same_bag_on_rerun_and_different_with_another_seed(tmp_path: Path) -> None:
+    a = write_sample_bag(tmp_path / "a", "pinch", 3, width=96, height=72)
+    b = write_sample_bag(tmp_path / "b", "pinch", 3, width=96, height=72)
+    c = write_sample_bag(tmp_path / "c", "pinch", 3, width=96, height=72, seed=motion_seed("pinch") + 1)
+    assert a.frames == 3 and a.size_bytes > 0
+    assert bag_digest(a.path) == bag_digest(b.path)
+    assert bag_digest(a.path) != bag_digest(c.path)
+    # the container does not matter, the messages do
+    d = write_sample_bag(tmp_path / "d", "pinch", 3, width=96, height=72, storage="sqlite3")
+    assert bag_digest(d.path) == bag_digest(a.path)
+
+
+def test_bag_follows_the_convention(tmp_path: Path) -> None:
+    intr = default_intrinsics(96, 72)
+    bag = write_sample_bag(tmp_path / "fw", "fingerwave", 4, width=96, height=72)
+    seq = list(
+        synthetic_sequence(
+            "fingerwave", 4, intrinsics=intr, seed=motion_seed("fingerwave"), options=RenderOptions(background_mm=None)
+        )
+    )
+    with bagio.open_bag(bag.path) as reader:
+        table = bagio.topic_table(reader)
+        assert table == {
+            bagio.INFO_TOPIC: (bagio.INFO_TYPE, 4),
+            bagio.DEPTH_TOPIC: (bagio.IMAGE_TYPE, 4),
+            bagio.GT_TOPIC: (bagio.GT_TYPE, 4),
+        }
+        frame_ids = set()
+        for conn, log_ns, raw in bagio.iter_messages(reader, bag.path, list(reader.connections)):
+            msg = reader.deserialize(raw, conn.msgtype)
+            frame_ids.add(msg.header.frame_id)
+            assert bagio.stamp_to_ns(msg.header.stamp) == log_ns
+            if conn.topic == bagio.DEPTH_TOPIC:
+                assert (msg.encoding, msg.width, msg.height, msg.step) == ("16UC1", 96, 72, 192)
+    assert frame_ids == {"camera_depth_optical_frame"}
+    with DepthBagReader(bag.path) as r:
+        frames = list(r.frames())
+    assert [f.stamp_ns - BASE_STAMP_NS for f in frames] == [0, 33_333_333, 66_666_667, 100_000_000]
+    for f, s in zip(frames, seq):
+        assert f.intrinsics is not None
+        assert (f.intrinsics.fx, f.intrinsics.cx) == pytest.approx((intr.fx, intr.cx))
+        assert f.truth_mm is not None and f.depth_mm is not None
+        np.testing.assert_allclose(f.truth_mm, s.fingertips_mm, atol=1e-9)
+        np.testing.assert_array_equal(f.depth_mm, np.where(s.depth_mm > 0, np.rint(s.depth_mm), 0))
+        assert np.count_nonzero(f.depth_mm) > 100  # the hand is in view
+
+
+def test_32fc1_bag(tmp_path: Path) -> None:
+    bag = write_sample_bag(tmp_path / "hi", "abdadd", 1, width=128, height=96, encoding="32FC1")
+    intr = default_intrinsics(128, 96)
+    (s,) = synthetic_sequence("abdadd", 1, intrinsics=intr, seed=motion_seed("abdadd"), options=RenderOptions(background_mm=None))
+    with DepthBagReader(bag.path) as r:
+        (f,) = list(r.frames())
+    assert f.depth_mm is not None
+    np.testing.assert_allclose(f.depth_mm, s.depth_mm, rtol=1e-6, atol=1e-3)
+
+
+def test_cli_writes_replaces_and_rejects(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "bags"
+    args = ["--out", str(out), "--frames", "2", "--motions", "flexex", "random"]
+    assert main(args) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["flexex", "flexex_640x480_32fc1", "random"]
+    assert "wrote 3 bags" in capsys.readouterr().out
+    first = bag_digest(out / "flexex")
+    assert main(args + ["--no-hires"]) == 0  # replaces the existing bags with identical ones
+    assert bag_digest(out / "flexex") == first
+    assert not any(p.name.endswith(".partial") for p in out.iterdir())
+    assert main(args + ["--no-hires", "--no-force"]) == 2
+    assert "exists already" in capsys.readouterr().err
+    (tmp_path / "x" / "pinch").mkdir(parents=True)
+    (tmp_path / "x" / "pinch" / "notes.txt").write_text("keep me")
+    assert main(["--out", str(tmp_path / "x"), "--frames", "1", "--motions", "pinch", "--no-hires"]) == 2
+    assert "not a rosbag2 directory" in capsys.readouterr().err
+    assert (tmp_path / "x" / "pinch" / "notes.txt").exists()
+    assert main(["--out", str(out), "--motions", "juggling"]) == 2
+    assert "unknown motion" in capsys.readouterr().err
+
+
+def test_every_motion_has_a_distinct_seed() -> None:
+    seeds = {motion_seed(m) for m in MOTIONS}
+    assert len(seeds) == len(MOTIONS)
+    assert all(0 <= s < 2**31 for s in seeds)
