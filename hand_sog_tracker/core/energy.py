@@ -72,6 +72,9 @@ class EnergyTerms:
 class _ModelConstants:
     pair_i: NDArray[np.int64]
     pair_j: NDArray[np.int64]
+    pair_s2: NDArray[np.float64]  # sigma_i^2 + sigma_j^2, mm^2
+    pair_amp: NDArray[np.float64]  # overlap at zero distance, (2 pi s_i^2 s_j^2 / s2)^1.5
+    incidence: NDArray[np.float64]  # (m, pairs): +1 at i, -1 at j
     norm_h: float
 
 
@@ -100,7 +103,18 @@ def model_constants(model: HandModel) -> _ModelConstants:
     s2 = model.g_sigmas**2
     ss = s2[:, None] + s2[None, :]
     norm_h = float(((_TWO_PI * s2[:, None] * s2[None, :] / ss) ** 1.5 * np.exp(-0.5 * d2 / ss)).sum())
-    const = _ModelConstants(pair_i=pi, pair_j=pj, norm_h=norm_h)
+    s2p = s2[pi] + s2[pj]
+    incidence = np.zeros((model.n_gaussians, pi.size))
+    incidence[pi, np.arange(pi.size)] = 1.0
+    incidence[pj, np.arange(pi.size)] = -1.0
+    const = _ModelConstants(
+        pair_i=pi,
+        pair_j=pj,
+        pair_s2=s2p,
+        pair_amp=(_TWO_PI * s2[pi] * s2[pj] / s2p) ** 1.5,
+        incidence=incidence,
+        norm_h=norm_h,
+    )
     if len(_CONST_CACHE) > 32:
         _CONST_CACHE.clear()
     _CONST_CACHE[id(model)] = (model, const)
@@ -291,21 +305,13 @@ class Objective:
     ) -> float:
         """``E_col`` (eq. 6); adds ``-w_col dE_col/dP`` into ``g3``."""
         c = self._const
-        i, j = c.pair_i, c.pair_j
-        sh2 = self.model.g_sigmas**2
-        diff = P[i] - P[j]
+        diff = P[c.pair_i] - P[c.pair_j]
         r2 = (diff * diff).sum(1)
-        s2 = sh2[i] + sh2[j]
-        D = (_TWO_PI * sh2[i] * sh2[j] / s2) ** 1.5 * np.exp(-0.5 * r2 / s2)
+        D = c.pair_amp * np.exp(-0.5 * r2 / c.pair_s2)
         col = float(D.sum() / c.norm_h)
         if g3 is not None and w_col > 0:
-            g = (-(D / s2)[:, None] * diff) / c.norm_h  # dE_col/dP_i
-            m = P.shape[0]
-            for k in range(3):
-                g3[:, k] -= w_col * (
-                    _accumulate(i, g[:, k], m)
-                    - _accumulate(j, g[:, k], m)
-                )
+            g = (-(D / c.pair_s2)[:, None] * diff) / c.norm_h  # dE_col/dP_i (pairs, 3)
+            g3 -= w_col * (c.incidence @ g)
         return col
 
     def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
