@@ -40,7 +40,9 @@ __all__ = ["Tracker", "coverage", "hand_roi"]
 #: Velocity extrapolation factor of the start pose (paper: alpha = 0.5).
 ALPHA = 0.5
 #: Iterations per hypothesis while initialising, and for the best one after.
-INIT_ITERATIONS = (12, 30)
+INIT_ITERATIONS = (8, 30)
+#: Best-scoring hypotheses refined fully while initialising.
+INIT_FINALISTS = 2
 #: A fingertip this far from all data (mm) triggers a restart of its finger.
 RESTART_TIP_MM = 25.0
 RESTART_ITERATIONS = 5
@@ -280,21 +282,31 @@ class Tracker:
         if blob is None:
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, {})
-        best = None
+        rigid = np.zeros(self._model.limits_low.size + 6, dtype=bool)
+        rigid[:6] = True
+        scored = []
         for x0 in initial_hypotheses(self._model, blob, cfg.init_hypotheses):
             data = self._data_near(pre, x0)
             if data.n == 0:
                 continue
             obj = Objective(self._model, data, cfg)
-            res = maximise(obj, x0, iterations=INIT_ITERATIONS[0], initial_scale=2.0)
-            if best is None or res.fun > best[0].fun:
-                best = (res, data)
-        if best is None:
+            # Rigid alignment first, then articulation (seed 004's coarse-to-fine).
+            res = maximise(obj, x0, iterations=INIT_ITERATIONS[0], initial_scale=2.0, active=rigid)
+            res = maximise(obj, res.x, iterations=INIT_ITERATIONS[0], initial_scale=2.0)
+            scored.append((res.fun, len(scored), res.x))
+        if not scored:
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, {})
-        res0, _ = best
-        data = self._data_near(pre, res0.x)
-        res = maximise(Objective(self._model, data, cfg), res0.x, iterations=INIT_ITERATIONS[1])
+        best = None
+        for _, _, x in sorted(scored, reverse=True)[:INIT_FINALISTS]:
+            data_x = self._data_near(pre, x)
+            obj = Objective(self._model, data_x, cfg)
+            cand = maximise(obj, x, iterations=INIT_ITERATIONS[1])
+            for _ in range(2):
+                cand = self._finger_restarts(obj, cand, data_x)
+            if best is None or cand.fun > best[0].fun:
+                best = (cand, data_x)
+        res, data = best
         conf = coverage(self._model, res.x, data)
         if conf < cfg.lost_confidence:
             self._status = TrackerStatus.NO_HAND
