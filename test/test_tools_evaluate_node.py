@@ -44,6 +44,7 @@ def test_loopback_dds_forces_and_restores_the_environment(monkeypatch: pytest.Mo
 
 
 def test_through_node_without_a_hand_accounts_for_every_frame(tmp_path: Path) -> None:
+    """No warm-up skip here: the node answers nothing, its counters must still add up."""
     intr = Intrinsics(fx=120.0, fy=120.0, cx=79.5, cy=59.5, width=160, height=120)
     tips = np.tile([0.0, 0.0, 400.0], (5, 1))
     t0 = 1_700_000_000_000_000_000
@@ -62,6 +63,7 @@ def test_through_node_without_a_hand_accounts_for_every_frame(tmp_path: Path) ->
     assert ev.errors.frames_scored == 5 and ev.errors.frames_with_estimate == 0
     assert ev.errors.pct_below_mm["30"] == 0.0
     assert x["frames_dropped"] == 5 - st["processed"] - st["rejected"]
+    assert x["warmup"]["answered"] is True and x["warmup"]["tracking"] is False
     assert os.environ["ROS_DOMAIN_ID"] == "73"  # restored
 
 
@@ -76,6 +78,7 @@ def test_through_node_cli_on_a_synthetic_hand(tmp_path: Path, capsys: pytest.Cap
     assert js["mode"] == "through_node" and js["frames"] == 8 and js["domain_id"] == DOMAIN
     for key in ("frames_published", "frames_with_output", "frames_dropped", "latency_ms", "node_stats"):
         assert key in js
+    assert js["warmup"]["answered"] is True
     assert js["frames_with_output"] >= 1, js["node_stats"]
     assert js["status_counts"].get("tracking", 0) >= 1
     assert js["latency_ms"]["median"] > 0.0

@@ -1,21 +1,22 @@
 """User-specific hand model: greedy search over four scale factors (paper 000, sec. 5.4).
 
 The user holds an open hand toward the camera (any position and in-plane
-orientation; the pose is found automatically and refined during the fit).  For
-each scale factor in turn (length, width, sigma, depth) every value of a fixed
-grid is tried with the others held at their best so far; the pose is refined by
-a few optimiser iterations for every candidate and the candidate with the best
-score is kept.  Two passes, the second on a finer grid around the first result.
+orientation).  One pose fit with the current model locates the palm and its
+orientation; the fingers are then set open.  For each scale factor in turn
+(length, width, sigma, depth) every value of a fixed grid is tried with the
+others held at their best so far; each candidate model is scaled about the
+fitted palm centre and scored.  Two passes, the second on a finer grid around
+the first result.
 
 Score.  The tracking objective's similarity term is normalised by the data
 alone, so a larger model always covers more data and scores higher; fitting
-shape with it drifts to the largest model.  The fit therefore scores a
-candidate by the symmetric, depth-weighted overlap
+shape with it drifts to the largest model.  Candidates are therefore scored by
+a depth-aware silhouette overlap (:func:`shape_score`), which is largest when
+the model's skin and the hand's data cover the same pixels at the same depth.
 
-``S = 2 sum_pq Delta_pq D_pq / (E(C_p, C_p) + E(C_I, C_I)) - w_c E_col - w_l E_lim``
-
-which is largest when the projected model and the data cover the same area at
-the same depth.  ``E(C_p, C_p)`` is the projected model's overlap with itself.
+Known limitation: the pose is fitted once with the *starting* model, and that
+pose is biased toward the starting size, so the fitted factors are pulled
+toward the starting ones (see the README's calibration section for numbers).
 """
 
 from __future__ import annotations
@@ -41,9 +42,9 @@ __all__ = ["CalibrationResult", "calibrate", "shape_score", "SEARCH_RANGE"]
 #: Fixed search range of every scale factor.
 SEARCH_RANGE = (0.8, 1.25)
 _ORDER = ("length", "width", "sigma", "depth")
-_COARSE = 10
-_FINE_STEP = 0.01
-_POSE_ITERATIONS = 4
+_COARSE = 7
+_FINE_STEP = 0.015
+_SCORE_MARGIN_PX = 12
 _REFIT_ITERATIONS = 15
 _OPEN_JOINTS = np.array([0.1, 0.0, 0.1, 0.1] + [0.05, 0.0, 0.05, 0.05] * 4)
 _STRIDE = 3
@@ -218,28 +219,34 @@ def calibrate(
     mirrored = model.mirrored(config.right_hand)
     roi, window = hand_roi(mirrored, pose, pres[0].intrinsics, config.roi_radius_mm)
     datas = [quadtree_sog(p, config.quadtree_threshold_mm, roi, window, config.min_quad_px) for p in pres]
+    if datas[0].n:
+        # Score only around the hand's data (plus a margin for a model too large).
+        lo = np.floor((datas[0].mu - datas[0].sigma[:, None]).min(axis=0)) - _SCORE_MARGIN_PX
+        hi = np.ceil((datas[0].mu + datas[0].sigma[:, None]).max(axis=0)) + _SCORE_MARGIN_PX
+        roi = (int(lo[0]), int(lo[1]), int(hi[0]) + 1, int(hi[1]) + 1)
     if datas[0].n == 0 or coverage(mirrored, pose, datas[0]) < config.lost_confidence:
         raise CalibrationError("no hand in view (hold an open hand toward the camera)")
 
-    def evaluate(shape: HandShape, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+    def evaluate(
+        shape: HandShape, start: NDArray[np.float64], start_model: HandModel
+    ) -> tuple[float, NDArray[np.float64]]:
+        """Score ``shape`` from a pose fitted with ``start_model``."""
         m = mirrored.scaled(shape)
-        th = _keep_palm_centre(theta, current_model[0], m)
-        th[6:] = _OPEN_JOINTS  # the user holds an open hand: start every candidate open
-        th = _refine(m, th, datas[0], config, _POSE_ITERATIONS)
+        th = _keep_palm_centre(start, start_model, m)
         return sum(shape_score(m, th, p, roi, stride=_STRIDE) for p in pres) / len(pres), th
 
-    current = model.shape
-    current_model = [mirrored.scaled(current)]
-    pose = _refine(current_model[0], pose, datas[0], config, 20)
-    before, _ = evaluate(current, pose)
-    best_val, best_shape, best_pose = before, current, pose
+    best_shape = model.shape
+    best_model = mirrored.scaled(best_shape)
+    # One pose fit locates the palm and its orientation; the user holds an open
+    # hand, so the fingers are then set open and every candidate is scaled
+    # about that palm centre and scored without further pose changes (a pose
+    # refitted with a wrongly sized model is biased toward that size).
+    start = _refine(best_model, pose, datas[0], config, _REFIT_ITERATIONS)
+    start[6:] = _OPEN_JOINTS
+    before, best_pose = evaluate(best_shape, start, best_model)
+    best_val = before
     for pass_no in range(2):
         for name in _ORDER:
-            # Re-fit the pose to the best shape so far before searching the next factor.
-            # Every candidate, the current shape included, is scored the same way
-            # from the same start pose, so none is favoured by a better-fitted pose.
-            start = _refine(current_model[0], best_pose, datas[0], config, _REFIT_ITERATIONS)
-            best_val, best_pose = evaluate(best_shape, start)
             if pass_no == 0:
                 grid = np.linspace(*SEARCH_RANGE, _COARSE)
             else:
@@ -247,10 +254,9 @@ def calibrate(
                 grid = np.clip(c + _FINE_STEP * np.arange(-3, 4), *SEARCH_RANGE)
             for value in grid:
                 cand = HandShape(**{**best_shape.__dict__, name: float(value)})
-                val, th = evaluate(cand, start)
+                val, th = evaluate(cand, start, best_model)
                 if val > best_val:
                     best_val, best_shape, best_pose = val, cand, th
-                    current_model[0] = mirrored.scaled(best_shape)
     fitted = mirrored.scaled(best_shape)
     after = best_val
     if not after > before:

@@ -45,7 +45,7 @@ import traceback
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import rclpy
@@ -178,7 +178,7 @@ class TrackerNode(Node):
         A start-up value is outside its declared range.
     """
 
-    def __init__(self, **kwargs) -> None:
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         try:
             self._settings: NodeSettings = declare_node_parameters(self)
@@ -195,7 +195,7 @@ class TrackerNode(Node):
         self._pending: Image | None = None
         self._intrinsics: Intrinsics | None = None
         self._intrinsics_problem = ""
-        # State touched only by the work group (processing and calibration).
+        # Tracking state: used by the work group; the tracker also by ~/calibrate (_tracker_lock).
         self._tracker = Tracker(self._settings.tracker, self._initial_model())
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
@@ -534,9 +534,8 @@ class TrackerNode(Node):
 
     def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Fit the hand model to the last frames; tracking goes on meanwhile (own callback group)."""
-        with self._tracker_lock:  # a consistent snapshot: frames, pose and model of the same moment
-            frames = list(self._calib_frames)[::-1]  # newest first: it matches the last pose
-            start = self._tracker.last_pose if self._tracker.status is TrackerStatus.TRACKING else None
+        with self._tracker_lock:  # a consistent snapshot of the frames and the model
+            frames = list(self._calib_frames)[::-1]  # newest first
             model = self._tracker.model
         if not frames:
             response.success = False
@@ -550,7 +549,9 @@ class TrackerNode(Node):
         settings = self._settings
         self.get_logger().info(f"calibrating the hand model on {len(depths)} frames ...")
         try:
-            res = calibrate(depths, intr, settings.tracker, model, start_pose=start)
+            # calibrate() finds the pose itself: the tracked pose can sit in a worse local optimum
+            # than a fresh initialisation on the newest frame, which makes the fit fail.
+            res = calibrate(depths, intr, settings.tracker, model, start_pose=None)
         except HandSogError as err:
             kind = "calibration failed" if isinstance(err, CalibrationError) else "calibration error"
             response.success = False
@@ -597,13 +598,14 @@ class TrackerExecutor(MultiThreadedExecutor):
     rclpy 7.1 (Jazzy) destroys the executor's guard condition in ``shutdown`` while callbacks
     already handed to its thread pool may still trigger it, which leaves a "cannot use
     Destroyable because destruction was requested" exception behind.  This executor first lets
-    the running callbacks finish (and drops the ones not started yet), then shuts down.
+    the callbacks already handed to its threads finish (at most one per callback group), then
+    shuts down.  A calibration in progress is finished first.
     """
 
     def shutdown(self, timeout_sec: float | None = None) -> bool:
         pool = getattr(self, "_executor", None)  # the ThreadPoolExecutor of rclpy 7.1
         if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+            pool.shutdown(wait=True)
         return super().shutdown(timeout_sec)
 
 
