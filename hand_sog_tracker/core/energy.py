@@ -156,6 +156,13 @@ class Objective:
         self._const = model_constants(model)
         intr = data.intrinsics
         self._f = float(np.sqrt(intr.fx * intr.fy))
+        # Per-frame constants of the data terms.
+        self._mu_u = np.ascontiguousarray(data.mu[:, 0])
+        self._mu_v = np.ascontiguousarray(data.mu[:, 1])
+        self._sq2 = data.sigma**2
+        self._sq2_36 = 36.0 * self._sq2
+        self._half = data.sigma * _INV_SQRT2  # half a quad's side, px
+        self._two_sh = (2.0 * model.g_sigmas)[:, None]
 
     def __call__(
         self, theta: NDArray[np.float64], gradient: bool = True
@@ -208,16 +215,16 @@ class Objective:
         v = intr.fy * y / z + intr.cy
         sp = sh * self._f / z
         dp = z - sh
-        sq2_all = data.sigma**2
+        sq2_all = self._sq2
         # Candidate pairs (dense tests, sparse arithmetic).
-        du_d = u[:, None] - data.mu[None, :, 0]
-        dv_d = v[:, None] - data.mu[None, :, 1]
+        du_d = u[:, None] - self._mu_u
+        dv_d = v[:, None] - self._mu_v
         r2_d = du_d * du_d + dv_d * dv_d
-        dd_d = dp[:, None] - data.depth[None, :]
-        mask = (np.abs(dd_d) < 2.0 * sh[:, None]) & (r2_d < 36.0 * ((sp * sp)[:, None] + sq2_all[None, :]))
+        dd_d = dp[:, None] - data.depth
+        mask = (np.abs(dd_d) < self._two_sh) & (r2_d < (36.0 * sp * sp)[:, None] + self._sq2_36)
         flat = np.flatnonzero(mask)
         n = data.n
-        pi, qi = flat // n, flat % n
+        pi, qi = np.divmod(flat, n)
         du, dv, r2, dd = du_d.take(flat), dv_d.take(flat), r2_d.take(flat), dd_d.take(flat)
         sp2 = sp[pi] ** 2
         sq2 = sq2_all[qi]
@@ -231,20 +238,18 @@ class Objective:
         sim = float((delta * D).sum() * inv_norm)
         # Dangling Gaussians (eq. 7): distance from each model Gaussian to the
         # data, occlusion-aware (see the module docstring).
-        half = data.sigma * _INV_SQRT2  # half the quad side, px
         r_d = np.sqrt(r2_d)
-        lat_px = np.maximum(r_d - half[None, :], 0.0)
+        lat_px = np.maximum(r_d - self._half, 0.0)
         scale = (z / self._f)[:, None]  # mm per px at the model's depth
-        lat = lat_px * scale
         behind = np.maximum(-dd_d, 0.0)  # data farther than the model's surface
-        dist = np.sqrt(lat * lat + behind * behind)
-        nearest = dist.argmin(axis=1)
-        dmin = dist[np.arange(m), nearest]
+        dist2 = lat_px * lat_px * (scale * scale) + behind * behind
+        nearest = dist2.argmin(axis=1)
+        dmin = np.sqrt(dist2[np.arange(m), nearest])
         wdang = np.clip((dmin - TAU1_MM) / TAU1_MM, 0.0, 1.0)
         rows = np.nonzero(wdang > 0.0)[0]
         dan = 0.0
         if rows.size:
-            dist_r = dist[rows]
+            dist_r = np.sqrt(dist2[rows])
             phi = np.clip((dist_r - TAU1_MM) / (TAU2_MM - TAU1_MM), 0.0, 1.0)
             s2r = (sp[rows] ** 2)[:, None] + sq2_all[None, :]
             er = np.exp(-0.5 * r2_d[rows] / s2r)
@@ -271,7 +276,8 @@ class Objective:
             g_v[rows] -= (pe * dv_r * inv_s2r).sum(1)
             g_sp[rows] += (pe * r2_d[rows] * spr * inv_s2r * inv_s2r).sum(1)
             # Derivatives of the distance: lat = max(r - half, 0) z / f, behind = max(dq - dp, 0).
-            lat_r, beh_r, r_r = lat[rows], behind[rows], np.maximum(r_d[rows], 1e-9)
+            lat_r = lat_px[rows] * scale[rows]
+            beh_r, r_r = behind[rows], np.maximum(r_d[rows], 1e-9)
             inv_dist = 1.0 / np.maximum(dist_r, 1e-9)
             on_lat = lat_px[rows] > 0.0
             k_u = np.where(on_lat, lat_r * scale[rows] / r_r, 0.0) * inv_dist  # d dist / du per du
