@@ -12,9 +12,12 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import pytest
+
+if TYPE_CHECKING:
+    from rclpy.context import Context
 
 REPO = Path(__file__).resolve().parents[1]
 LOOPBACK_PROFILE = REPO / "hand_sog_tracker" / "data" / "fastdds_loopback.xml"
@@ -28,7 +31,7 @@ os.environ["ROS_HOME"] = tempfile.mkdtemp(prefix="hand_sog_tracker_ros_home_")
 
 
 @pytest.fixture
-def ros_context() -> Iterator["rclpy.context.Context"]:  # noqa: F821
+def ros_context() -> Iterator["Context"]:
     """A fresh, initialised rclpy context, shut down after the test."""
     import rclpy
     from rclpy.context import Context

@@ -13,7 +13,6 @@ from typing import Callable
 
 import numpy as np
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
@@ -171,7 +170,7 @@ def test_outputs_carry_the_input_stamp_and_frame_and_match_the_core(rig: Rig) ->
     assert np.linalg.norm(got.mean(axis=0) - fingertips(model, theta).mean(axis=0)) < 40.0
     assert [m.type for m in markers.markers if m.ns == "skeleton"] == [Marker.LINE_LIST]
     s = rig.node.stats
-    assert (s.received, s.processed, s.dropped, s.rejected) == (3, 3, 0, 0)
+    assert (s.received, s.processed, s.dropped, s.missed, s.rejected) == (3, 3, 0, 0, 0)
     assert s.status is TrackerStatus.TRACKING and s.confidence > 0.35
 
 
@@ -180,7 +179,6 @@ def test_bad_inputs_are_skipped_with_a_reason_and_the_next_good_frame_is_tracked
     stamp = T0_NS
 
     def expect_rejected(msg: Image, words: str) -> None:
-        nonlocal stamp
         rejected = rig.node.stats.rejected
         rig.send(msg)
         s = rig.node.stats
@@ -272,19 +270,21 @@ def test_runtime_parameter_changes_reach_the_tracker(rig: Rig) -> None:
 
 
 def test_no_backlog_under_a_burst(rig: Rig) -> None:
-    """Frames sent faster than they can be processed are dropped; the newest is processed."""
+    """Frames sent faster than they can be processed are dropped and counted; the newest is processed."""
     rig.send_info()
     frames = [hand_depth(th, seed=i) for i, th in enumerate(hand_poses(12))]
-    for i, d in enumerate(frames):
-        rig.image_pub.publish(image_msg(d, T0_NS + i * 10**7))
-    last = T0_NS + 11 * 10**7
-    rig.wait_joint(last)
+    stamps = [T0_NS + i * 10**7 for i in range(12)]  # a 100 Hz camera
+    for i in range(2):  # paced: the node learns the frame interval
+        rig.send(image_msg(frames[i], stamps[i]))
+    for i in range(2, 12):  # a burst while nobody spins: DDS keeps only the newest (depth 1)
+        rig.image_pub.publish(image_msg(frames[i], stamps[i]))
+    rig.wait_joint(stamps[-1])
     rig.spin_until(lambda: False, 0.3)  # let anything still in flight arrive
     s = rig.node.stats
-    assert s.processed + s.dropped + s.rejected == s.received
     assert s.processed < 12 and s.rejected == 0
-    stamps = [stamp_to_ns(m.header.stamp) for m, _ in rig.joints]
-    assert stamps == sorted(stamps) and stamps[-1] == last
+    assert s.processed + s.dropped + s.missed == 12, s
+    got = [stamp_to_ns(m.header.stamp) for m, _ in rig.joints]
+    assert got == sorted(got) and got[-1] == stamps[-1]
 
 
 def test_calibrate_fails_cleanly_without_frames(rig: Rig) -> None:
@@ -308,24 +308,18 @@ def test_calibrate_fits_saves_and_a_new_node_loads_the_model(ros_context, tmp_pa
         for i in range(2):
             rig.send(image_msg(hand_depth(th, seed=i, model=model), T0_NS + i * 10**8))
         future = rig.calib.call_async(Trigger.Request())
-        rig.spin_until(lambda: False, 0.3)  # the fit is under way ...
-        stamp = T0_NS + 5 * 10**8
-        rig.image_pub.publish(image_msg(hand_depth(th, seed=9, model=model), stamp))
-        rig.wait_joint(stamp, timeout=90.0)
-        tracked_at = next(t for m, t in rig.joints if stamp_to_ns(m.header.stamp) == stamp)
         assert rig.spin_until(future.done, 90.0)
-        answered_at = time.perf_counter()
         answer = future.result()
         assert answer.success, answer.message
         assert "(1 frames" in answer.message and "saved to" in answer.message
-        fit_s = float(answer.message.split("(1 frames, ")[1].split(" s)")[0])
-        if fit_s > 2.0:  # ... and tracking went on meanwhile
-            assert tracked_at < answered_at - 1.0, "tracking was blocked by the calibration"
         shape, right = load_hand_shape(tmp_path / "hand_model.yaml")
         assert right and f"length={shape.length:.3f} width={shape.width:.3f}" in answer.message
         before, after = (float(x) for x in answer.message.split("energy ")[1].split(" (")[0].split(" -> "))
         assert after > before
         assert rig.node.hand_model.shape == shape
+        stamp = T0_NS + 5 * 10**8  # tracking goes on with the calibrated model
+        rig.send(image_msg(hand_depth(th, seed=5, model=model), stamp))
+        rig.wait_joint(stamp)
     finally:
         rig.close()
     again = Rig(ros_context, tmp_path)
@@ -365,7 +359,7 @@ def test_diagnostics_report_rates_and_counters(rig: Rig) -> None:
     status = next(s for d in rig.diagnostics for s in d.status if s.name == name)
     values = {kv.key: kv.value for kv in status.values}
     assert {"input_rate_hz", "output_rate_hz", "processing_ms", "latency_ms", "status", "confidence",
-            "frames_dropped", "frames_rejected"} <= set(values)
+            "frames_dropped", "frames_missed", "frames_rejected"} <= set(values)
     assert values["frames_processed"] == "3" and values["frames_rejected"] == "0"
     assert float(values["processing_ms"]) > 0 and status.hardware_id == FRAME
 
@@ -386,4 +380,4 @@ def test_end_to_end_latency(rig: Rig) -> None:
     tracking = np.array(lat[1:])  # the first frame initialises the track
     print(f"latency ms: first {lat[0]:.1f}, tracking median {np.median(tracking):.1f}, "
           f"p95 {np.percentile(tracking, 95):.1f}")
-    assert np.median(tracking) < 250.0  # loose: the machine may be busy; see the report for numbers
+    assert np.median(tracking) < 150.0  # loose: the machine may be busy (measured: ~15 ms)
