@@ -355,8 +355,14 @@ def test_diagnostics_report_rates_and_counters(rig: Rig) -> None:
     for i in range(3):
         rig.send(image_msg(hand_depth(hand_poses(1)[0], seed=i), T0_NS + i * 10**8))
     name = f"hand_sog_tracker: {rig.ns}/hand_sog_tracker"
-    assert rig.spin_until(lambda: any(s.name == name for d in rig.diagnostics for s in d.status), 3.0)
-    status = next(s for d in rig.diagnostics for s in d.status if s.name == name)
+
+    def reports() -> list[dict[str, str]]:
+        return [{kv.key: kv.value for kv in s.values} for d in rig.diagnostics for s in d.status if s.name == name]
+
+    # A report published while the frames were still being sent counts fewer: wait for a later one.
+    assert rig.spin_until(lambda: any(v.get("frames_processed") == "3" for v in reports()), 3.0), reports()
+    status = next(s for d in rig.diagnostics for s in d.status
+                  if s.name == name and {kv.key: kv.value for kv in s.values}.get("frames_processed") == "3")
     values = {kv.key: kv.value for kv in status.values}
     assert {"input_rate_hz", "output_rate_hz", "processing_ms", "latency_ms", "status", "confidence",
             "frames_dropped", "frames_missed", "frames_rejected"} <= set(values)
