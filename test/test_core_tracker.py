@@ -104,3 +104,21 @@ def test_recovers_each_of_ten_returns_of_the_hand() -> None:
         assert all(r.status is TrackerStatus.TRACKING for r in results)
         final_errors.append(np.linalg.norm(results[-1].fingertips_mm - back[-1].fingertips_mm, axis=1).mean())
     assert max(final_errors) < 25.0, np.round(final_errors, 1)
+
+
+def test_hand_in_front_of_a_body_in_range_is_found() -> None:
+    """Hand and forearm seen against a body 300 mm behind them, all inside the depth window."""
+    intr = default_intrinsics()
+    config = TrackerConfig(far_mm=1200.0)
+    frames = list(synthetic_sequence("abdadd", 3, intrinsics=intr, seed=8, options=RenderOptions(background_mm=None)))
+    tracker = Tracker(config)
+    errs = []
+    for frame in frames:
+        depth = frame.depth_mm.copy()
+        body = depth == 0
+        body[:20, :] = False  # the body does not fill the top of the image
+        depth[body] = 700.0
+        res = tracker.process(depth, intr)
+        assert res.fingertips_mm is not None, res.status
+        errs.append(np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).mean())
+    assert max(errs) < 15.0, np.round(errs, 1)

@@ -1,7 +1,9 @@
 """Automatic initialisation: find the hand in a depth image and propose start poses.
 
 No rest pose is required.  The nearest sizeable blob of in-range depth is taken
-as hand (plus forearm).  Its 3D principal axis gives the arm direction; the end
+as hand (plus forearm), less what lies more than
+:data:`HAND_DEPTH_BAND_MM` behind its nearest points (an arm joins hand and body
+in one surface).  Its 3D principal axis gives the arm direction; the end
 of the blob that touches the image border is the forearm, so the hand lies at
 the other end (when neither end touches the border both are tried).  Start
 poses then combine palm toward / away from the camera, open / closed hand and
@@ -27,6 +29,8 @@ MIN_BLOB_AREA_MM2 = 2500.0
 #: A blob reaching this far beyond its thickest point (and 1.4x farther than
 #: on the other side) is taken to hold a forearm on that side.
 FOREARM_MIN_EXTENT_MM = 150.0
+#: Depth extent (mm) of a hand (plus wrist) behind its nearest point.
+HAND_DEPTH_BAND_MM = 250.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,7 +65,19 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
         area_mm2 = area_px * (z / intr.fx) * (z / intr.fy)
         if area_mm2 >= MIN_BLOB_AREA_MM2 and z < best_z:
             best, best_z = lab, z
-    return None if best < 0 else labels == best
+    if best < 0:
+        return None
+    blob = labels == best
+    # An arm reaching toward the camera joins hand and body in one surface: keep the
+    # part within a hand's depth extent of the blob's nearest points.
+    near = float(np.percentile(depth[blob], 2))
+    band = (blob & (depth <= near + HAND_DEPTH_BAND_MM)).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(band, connectivity=8)
+    if n <= 1:
+        return blob
+    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    area_mm2 = stats[largest, cv2.CC_STAT_AREA] * (near / intr.fx) * (near / intr.fy)
+    return labels == largest if area_mm2 >= MIN_BLOB_AREA_MM2 else blob
 
 
 def _in_plane(direction: NDArray[np.float64], angle: float) -> NDArray[np.float64]:
