@@ -192,7 +192,7 @@ def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray
     """Up to ``n`` start poses (26,) for the hand in ``blob``, most likely first.
 
     Each direction is tried with the palm toward and away from the camera,
-    open; the closed hand is added for the most likely direction.
+    open; a closed and a half-closed hand are added for the most likely direction.
     """
     palm_local = np.array([0.0, 0.55 * float(model.bases[2, 1]), 0.0])
     combos = []
@@ -200,8 +200,9 @@ def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray
         combos.append((d, True, _OPEN))
         combos.append((d, False, _OPEN))
         if i == 0:
-            combos.append((d, True, _CLOSED))
-            combos.append((d, False, _CLOSED))
+            for joints in (_CLOSED, _HALF):
+                combos.append((d, True, joints))
+                combos.append((d, False, joints))
     out = []
     for d, palm, joints in combos:
         # The mirror of a left hand acts inside the hand frame, so the same
