@@ -76,9 +76,8 @@ def test_drawn_skin_is_as_wide_as_the_finger() -> None:
     depth = _draw_skin(model, theta, INTR, (0, 0, INTR.width, INTR.height))
     tip = model.tip_index[2]  # middle finger's distal Gaussian
     centre = gaussian_centres(model, theta)[tip]
-    row = int(round(INTR.project(centre[None])[0, 1]))
+    col, row = (int(round(c)) for c in INTR.project(centre[None])[0])
     covered = np.isfinite(depth[row])
-    col = int(round(INTR.project(centre[None])[0, 0]))
     left = col - np.argmin(covered[col::-1]) + 1
     right = col + np.argmin(covered[col:]) - 1
     expected = 2 * model.g_sigmas[tip] * INTR.fx / centre[2]

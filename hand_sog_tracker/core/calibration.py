@@ -70,7 +70,7 @@ def _candidate(shape: HandShape, name: str, offset: float) -> HandShape | None:
     else:
         values[("length", "width", "depth", "sigma").index(name)] += offset
     lo, hi = SEARCH_RANGE
-    if offset == 0.0 or np.any(values < lo - 1e-9) or np.any(values > hi + 1e-9):
+    if abs(offset) < 1e-9 or np.any(values < lo - 1e-9) or np.any(values > hi + 1e-9):
         return None
     return HandShape(*(float(v) for v in values))
 
@@ -203,7 +203,7 @@ def shape_score(
     theta: NDArray[np.float64],
     pre: Preprocessed,
     roi: tuple[int, int, int, int],
-    tolerance_mm: float = 12.0,
+    tolerance_mm: float = _TOLERANCE_MM,
 ) -> float:
     """Depth-aware overlap of the model's silhouette with the hand's, in [0, 1].
 
