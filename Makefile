@@ -6,8 +6,10 @@ PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3)
 VENV := .venv
 VENV_PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# A sample bag bundled in bags/ (written by make_sample_bags).
-DEMO_BAG ?= bags/fingerwave
+# "make demo" starts tracker_node on loopback DDS in its own domain and replays a bundled bag
+# into it (a mesh-hand dev bag, see bags/README.md; never one of bags/mesh_test).
+DEMO_BAG ?= bags/mesh_dev/rotate
+DEMO_DOMAIN_ID ?= 74
 # Tests use DDS on loopback only, in their own domain.
 TEST_DOMAIN_ID ?= 73
 LOOPBACK_PROFILE := $(CURDIR)/hand_sog_tracker/data/fastdds_loopback.xml
@@ -27,7 +29,8 @@ $(STAMP): $(SOURCES) | $(VENV_PY)
 	touch $@
 
 demo: $(STAMP)
-	$(VENV)/bin/evaluate_bag $(DEMO_BAG)
+	FASTRTPS_DEFAULT_PROFILES_FILE=$(LOOPBACK_PROFILE) ROS_DOMAIN_ID=$(DEMO_DOMAIN_ID) \
+		$(VENV)/bin/demo $(DEMO_BAG) --domain-id $(DEMO_DOMAIN_ID)
 
 test: $(STAMP)
 	FASTRTPS_DEFAULT_PROFILES_FILE=$(LOOPBACK_PROFILE) ROS_DOMAIN_ID=$(TEST_DOMAIN_ID) \

@@ -28,18 +28,20 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     packages=find_packages(exclude=["test", "test.*"]),
-    package_data={PACKAGE: ["data/*.xml"]},
+    package_data={PACKAGE: ["data/*.xml", "data/webxr_hand/*"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
+        (f"share/{PACKAGE}/launch", sorted(glob("launch/*.launch.py"))),
+        (f"share/{PACKAGE}/urdf", sorted(glob("urdf/*.urdf"))),
     ],
     install_requires=_ROS_WHEELS + [
         "numpy",
         "opencv-python-headless",
         "rosbags",
     ],
-    extras_require={"test": ["pytest"]},
+    extras_require={"plot": ["matplotlib"], "test": ["pytest", "matplotlib", "ruff"]},
     zip_safe=False,
     entry_points={
         "console_scripts": [
@@ -49,6 +51,7 @@ setup(
             f"replay_bag = {PACKAGE}.tools.replay_bag:main",
             f"make_sample_bags = {PACKAGE}.tools.make_sample_bags:main",
             f"benchmark = {PACKAGE}.tools.benchmark:main",
+            f"demo = {PACKAGE}.tools.demo:main",
         ],
     },
 )

@@ -15,8 +15,7 @@ from hand_sog_tracker.core.depth_sog import (
 )
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 from hand_sog_tracker.errors import DepthImageError, IntrinsicsError
-
-INTR = Intrinsics(fx=287.26, fy=287.26, cx=160.0, cy=120.0, width=320, height=240)
+from helpers import INTR
 
 
 def test_flat_square_becomes_few_large_quads() -> None:

@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
-from hand_sog_tracker.core.energy import Objective
+from hand_sog_tracker.core.energy import ORDER_MIN_GAP_RAD, Objective, TipTargets
 from hand_sog_tracker.core.hand_model import N_PARAMS, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres
 from hand_sog_tracker.core.optimizer import maximise
-from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
-
-INTR = Intrinsics(fx=287.26, fy=287.26, cx=160.0, cy=120.0, width=320, height=240)
+from hand_sog_tracker.core.silhouette import Silhouette
+from hand_sog_tracker.core.types import TrackerConfig
+from helpers import INTR
 
 
 def data_near(
@@ -44,6 +45,19 @@ def data_near(
     )
 
 
+def silhouette_of(model, theta: np.ndarray, skip_chain: int | None = None) -> Silhouette:
+    """The silhouette of the model's Gaussians (discs of one sigma) at ``theta``, one chain left out."""
+    P = gaussian_centres(model, theta)
+    uv = INTR.project(P)
+    r = model.g_sigmas * INTR.fx / P[:, 2]
+    mask = np.zeros((INTR.height, INTR.width), np.uint8)
+    for (u, v), rad, c in zip(uv, r, model.g_chain):
+        if c != skip_chain:
+            cv2.circle(mask, (int(round(u)), int(round(v))), int(round(rad)), 1, -1)
+    dist = cv2.distanceTransform(1 - mask, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return Silhouette(distance=dist.astype(np.float64), intrinsics=INTR)
+
+
 def numeric_gradient(obj: Objective, theta: np.ndarray) -> np.ndarray:
     g = np.zeros(N_PARAMS)
     for j in range(N_PARAMS):
@@ -65,11 +79,19 @@ def test_gradient_matches_central_differences(seed: int) -> None:
     theta[:3] += rng.normal(0, 8, 3)
     theta[3:6] += rng.normal(0, 0.15, 3)
     theta[6:] += rng.normal(0, 0.4, 20)  # some beyond the joint limits
+    # Middle swung over the index finger: the order term is active.
+    theta[6 + 4 * 1 + 1] = 0.1
+    theta[6 + 4 * 2 + 1] = -0.3
     prev = (truth + rng.normal(0, 0.05, N_PARAMS), truth)
-    obj = Objective(model, data, TrackerConfig(), previous=prev)
+    tips = fingertips(model, truth)
+    targets = TipTargets(points=tips + rng.normal(0, 15, (5, 3)), weights=np.array([0.9, 0.0, 0.5, 1.0, 0.3]))
+    cfg = TrackerConfig(w_sal=1.0, w_ord=1.0, w_sil=1.0)
+    sil = silhouette_of(model, truth, skip_chain=4)
+    obj = Objective(model, data, cfg, previous=prev, targets=targets, silhouette=sil)
     terms, grad = obj.evaluate(theta)
     # Every term is active in this configuration, so each one's gradient is checked.
     assert terms.sim > 0 and terms.col > 0 and terms.dan > 0 and terms.lim > 0 and terms.smo > 0
+    assert terms.ord > 0 and terms.sal > 0 and terms.sil > 0
     num = numeric_gradient(obj, theta)
     np.testing.assert_allclose(grad, num, rtol=1e-4, atol=1e-6 * np.abs(num).max())
 
@@ -80,12 +102,50 @@ def test_each_term_weight_enters_the_gradient() -> None:
     theta = rest_pose((0.0, 60.0, 400.0))
     data = data_near(model, theta, rng)
     theta = theta + rng.normal(0, 0.3, N_PARAMS)
-    base = TrackerConfig(w_col=0.0, w_dan=0.0, w_lim=0.0, w_smo=0.0)
+    base = TrackerConfig(w_col=0.0, w_dan=0.0, w_lim=0.0, w_smo=0.0, w_ord=0.0, w_sal=0.0, w_sil=0.0)
     _, g0 = Objective(model, data, base).evaluate(theta)
-    for name in ("w_col", "w_dan", "w_lim"):
+    theta[6 + 4 * 2 + 1] = 0.3  # middle swung over the ring finger: order term active
+    targets = TipTargets(points=fingertips(model, theta) + 20.0, weights=np.ones(5))
+    _, g0 = Objective(model, data, base, targets=targets).evaluate(theta)
+    sil = silhouette_of(model, rest_pose((0.0, 60.0, 400.0)), skip_chain=2)
+    _, g0 = Objective(model, data, base, targets=targets, silhouette=sil).evaluate(theta)
+    for name in ("w_col", "w_dan", "w_lim", "w_ord", "w_sal", "w_sil"):
         cfg = TrackerConfig(**{**base.__dict__, name: 1.0})
-        terms, g = Objective(model, data, cfg).evaluate(theta)
+        terms, g = Objective(model, data, cfg, targets=targets, silhouette=sil).evaluate(theta)
         assert not np.allclose(g, g0), name
+
+
+def test_order_term_is_zero_for_fingers_in_order_and_grows_when_they_cross() -> None:
+    model = default_hand_model()
+    rng = np.random.default_rng(3)
+    theta = rest_pose((0.0, 60.0, 400.0))
+    data = data_near(model, theta, rng)
+    obj = Objective(model, data, TrackerConfig())
+    assert obj.evaluate(theta, gradient=False)[0].ord == 0.0
+    values = []
+    for swing in (0.0, 0.1, 0.2, 0.3):
+        crossed = theta.copy()
+        crossed[6 + 4 * 4 + 1] = -swing  # little toward the ring finger
+        values.append(obj.evaluate(crossed, gradient=False)[0].ord)
+    # Little and ring fan apart by 0.09 rad at rest: crossing starts beyond 0.09 - gap.
+    assert values[0] == 0.0 and values[1] == 0.0
+    assert 0.0 < values[2] < values[3]
+    np.testing.assert_allclose(values[3], (0.09 - 0.3 - ORDER_MIN_GAP_RAD) ** 2, rtol=1e-6)
+
+
+def test_salient_term_pulls_fingertips_to_their_targets() -> None:
+    model = default_hand_model()
+    rng = np.random.default_rng(4)
+    truth = rest_pose((0.0, 60.0, 400.0))
+    data = data_near(model, truth, rng, n=20)  # almost no depth evidence
+    moved = truth.copy()
+    moved[6 + 4 * 2] = 1.0  # middle finger flexed
+    targets = TipTargets(points=fingertips(model, truth), weights=np.array([0, 0, 1.0, 0, 0]))
+    cfg = TrackerConfig(w_sal=5.0)
+    obj = Objective(model, data, cfg, targets=targets)
+    res = maximise(obj, moved, iterations=40)
+    err = lambda th: np.linalg.norm(fingertips(model, th)[2] - targets.points[2])  # noqa: E731
+    assert err(res.x) < 0.3 * err(moved)
 
 
 def test_similarity_is_highest_at_the_data() -> None:
@@ -118,3 +178,19 @@ def test_optimiser_recovers_a_perturbed_pose() -> None:
 
     assert tip_error(res.x) < tip_error(start) / 2
     assert res.x.shape == (N_PARAMS,) and isinstance(res.message, str)
+
+
+def test_silhouette_term_is_zero_inside_and_grows_outside() -> None:
+    model = default_hand_model()
+    rng = np.random.default_rng(5)
+    theta = rest_pose((0.0, 60.0, 400.0))
+    data = data_near(model, theta, rng)
+    sil = silhouette_of(model, theta)
+    obj = Objective(model, data, TrackerConfig(w_sil=1.0), silhouette=sil)
+    assert obj.evaluate(theta, gradient=False)[0].sil == 0.0
+    values = []
+    for shift in (10.0, 20.0, 40.0):
+        moved = theta.copy()
+        moved[0] += shift
+        values.append(obj.evaluate(moved, gradient=False)[0].sil)
+    assert 0.0 < values[0] < values[1] < values[2]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hand_sog_tracker.core.hand_model import HandShape
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import DepthImageError, IntrinsicsError

@@ -117,3 +117,31 @@ def test_default_path_follows_ros_home(tmp_path: Path, monkeypatch) -> None:
     assert default_model_path() == tmp_path / "hand_sog_tracker" / "hand_model.yaml"
     monkeypatch.delenv("ROS_HOME")
     assert default_model_path() == Path(os.path.expanduser("~/.ros/hand_sog_tracker/hand_model.yaml"))
+
+
+def test_calibration_metadata_round_trips_and_old_names_still_load(tmp_path: Path) -> None:
+    from hand_sog_tracker.core.calibration import CalibrationResult, Validation
+    from hand_sog_tracker.core.hand_model import default_hand_model
+    from hand_sog_tracker.core.model_io import calibration_metadata, read_calibration_info
+
+    shape = HandShape(1.1, 0.95, 1.02, 1.02)
+    poses = np.arange(2 * 26, dtype=float).reshape(2, 26) / 7.0
+    res = CalibrationResult(
+        shape, default_hand_model().scaled(shape), poses[0], 0.71, 0.86, 0.42,
+        poses=poses, used_frames=(0, 2), validation=Validation(3, 0.80, 0.84, 0.01),
+    )
+    extra = calibration_metadata(res, fit_stamps_ns=[1_700_000_000_100_000_000, 5], holdout_stamps_ns=[7])
+    path = save_hand_shape(tmp_path / "m.yaml", shape, right=True, extra=extra)
+    assert load_hand_shape(path) == (shape, True)
+    info = read_calibration_info(path)
+    assert info["fit_frames"] == 2 and info["holdout_frames"] == 3
+    assert info["fit_stamps"] == "1700000000.100000000 0.000000005" and info["holdout_stamps"] == "0.000000007"
+    assert info["fit_score_before"] == 0.71 and info["fit_score_after"] == 0.86
+    assert info["holdout_score_current"] == 0.80 and info["holdout_score_fitted"] == 0.84
+    assert info["guard_margin"] == 0.01 and info["fit_seconds"] == 0.42
+    np.testing.assert_allclose([float(x) for x in str(info["fit_pose_1"]).split()], poses[1], rtol=1e-3)
+    assert "calibrated_at" in info and "length" not in info
+    # A file written before the rename: energy_* and frames are read under the new names.
+    old = save_hand_shape(tmp_path / "old.yaml", shape, right=True, extra={"energy_before": 0.5, "energy_after": 0.7, "frames": 3})
+    assert load_hand_shape(old) == (shape, True)
+    assert read_calibration_info(old) == {"fit_score_before": 0.5, "fit_score_after": 0.7, "fit_frames": 3}

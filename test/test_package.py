@@ -23,6 +23,7 @@ CONSOLE_SCRIPTS = {
     "replay_bag": "hand_sog_tracker.tools.replay_bag:main",
     "make_sample_bags": "hand_sog_tracker.tools.make_sample_bags:main",
     "benchmark": "hand_sog_tracker.tools.benchmark:main",
+    "demo": "hand_sog_tracker.tools.demo:main",
 }
 
 
@@ -45,6 +46,8 @@ def setup_kwargs() -> dict:
 def test_core_never_imports_rclpy() -> None:
     code = (
         "import importlib, pkgutil, sys\n"
+        "import hand_sog_tracker\n"  # the front door (__init__) imports the core only
+        "assert hand_sog_tracker.Tracker is not None\n"
         "import hand_sog_tracker.core as core\n"
         "names = [m.name for m in pkgutil.iter_modules(core.__path__, 'hand_sog_tracker.core.')]\n"
         "for n in names: importlib.import_module(n)\n"
@@ -68,7 +71,8 @@ def test_package_xml_and_setup_agree(setup_kwargs: dict) -> None:
     assert {"rclpy", "sensor_msgs", "geometry_msgs", "visualization_msgs", "std_srvs", "diagnostic_msgs",
             "python3-numpy", "python3-opencv"} <= exec_deps
     assert "tests_require" not in setup_kwargs
-    assert setup_kwargs["extras_require"]["test"] == ["pytest"]
+    assert setup_kwargs["extras_require"]["test"] == ["pytest", "matplotlib", "ruff"]
+    assert setup_kwargs["extras_require"]["plot"] == ["matplotlib"]
     reqs = set(setup_kwargs["install_requires"])
     assert {"numpy", "opencv-python-headless", "rosbags"} <= reqs
 
@@ -90,7 +94,9 @@ def test_installed_files(setup_kwargs: dict) -> None:
     assert (REPO / "resource" / "hand_sog_tracker").is_file()
     assert data["share/hand_sog_tracker"] == ["package.xml"]
     assert "config/hand_sog_tracker.yaml" in data["share/hand_sog_tracker/config"]
-    assert setup_kwargs["package_data"]["hand_sog_tracker"] == ["data/*.xml"]
+    assert setup_kwargs["package_data"]["hand_sog_tracker"] == ["data/*.xml", "data/webxr_hand/*"]
+    for name in ("right.glb", "left.glb", "LICENSE.md"):  # the mesh hand of synth.mesh (MIT)
+        assert (REPO / "hand_sog_tracker" / "data" / "webxr_hand" / name).is_file()
     cfg = configparser.ConfigParser()
     cfg.read(REPO / "setup.cfg")
     assert cfg["develop"]["script_dir"] == "$base/lib/hand_sog_tracker"
@@ -108,3 +114,80 @@ def test_shipped_dds_profile_is_loopback_only() -> None:
     assert participant.get("is_default_profile") == "true"
     types = {t.text for t in root.iter("{%s}type" % ns["f"])}
     assert types <= {"UDPv4", "SHM"}
+
+
+def test_launch_file_compiles_and_names_only_what_exists(setup_kwargs: dict) -> None:
+    """The launch file cannot run here (no launch / launch_ros on PyPI): check what it names."""
+    import ast
+    import py_compile
+
+    path = REPO / "launch" / "tracker.launch.py"
+    py_compile.compile(str(path), doraise=True)
+    tree = ast.parse(path.read_text())
+    data = {dest: list(files) for dest, files in setup_kwargs["data_files"]}
+    assert "launch/tracker.launch.py" in data["share/hand_sog_tracker/launch"]
+    assert "urdf/hand.urdf" in data["share/hand_sog_tracker/urdf"]
+    assert any(isinstance(n, ast.FunctionDef) and n.name == "generate_launch_description" for n in tree.body)
+    consts = {
+        t.id: n.value.value
+        for n in tree.body
+        if isinstance(n, ast.Assign) and isinstance(n.value, ast.Constant)
+        for t in n.targets
+    }
+
+    def value(node: ast.expr) -> str:
+        return consts[node.id] if isinstance(node, ast.Name) else ast.literal_eval(node)
+
+    nodes = {}
+    for call in ast.walk(tree):
+        if isinstance(call, ast.Call) and getattr(call.func, "id", None) == "Node":
+            kw = {k.arg: k.value for k in call.keywords}
+            nodes[value(kw["package"])] = value(kw["executable"])
+    scripts = {s.split("=")[0].strip() for s in setup_kwargs["entry_points"]["console_scripts"]}
+    assert nodes["hand_sog_tracker"] in scripts
+    assert nodes == {"hand_sog_tracker": "tracker_node", "robot_state_publisher": "robot_state_publisher"}
+    # Files it joins under the share directory exist in the source tree and are installed there.
+    joined = [
+        tuple(value(a) for a in call.args[1:])
+        for call in ast.walk(tree)
+        if isinstance(call, ast.Call) and getattr(call.func, "attr", None) == "join"
+    ]
+    assert ("urdf", "hand.urdf") in joined and ("config", "hand_sog_tracker.yaml") in joined
+    for parts in joined:
+        rel = "/".join(parts)
+        assert (REPO / rel).is_file(), rel
+        assert rel in data[f"share/hand_sog_tracker/{parts[0]}"], rel
+    # Its dependencies are declared for rosdep.
+    exec_deps = {e.text for e in ET.parse(REPO / "package.xml").getroot().findall("exec_depend")}
+    assert {"launch", "launch_ros", "ament_index_python", "robot_state_publisher"} <= exec_deps
+    # Every parameter it sets is a node parameter.
+    from hand_sog_tracker.ros.params import PARAM_NAMES
+
+    set_names = {
+        k.value
+        for d in ast.walk(tree)
+        if isinstance(d, ast.Dict)
+        for k in d.keys
+        if isinstance(k, ast.Constant)
+    }
+    assert set_names - {"robot_description"} <= set(PARAM_NAMES)
+
+
+def test_package_xml_lists_every_ros_package_imported() -> None:
+    """rosdep installs what package.xml names: every ROS package the code imports is there."""
+    import ast
+
+    ros_names = {"rclpy", "launch", "launch_ros", "ament_index_python"}
+    imported = set()
+    for path in [*(REPO / "hand_sog_tracker").rglob("*.py"), *(REPO / "launch").glob("*.py")]:
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                [node.module] if isinstance(node, ast.ImportFrom) and node.module and not node.level else []
+            )
+            for name in names:
+                top = name.split(".")[0]
+                if top in ros_names or top.endswith(("_msgs", "_srvs", "_interfaces")):
+                    imported.add(top)
+    deps = {e.text for e in ET.parse(REPO / "package.xml").getroot().iter() if e.tag.endswith("depend")}
+    assert {"rclpy", "sensor_msgs", "std_msgs", "builtin_interfaces", "rcl_interfaces"} <= imported
+    assert imported <= deps, sorted(imported - deps)

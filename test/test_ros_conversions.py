@@ -257,3 +257,84 @@ def test_bgr_image_and_diagnostics() -> None:
     (st,) = d.status
     assert st.level == b"\x01" and st.hardware_id == "cam"
     assert {kv.key: kv.value for kv in st.values} == {"rate": "29.971", "dropped": "3"}
+
+
+def test_keypoints_follow_the_mediapipe_order() -> None:
+    from hand_sog_tracker.ros.conversions import KEYPOINT_NAMES, keypoints_msg
+
+    model = default_hand_model()
+    th = rest_pose((10.0, -20.0, 400.0))
+    th[6:] = np.linspace(0.05, 0.5, 20)
+    sk, tips = skeleton_points(model, th), fingertips(model, th)
+    msg = keypoints_msg(Header(frame_id="cam"), sk, tips)
+    assert msg.header.frame_id == "cam" and len(msg.poses) == 21
+    pts = np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses]) * 1000.0
+    assert all(p.orientation.w == 1.0 for p in msg.poses)
+    # MediaPipe: 0 wrist, 1-4 thumb CMC MCP IP TIP, 5-8 index MCP PIP DIP TIP, ... 17-20 little.
+    assert KEYPOINT_NAMES[0] == "wrist" and KEYPOINT_NAMES[1:5] == ("thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip")
+    assert KEYPOINT_NAMES[5:9] == ("index_mcp", "index_pip", "index_dip", "index_tip")
+    assert KEYPOINT_NAMES[17] == "little_mcp" and KEYPOINT_NAMES[20] == "little_tip"
+    np.testing.assert_allclose(pts[0], th[:3], atol=1e-9)  # wrist = pose translation
+    np.testing.assert_allclose(pts[[4, 8, 12, 16, 20]], tips, atol=1e-9)  # TIPs = reported fingertips
+    for c in range(5):  # the chain's three joints: CMC/MCP, MCP/PIP, IP/DIP
+        np.testing.assert_allclose(pts[1 + 4 * c : 4 + 4 * c], sk[1 + 4 * c : 4 + 4 * c], atol=1e-9)
+    # The index MCP is the index chain's base: model.bases[1] in the hand frame.
+    np.testing.assert_allclose(pts[5], global_rotation(th) @ model.bases[1] + th[:3], atol=1e-9)
+
+
+def test_joint_state_with_virtual_wrist_joints() -> None:
+    th = rest_pose((10.0, -20.0, 400.0))
+    th[3:6] = (2.9, 0.1, -0.3)
+    msg = joint_state_msg(Header(), th, wrist_joints=True)
+    assert list(msg.name) == list(JOINT_NAMES) + ["hand_tx", "hand_ty", "hand_tz", "hand_rz", "hand_rx", "hand_ry"]
+    np.testing.assert_allclose(msg.position[20:], [0.01, -0.02, 0.4, -0.3, 2.9, 0.1])
+    assert len(joint_state_msg(Header(), th).name) == 20
+
+
+@pytest.mark.parametrize("right", [True, False])
+def test_hand_transforms_put_the_fingertips_where_the_tracker_reports_them(right: bool) -> None:
+    from hand_sog_tracker.ros.conversions import TF_TIP_FRAMES, hand_transforms
+
+    model = default_hand_model(right)
+    th = rest_pose((10.0, -20.0, 400.0))
+    th[3:6] += (0.3, -0.2, 0.5)
+    th[6:] = np.linspace(0.05, 0.5, 20)
+    tips = fingertips(model, th)
+    header = Header(frame_id="cam")
+    header.stamp.sec = 5
+    tfs = hand_transforms(header, th, tips)
+    assert [t.child_frame_id for t in tfs] == ["hand_wrist", *TF_TIP_FRAMES]
+    assert tfs[0].header.frame_id == "cam" and all(t.header.frame_id == "hand_wrist" for t in tfs[1:])
+    assert all(t.header.stamp.sec == 5 for t in tfs)
+    r = tfs[0].transform.rotation
+    q = np.array([r.x, r.y, r.z, r.w])
+    np.testing.assert_allclose(q, rotation_to_quaternion(global_rotation(th)))
+    tr = tfs[0].transform.translation
+    wrist = np.array([tr.x, tr.y, tr.z])
+    rot = global_rotation(th)
+    for t, tip in zip(tfs[1:], tips):
+        local = np.array([t.transform.translation.x, t.transform.translation.y, t.transform.translation.z])
+        np.testing.assert_allclose((rot @ local + wrist) * 1000.0, tip, atol=1e-9)
+
+
+@pytest.mark.parametrize("codec", ["png", "rvl"])
+def test_compressed_depth_from_rclpy_and_rosbags_messages(codec: str) -> None:
+    from sensor_msgs.msg import CompressedImage
+
+    from hand_sog_tracker.compressed_depth import encode_compressed_depth
+    from hand_sog_tracker.ros.conversions import compressed_image_to_depth_mm
+
+    d = np.random.default_rng(4).integers(0, 1500, (12, 16)).astype(np.float64)
+    fmt, data = encode_compressed_depth(d, "16UC1", codec)
+    msg = CompressedImage(format=fmt, data=data)  # rclpy stores data as array.array('B')
+    np.testing.assert_array_equal(compressed_image_to_depth_mm(msg), d)
+    rec = TYPESTORE.types["sensor_msgs/msg/CompressedImage"](
+        header=TYPESTORE.types["std_msgs/msg/Header"](
+            stamp=TYPESTORE.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="c"
+        ),
+        format=fmt,
+        data=np.frombuffer(data, np.uint8),
+    )
+    np.testing.assert_array_equal(compressed_image_to_depth_mm(rec), d)
+    with pytest.raises(DepthImageError, match="truncated"):
+        compressed_image_to_depth_mm(CompressedImage(format=fmt, data=data[:10]))

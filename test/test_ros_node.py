@@ -18,7 +18,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image, JointState
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -31,6 +31,7 @@ from hand_sog_tracker.ros.conversions import stamp_to_ns
 from hand_sog_tracker.ros.node import TrackerNode, make_executor
 from hand_sog_tracker.synth.render import RenderOptions, render_depth
 
+#: Principal point at the exact image centre (159.5, 119.5), unlike helpers.INTR (160, 120).
 INTR = Intrinsics(fx=287.26, fy=287.26, cx=159.5, cy=119.5, width=320, height=240)
 FRAME = "depth_optical"
 T0_NS = 1_700_000_000 * 10**9
@@ -76,20 +77,29 @@ def info_msg(intr: Intrinsics = INTR, k: list[float] | None = None) -> CameraInf
 class Rig:
     """The node under test plus a helper node that plays camera and listener."""
 
-    def __init__(self, context, tmp_path: Path, **params) -> None:
+    def __init__(self, context, tmp_path: Path, compressed: bool = False, **params) -> None:
         self.ns = f"/t{uuid.uuid4().hex[:10]}"
+        if compressed:
+            params["input_transport"] = "compressedDepth"
         overrides = [Parameter("user_model_path", value=str(tmp_path / "hand_model.yaml"))]
         overrides += [Parameter(k, value=v) for k, v in params.items()]
         self.node = TrackerNode(context=context, namespace=self.ns, parameter_overrides=overrides)
         self.io = Node("rig", context=context, namespace=self.ns)
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.image_pub = self.io.create_publisher(Image, "camera/depth/image_rect_raw", reliable)
+        if compressed:  # what image_transport's compressedDepth plugin publishes
+            self.image_pub = self.io.create_publisher(
+                CompressedImage, "camera/depth/image_rect_raw/compressedDepth", reliable
+            )
+        else:
+            self.image_pub = self.io.create_publisher(Image, "camera/depth/image_rect_raw", reliable)
         self.info_pub = self.io.create_publisher(CameraInfo, "camera/depth/camera_info", reliable)
         self.joints: list[tuple[JointState, float]] = []
         self.poses: list[PoseStamped] = []
         self.markers: list[MarkerArray] = []
         self.diagnostics: list[DiagnosticArray] = []
-        self.io.create_subscription(JointState, "hand/joint_states", lambda m: self.joints.append((m, time.perf_counter())), reliable)
+        self.io.create_subscription(
+            JointState, "hand/joint_states", lambda m: self.joints.append((m, time.perf_counter())), reliable
+        )
         self.io.create_subscription(PoseStamped, "hand/pose", self.poses.append, reliable)
         self.io.create_subscription(MarkerArray, "hand/fingertips", self.markers.append, reliable)
         self.io.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, reliable)
@@ -101,7 +111,9 @@ class Rig:
         assert self.spin_until(
             lambda: self.image_pub.get_subscription_count() > 0
             and self.info_pub.get_subscription_count() > 0
-            and all(pubs[f"{self.ns}/hand/{t}"].get_subscription_count() > 0 for t in ("joint_states", "pose", "fingertips"))
+            and all(
+                pubs[f"{self.ns}/hand/{t}"].get_subscription_count() > 0 for t in ("joint_states", "pose", "fingertips")
+            )
         ), "DDS discovery on loopback did not complete"
 
     def spin_until(self, cond: Callable[[], bool], timeout: float = 15.0) -> bool:
@@ -116,9 +128,13 @@ class Rig:
         msg = msg or info_msg()
         self.info_pub.publish(msg)
         want = None if not any(msg.k) else (msg.width, msg.height)
-        self.spin_until(lambda: (self.node.intrinsics and (self.node.intrinsics.width, self.node.intrinsics.height)) == want or want is None, 5.0)
+        def size() -> tuple[int, int] | None:
+            intr = self.node.intrinsics
+            return intr and (intr.width, intr.height)
 
-    def send(self, msg: Image) -> None:
+        self.spin_until(lambda: size() == want or want is None, 5.0)
+
+    def send(self, msg: Image | CompressedImage) -> None:
         """Publish one image and wait until the node has processed or rejected it."""
         s = self.node.stats
         before = s.processed + s.rejected
@@ -314,7 +330,7 @@ def test_calibrate_fits_saves_and_a_new_node_loads_the_model(ros_context, tmp_pa
         assert "(1 frames" in answer.message and "saved to" in answer.message
         shape, right = load_hand_shape(tmp_path / "hand_model.yaml")
         assert right and f"length={shape.length:.3f} width={shape.width:.3f}" in answer.message
-        before, after = (float(x) for x in answer.message.split("energy ")[1].split(" (")[0].split(" -> "))
+        before, after = (float(x) for x in answer.message.split("fit score ")[1].split(" (")[0].split(" -> "))
         assert after > before
         assert rig.node.hand_model.shape == shape
         stamp = T0_NS + 5 * 10**8  # tracking goes on with the calibrated model

@@ -218,3 +218,45 @@ def test_writer_refuses_existing_path_and_cleans_up_on_error(tmp_path: Path) -> 
             w.write(bagio.INFO_TOPIC, bagio.camera_info_msg(INTR, T0), T0)
             raise RuntimeError("boom")
     assert not (tmp_path / "partial").exists()
+
+
+@pytest.mark.parametrize("codec", ["png", "rvl"])
+@pytest.mark.parametrize("encoding", ["16UC1", "32FC1"])
+def test_compressed_depth_bags_are_read(tmp_path: Path, codec: str, encoding: str) -> None:
+    """compressedDepth CompressedImage on <depth topic>/compressedDepth (as image_transport records it)."""
+    rng = np.random.default_rng(13)
+    samples = _samples(rng, 3)
+    write_depth_bag(tmp_path / "b", samples, encoding=encoding, depth_codec=codec)  # type: ignore[arg-type]
+    topic = bagio.DEPTH_TOPIC + "/compressedDepth"
+    with DepthBagReader(tmp_path / "b") as r:
+        assert r.depth_compressed and r.depth_topic == topic and r.n_depth == 3
+        assert r.topic_table[topic] == (bagio.COMPRESSED_TYPE, 3) and bagio.DEPTH_TOPIC not in r.topic_table
+        assert {c.topic for c in r.connections(("depth",))} == {topic}
+        frames = list(r.frames())
+    for f, s in zip(frames, samples):
+        assert f.error is None and f.depth_mm is not None and f.depth_mm.shape == (48, 64)
+        want = np.rint(s.depth_mm)
+        if encoding == "16UC1":
+            np.testing.assert_array_equal(f.depth_mm, want)
+        else:  # inverse-depth quantisation: one step is d^2 / (100 * 101) metres
+            np.testing.assert_array_equal(f.depth_mm > 0, want > 0)
+            step = (s.depth_mm / 1000.0) ** 2 / 10100.0 * 1000.0
+            assert np.all(np.abs(f.depth_mm - s.depth_mm)[want > 0] <= step[want > 0] * 1.01 + 1e-3)
+
+
+def test_corrupt_compressed_frame_is_a_frame_error(tmp_path: Path) -> None:
+    rng = np.random.default_rng(14)
+    (s,) = _samples(rng, 1)
+    good = bagio.compressed_depth_msg(s.depth_mm, T0 + DT, codec="rvl")
+    bad = bagio.compressed_depth_msg(s.depth_mm, T0, codec="rvl")
+    bad.data = bad.data[:30]
+    with BagWriter(tmp_path / "b") as w:
+        w.write(bagio.INFO_TOPIC, bagio.camera_info_msg(INTR, T0), T0)
+        # The compressed topic may also be the depth topic itself.
+        w.write(bagio.DEPTH_TOPIC, bad, T0)
+        w.write(bagio.DEPTH_TOPIC, good, T0 + DT)
+    with DepthBagReader(tmp_path / "b", require_truth=False) as r:
+        assert r.depth_compressed and r.depth_topic == bagio.DEPTH_TOPIC
+        f0, f1 = list(r.frames())
+    assert f0.depth_mm is None and "RVL" in (f0.error or "") and "truncated" in (f0.error or "")
+    assert f1.error is None and f1.depth_mm is not None

@@ -21,7 +21,9 @@ T0 = 1_700_000_000_000_000_000
 DT = 33_333_333
 INTR = Intrinsics(fx=90.0, fy=90.0, cx=39.5, cy=29.5, width=80, height=60)
 #: What the fake tracker reports (mm), frame after frame.
-TIPS = np.array([[-40.0, 0.0, 400.0], [-20.0, -60.0, 400.0], [0.0, -70.0, 400.0], [20.0, -60.0, 400.0], [40.0, -45.0, 400.0]])
+TIPS = np.array(
+    [[-40.0, 0.0, 400.0], [-20.0, -60.0, 400.0], [0.0, -70.0, 400.0], [20.0, -60.0, 400.0], [40.0, -45.0, 400.0]]
+)
 #: Per-frame error of all five fingertips (mm); None = frame without ground truth.
 FRAME_ERRORS = [10.0, 18.0, None, 26.0, 40.0, 12.0]
 
@@ -116,7 +118,7 @@ def test_cli_json_plot_and_table(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert main([str(tmp_path / "b"), "--json", str(out_json), "--plot", str(out_png)]) == 0
     text = capsys.readouterr().out
     assert "mean fingertip error (mm)" in text and "15 mm" in text and "ms per frame: median" in text
-    js = json.loads(out_json.read_text())
+    js = json.loads(out_json.read_text())["bags"][0]
     for key in ("frames", "mean_fingertip_error_mm", "per_finger_mm", "pct_frames_below_mm", "ms_per_frame", "fps"):
         assert key in js
     # no hand in a flat wall: nothing tracked, every scored frame is a failure
@@ -154,7 +156,7 @@ def test_cli_topic_options_and_max_frames(tmp_path: Path, capsys: pytest.Capture
     args = [str(tmp_path / "b"), "--depth-topic", "/d/image", "--info-topic", "/d/info", "--gt-topic", "/gt"]
     assert main(args + ["--json", str(out), "--max-frames", "3", "--quiet"]) == 0
     assert capsys.readouterr().out == ""
-    js = json.loads(out.read_text())
+    js = json.loads(out.read_text())["bags"][0]
     assert js["frames"] == 3 and js["frames_without_ground_truth"] == 1 and js["frames_scored"] == 2
 
 

@@ -74,7 +74,7 @@ def test_through_node_cli_on_a_synthetic_hand(tmp_path: Path, capsys: pytest.Cap
     assert code == 0
     text = capsys.readouterr().out
     assert "end-to-end latency: median" in text and "published 8 frames" in text
-    js = json.loads(out.read_text())
+    js = json.loads(out.read_text())["bags"][0]
     assert js["mode"] == "through_node" and js["frames"] == 8 and js["domain_id"] == DOMAIN
     for key in ("frames_published", "frames_with_output", "frames_dropped", "latency_ms", "node_stats"):
         assert key in js
@@ -88,7 +88,9 @@ def test_through_node_cli_on_a_synthetic_hand(tmp_path: Path, capsys: pytest.Cap
     assert js["frames_dropped"] + js["frames_with_output"] <= 8
 
 
-def test_a_node_that_dies_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_node_that_dies_is_a_clear_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     intr = Intrinsics(fx=120.0, fy=120.0, cx=79.5, cy=59.5, width=160, height=120)
     write_depth_bag(tmp_path / "b", [DepthSample(10**18, np.full((120, 160), 900.0), intr, np.ones((5, 3)))])
     fake = tmp_path / "fake_python"

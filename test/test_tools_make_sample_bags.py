@@ -71,7 +71,9 @@ def test_bag_follows_the_convention(tmp_path: Path) -> None:
 def test_32fc1_bag(tmp_path: Path) -> None:
     bag = write_sample_bag(tmp_path / "hi", "abdadd", 1, width=128, height=96, encoding="32FC1")
     intr = default_intrinsics(128, 96)
-    (s,) = synthetic_sequence("abdadd", 1, intrinsics=intr, seed=motion_seed("abdadd"), options=RenderOptions(background_mm=None))
+    (s,) = synthetic_sequence(
+        "abdadd", 1, intrinsics=intr, seed=motion_seed("abdadd"), options=RenderOptions(background_mm=None)
+    )
     with DepthBagReader(bag.path) as r:
         (f,) = list(r.frames())
     assert f.depth_mm is not None
@@ -104,3 +106,90 @@ def test_every_motion_has_a_distinct_seed() -> None:
     seeds = {motion_seed(m) for m in MOTIONS}
     assert len(seeds) == len(MOTIONS)
     assert all(0 <= s < 2**31 for s in seeds)
+
+
+# --- mesh renderer, sidecars, protocol sets ------------------------------------------------------
+
+from hand_sog_tracker.errors import InputError  # noqa: E402
+
+
+def test_sidecar_for_both_renderers_and_mesh_bag(tmp_path: Path) -> None:
+    import json
+
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence
+    from hand_sog_tracker.tools.make_sample_bags import SIDECAR
+
+    cap = write_sample_bag(tmp_path / "cap", "pinch", 2, width=96, height=72)
+    side = json.loads((cap.path / SIDECAR).read_text())
+    assert side["renderer"] == "capsule" and side["split"] == "capsule" and side["handedness"] == "right"
+    assert (side["motion"], side["seed"], side["frames"], side["width"], side["height"], side["encoding"]) == (
+        "pinch", motion_seed("pinch"), 2, 96, 72, "16UC1",
+    )
+    shape = MeshShape(0.9, 1.05, 0.95)
+    mesh = write_sample_bag(
+        tmp_path / "mesh", "fistopen", 3, width=96, height=72, renderer="mesh", sensor="structured",
+        shape=shape, right=False, seed=11, split="test",
+    )
+    side = json.loads((mesh.path / SIDECAR).read_text())
+    assert side["renderer"] == "mesh" and side["split"] == "test" and side["sensor"] == "structured"
+    assert side["handedness"] == "left" and side["seed"] == 11
+    assert side["shape"] == {"length": 0.9, "palm_width": 1.05, "thickness": 0.95}
+    seq = list(mesh_sequence("fistopen", 3, default_intrinsics(96, 72), shape, right=False, seed=11,
+                             options=MeshRenderOptions(sensor="structured")))
+    with DepthBagReader(mesh.path) as r:
+        frames = list(r.frames())
+    assert len(frames) == 3
+    for f, s in zip(frames, seq):
+        np.testing.assert_allclose(f.truth_mm, s.fingertips_mm, atol=1e-9)
+        np.testing.assert_array_equal(f.depth_mm, np.where(s.depth_mm > 0, np.rint(s.depth_mm), 0))
+    # sensor/shape are mesh options; the new motions work with the capsule renderer too.
+    assert write_sample_bag(tmp_path / "x", "fistopen", 1, width=96, height=72).frames == 1
+    with pytest.raises(InputError):
+        write_sample_bag(tmp_path / "y", "pinch", 1, width=96, height=72, sensor="tof")
+
+
+def test_protocol_sets_differ_and_follow_the_plan() -> None:
+    from hand_sog_tracker.tools.make_sample_bags import PROTOCOL_MOTIONS, protocol_set
+
+    dev, test = protocol_set("mesh_dev"), protocol_set("mesh_test")
+    for specs, split in ((dev, "dev"), (test, "test")):
+        assert [s.motion for s in specs] == list(PROTOCOL_MOTIONS) and len(PROTOCOL_MOTIONS) == 9
+        assert {s.split for s in specs} == {split}
+        hires = [s for s in specs if s.width == 640]
+        assert len(hires) == 2 and all(s.encoding == "32FC1" and s.name.endswith("_640x480_32fc1") for s in hires)
+        assert all(s.encoding == "16UC1" and s.frames == 60 for s in specs if s.width == 320)
+        left = [s for s in specs if not s.right]
+        assert len(left) == 1 and left[0].name.endswith("_left")
+        assert {s.sensor for s in specs} == {"tof", "structured"} == {s.sensor for s in hires}
+        assert len({s.shape for s in specs}) == 3
+        assert all(0.85 <= f <= 1.15 for s in specs for f in s.shape.as_tuple())
+    assert not {s.seed for s in dev} & {s.seed for s in test}
+    assert not {s.shape for s in dev} & {s.shape for s in test}
+    assert [(s.motion, s.sensor) for s in dev] != [(s.motion, s.sensor) for s in test]
+    assert protocol_set("mesh_dev") == dev  # deterministic
+    with pytest.raises(InputError):
+        protocol_set("mesh_train")
+
+
+def test_cli_mesh_renderer_and_sets(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    out = tmp_path / "m"
+    assert main(["--out", str(out), "--frames", "2", "--renderer", "mesh", "--sensor", "tof",
+                 "--motions", "rotate", "--no-hires"]) == 0
+    assert json.loads((out / "rotate" / "hand_sog_sample.json").read_text())["sensor"] == "tof"
+    assert main(["--set", "mesh_test", "--out", str(tmp_path / "t"), "--frames", "2"]) == 0
+    assert "wrote 9 bags" in capsys.readouterr().out
+    names = sorted(p.name for p in (tmp_path / "t").iterdir())
+    assert "rotate_640x480_32fc1" in names and "tigergrasp_left" in names and len(names) == 9
+    side = json.loads((tmp_path / "t" / "tigergrasp_left" / "hand_sog_sample.json").read_text())
+    assert side["split"] == "test" and side["handedness"] == "left" and side["frames"] == 2
+    for bad in (
+        ["--sensor", "tof"],  # the capsule renderer has no sensor option
+        ["--set", "mesh_dev", "--motions", "pinch"],  # a set fixes its motions
+    ):
+        with pytest.raises(SystemExit) as exc:
+            main(bad + ["--out", str(tmp_path / "z")])
+        assert exc.value.code == 2
+    assert main(["--out", str(tmp_path / "z"), "--renderer", "mesh", "--motions", "juggling"]) == 2
+    assert "unknown motion" in capsys.readouterr().err

@@ -52,7 +52,8 @@ class Listener:
         self.received: dict[str, list[Any]] = {t: [] for t in topics}
         self.lock = threading.Lock()
         for topic, cls in topics.items():
-            qos = qos_profile_sensor_data if topic in best_effort else QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+            reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+            qos = qos_profile_sensor_data if topic in best_effort else reliable
             self.node.create_subscription(cls, topic, self._cb(topic), qos)
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
@@ -194,7 +195,9 @@ def test_loop_until_stopped(tmp_path: Path, listener_factory: Any) -> None:
     result: list[Any] = []
     th = threading.Thread(
         target=lambda: result.append(
-            replay(tmp_path / "b", rate=4.0, loop=True, topics=[bagio.INFO_TOPIC], wait_for_subscribers_s=10.0, stop=stop)
+            replay(
+                tmp_path / "b", rate=4.0, loop=True, topics=[bagio.INFO_TOPIC], wait_for_subscribers_s=10.0, stop=stop
+            )
         )
     )
     th.start()
@@ -262,7 +265,9 @@ def test_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
         replay(tmp_path / "b", rate=-1.0)
 
 
-def test_cli_publishes_with_domain_option(tmp_path: Path, listener_factory: Any, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+def test_cli_publishes_with_domain_option(
+    tmp_path: Path, listener_factory: Any, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     rng = np.random.default_rng(35)
     _bag(tmp_path / "b", rng, n=3)
     lst = listener_factory({bagio.GT_TOPIC: _types()[bagio.GT_TOPIC]})
@@ -271,3 +276,71 @@ def test_cli_publishes_with_domain_option(tmp_path: Path, listener_factory: Any,
     assert os.environ["ROS_DOMAIN_ID"] == DOMAIN
     assert "published 9 messages" in capsys.readouterr().out
     assert lst.wait_for(bagio.GT_TOPIC, 3)
+
+
+@pytest.mark.parametrize("decompress", [False, True])
+def test_compressed_depth_is_replayed_as_recorded_or_decompressed(tmp_path: Path, decompress: bool) -> None:
+    """What BagPublisher creates and publishes for a compressedDepth topic (a recording node: no DDS)."""
+    from sensor_msgs.msg import CompressedImage, Image
+
+    from hand_sog_tracker.tools.bagio import BagTopics, iter_messages, open_bag
+    from hand_sog_tracker.tools.replay_bag import BagPublisher
+
+    class RecordingNode:
+        def __init__(self) -> None:
+            self.created: dict[str, type] = {}
+            self.sent: dict[str, list[Any]] = {}
+
+        def create_publisher(self, cls: type, name: str, qos: Any) -> Any:
+            self.created[name] = cls
+            sent = self.sent.setdefault(name, [])
+            return type("P", (), {"publish": lambda _self, m: sent.append(m)})()
+
+    base = "/cam/depth"
+    topics = BagTopics(depth=base, info=f"{base}_info", truth=f"{base}_truth")
+    rng = np.random.default_rng(37)
+    samples = [DepthSample(T0 + i * DT, rng.uniform(300.0, 700.0, (24, 32)), INTR) for i in range(3)]
+    samples[1].depth_mm[2:5] = 0.0
+    write_depth_bag(tmp_path / "b", samples, topics=topics, encoding="32FC1", depth_codec="rvl")
+    compressed = base + "/compressedDepth"
+    node = RecordingNode()
+    with open_bag(tmp_path / "b") as reader:
+        pub = BagPublisher(node, reader, tmp_path / "b", [compressed], decompress_depth=decompress)
+        for conn, _, raw in iter_messages(reader, tmp_path / "b", pub.connections):
+            pub.publish(conn.topic, pub.payload(conn, raw))
+    if decompress:  # decoded, as sensor_msgs/Image on the topic without the suffix
+        assert node.created == {base: Image} and pub.decompressed == {compressed}
+        for img, s in zip(node.sent[base], samples, strict=True):
+            assert (img.width, img.height, img.encoding, img.step) == (32, 24, "32FC1", 128)
+            assert img.header.stamp.sec * 10**9 + img.header.stamp.nanosec == s.stamp_ns
+            assert img.header.frame_id == bagio.OPTICAL_FRAME
+            metres = np.frombuffer(bytes(img.data), "<f4").reshape(24, 32)
+            valid = s.depth_mm > 0
+            np.testing.assert_array_equal(np.isfinite(metres), valid)
+            np.testing.assert_allclose(metres[valid] * 1000.0, s.depth_mm[valid], atol=0.05)  # < 50 um at 0.7 m
+    else:  # as recorded: the CDR bytes of the CompressedImage
+        assert node.created == {compressed: CompressedImage} and not pub.decompressed
+        assert len(node.sent[compressed]) == 3
+        rec = bagio.typestore().deserialize_cdr(node.sent[compressed][0], "sensor_msgs/msg/CompressedImage")
+        want = bagio.compressed_depth_msg(samples[0].depth_mm, T0, encoding="32FC1", codec="rvl")
+        assert rec.format == "32FC1; compressedDepth rvl" and bytes(rec.data) == want.data.tobytes()
+
+
+def test_undecodable_compressed_frames_are_skipped_with_a_warning(tmp_path: Path, listener_factory: Any, capfd) -> None:
+    """Through DDS: a corrupt frame is skipped, the others arrive decoded (unique topic names)."""
+    import uuid
+
+    from sensor_msgs.msg import Image
+
+    base = f"/r{uuid.uuid4().hex[:8]}/depth"
+    rng = np.random.default_rng(38)
+    good = [bagio.compressed_depth_msg(rng.uniform(300.0, 700.0, (24, 32)), T0 + i * DT) for i in range(3)]
+    good[1].data = good[1].data[:20]  # truncated PNG
+    with bagio.BagWriter(tmp_path / "b") as w:
+        for i, m in enumerate(good):
+            w.write(base + "/compressedDepth", m, T0 + i * DT)
+    lst = listener_factory({base: Image})
+    stats = replay(tmp_path / "b", rate=5.0, wait_for_subscribers_s=10.0, decompress_depth=True)
+    assert stats.per_topic == {base + "/compressedDepth": 2}
+    assert lst.wait_for(base, 2, timeout=10.0), lst.count(base)
+    assert "skipping a message" in capfd.readouterr().err

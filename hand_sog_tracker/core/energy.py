@@ -1,7 +1,12 @@
 """The tracking objective and its analytic gradient (paper 000, sec. 5.2).
 
-``E = E_sim - w_c E_col - w_d E_dan - w_l E_lim - w_s E_smo`` is maximised over
-the 26 pose parameters.  Overlaps of unnormalised isotropic Gaussians (eq. 4)
+``E = E_sim - w_c E_col - w_d E_dan - w_l E_lim - w_s E_smo - w_o E_ord - w_sal E_sal
+- w_sil E_sil`` is maximised over the 26 pose parameters.  ``E_sil`` (every model Gaussian
+projects onto the hand's pixels) lives in :mod:`hand_sog_tracker.core.silhouette`.  The last
+three terms are not in paper 000:
+``E_ord`` keeps the four fingers in their order across the palm (no finger may swing over
+onto its neighbour's data) and ``E_sal`` pulls fingertips toward the detections assigned to
+them (seed 001, eq. 12; see :mod:`hand_sog_tracker.core.salient`).  Overlaps of unnormalised isotropic Gaussians (eq. 4)
 have closed forms: in d dimensions
 
 ``D_pq = (2 pi s_p^2 s_q^2 / (s_p^2 + s_q^2))^(d/2) exp(-|mu_p - mu_q|^2 / (2 (s_p^2 + s_q^2)))``.
@@ -26,7 +31,16 @@ Choices the paper leaves open (documented here, used everywhere):
   sum over data Gaussians is divided by their number so the term does not grow
   with image resolution;
 * ``E_smo`` (eq. 9) measures translations in units of ``SMOOTH_TRANSLATION_MM``
-  so that millimetres and radians are weighed alike.
+  so that millimetres and radians are weighed alike;
+* ``E_ord = sum_c max(ORDER_MIN_GAP_RAD - (a_{c+1} - a_c), 0)^2`` over the neighbouring
+  finger pairs (index-middle, middle-ring, ring-little), where ``a_c`` is finger ``c``'s
+  direction in the palm plane (its rest fan-out angle plus its MCP abduction), rad^2 like
+  ``E_lim``;
+* ``E_sal = sum_t w_t (sqrt(d_t^2 + c^2) - c) / SALIENT_SCALE_MM`` with ``d_t`` the distance
+  (mm) of fingertip ``t`` from its assigned detection, ``w_t`` the detection's confidence
+  (0 without one) and ``c = SALIENT_SOFT_MM``: a pseudo-Huber cost, flat within a few mm
+  (the detector is not more precise, seed 001 ignores pairs under 10 mm) and growing
+  linearly far away, so a wrong detection cannot dominate the data term.
 """
 
 from __future__ import annotations
@@ -40,13 +54,31 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.hand_model import N_PARAMS, HandModel, rest_pose
 from hand_sog_tracker.core.kinematics import gaussian_centres
+from hand_sog_tracker.core.silhouette import Silhouette, silhouette_term
 from hand_sog_tracker.core.types import TrackerConfig
 
-__all__ = ["EnergyTerms", "Objective", "TAU1_MM", "TAU2_MM", "SMOOTH_TRANSLATION_MM"]
+__all__ = [
+    "EnergyTerms",
+    "Objective",
+    "TipTargets",
+    "TAU1_MM",
+    "TAU2_MM",
+    "SMOOTH_TRANSLATION_MM",
+    "ORDER_MIN_GAP_RAD",
+    "SALIENT_SOFT_MM",
+    "SALIENT_SCALE_MM",
+]
 
 TAU1_MM = 15.0
 TAU2_MM = 60.0
 SMOOTH_TRANSLATION_MM = 50.0
+#: Smallest allowed difference of neighbouring fingers' palm-plane directions (rad); at rest
+#: they fan out by 0.07-0.09 rad; a finger on its neighbour's data needs about -0.25.
+ORDER_MIN_GAP_RAD = -0.05
+#: Width of the flat bottom of the salient-point cost (mm).
+SALIENT_SOFT_MM = 8.0
+#: The salient cost is measured in units of this distance (mm).
+SALIENT_SCALE_MM = 100.0
 _TWO_PI = 2.0 * np.pi
 _INV_SQRT2 = 1.0 / np.sqrt(2.0)
 
@@ -66,6 +98,25 @@ class EnergyTerms:
     dan: float
     lim: float
     smo: float
+    ord: float = 0.0
+    sal: float = 0.0
+    sil: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class TipTargets:
+    """Where the fingertips should be: the detections assigned to them.
+
+    Attributes
+    ----------
+    points : array, shape (5, 3), mm
+        Target of each fingertip (thumb .. little), camera frame; ignored where the weight is 0.
+    weights : array, shape (5,)
+        Confidence of each target, 0 for a fingertip without a detection.
+    """
+
+    points: NDArray[np.float64]
+    weights: NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,6 +127,7 @@ class _ModelConstants:
     pair_amp: NDArray[np.float64]  # overlap at zero distance, (2 pi s_i^2 s_j^2 / s2)^1.5
     incidence: NDArray[np.float64]  # (m, pairs): +1 at i, -1 at j
     norm_h: float
+    fan: NDArray[np.float64]  # (4,) rest direction of index .. little in the palm plane, rad
 
 
 def _collision_pairs(model: HandModel) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -114,6 +166,7 @@ def model_constants(model: HandModel) -> _ModelConstants:
         pair_amp=(_TWO_PI * s2[pi] * s2[pj] / s2p) ** 1.5,
         incidence=incidence,
         norm_h=norm_h,
+        fan=np.arctan2(model.rest_rotations[1:, 1, 0], model.rest_rotations[1:, 0, 0]),
     )
     if len(_CONST_CACHE) > 32:
         _CONST_CACHE.clear()
@@ -140,6 +193,11 @@ class Objective:
         Term weights ``w_col``, ``w_dan``, ``w_lim``, ``w_smo``.
     previous : (theta_{t-1}, theta_{t-2}) or None
         The two previous poses, shape (26,) each; None disables ``E_smo``.
+    silhouette : Silhouette or None
+        The hand's silhouette for ``E_sil`` (:mod:`hand_sog_tracker.core.silhouette`);
+        None disables it.
+    targets : TipTargets or None
+        Assigned fingertip detections; None disables ``E_sal``.
     """
 
     def __init__(
@@ -148,11 +206,15 @@ class Objective:
         data: ImageSoG,
         config: TrackerConfig,
         previous: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+        targets: TipTargets | None = None,
+        silhouette: Silhouette | None = None,
     ) -> None:
         self.model = model
         self.data = data
         self.config = config
         self.previous = previous
+        self.targets = targets
+        self.silhouette = silhouette
         self._const = model_constants(model)
         intr = data.intrinsics
         self._f = float(np.sqrt(intr.fx * intr.fy))
@@ -185,12 +247,28 @@ class Objective:
         col = self._collision(P, g3, cfg.w_col)
         lim, g_lim = self._limits(theta)
         smo, g_smo = self._smoothness(theta)
-        total = sim - cfg.w_col * col - cfg.w_dan * dan - cfg.w_lim * lim - cfg.w_smo * smo
-        terms = EnergyTerms(total=total, sim=sim, col=col, dan=dan, lim=lim, smo=smo)
+        ordv, g_ord = self._order(theta)
+        sal = self._salient(P, g3, cfg.w_sal)
+        sil = 0.0
+        if self.silhouette is not None and cfg.w_sil > 0:
+            sil = silhouette_term(self.silhouette, P, g3, cfg.w_sil)
+        total = (
+            sim
+            - cfg.w_col * col
+            - cfg.w_dan * dan
+            - cfg.w_lim * lim
+            - cfg.w_smo * smo
+            - cfg.w_ord * ordv
+            - cfg.w_sal * sal
+            - cfg.w_sil * sil
+        )
+        terms = EnergyTerms(
+            total=total, sim=sim, col=col, dan=dan, lim=lim, smo=smo, ord=ordv, sal=sal, sil=sil
+        )
         if not gradient:
             return terms, None
         grad = np.einsum("mk,mkj->j", g3, J)
-        grad -= cfg.w_lim * g_lim + cfg.w_smo * g_smo
+        grad -= cfg.w_lim * g_lim + cfg.w_smo * g_smo + cfg.w_ord * g_ord
         return terms, grad
 
     # -- terms ---------------------------------------------------------------
@@ -328,6 +406,37 @@ class Objective:
         g = np.zeros(N_PARAMS)
         g[6:] = 2.0 * (lo + hi)
         return float((lo * lo).sum() + (hi * hi).sum()), g
+
+    def _order(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        """``E_ord`` and its gradient, shape (26,): neighbouring fingers may not cross."""
+        abd = theta[6 + 4 + 1 :: 4]  # MCP abduction of index .. little, shape (4,)
+        gap = np.diff(self._const.fan + abd)  # (3,)
+        short = np.minimum(gap - ORDER_MIN_GAP_RAD, 0.0)
+        g = np.zeros(N_PARAMS)
+        if not short.any():
+            return 0.0, g
+        # d/d abd_{c+1} of short^2 is 2 short, d/d abd_c is -2 short.
+        g_abd = np.zeros(4)
+        g_abd[1:] += 2.0 * short
+        g_abd[:-1] -= 2.0 * short
+        g[6 + 4 + 1 :: 4] = g_abd
+        return float((short * short).sum()), g
+
+    def _salient(
+        self, P: NDArray[np.float64], g3: NDArray[np.float64] | None, w_sal: float
+    ) -> float:
+        """``E_sal``; adds ``-w_sal dE_sal/dP`` into ``g3`` at the fingertip Gaussians."""
+        t = self.targets
+        if t is None or w_sal <= 0 or not np.any(t.weights > 0):
+            return 0.0
+        tips = self.model.tip_index
+        diff = P[tips] - t.points
+        root = np.sqrt((diff * diff).sum(1) + SALIENT_SOFT_MM**2)
+        w = t.weights / SALIENT_SCALE_MM
+        val = float((w * (root - SALIENT_SOFT_MM)).sum())
+        if g3 is not None:
+            g3[tips] -= w_sal * (w / root)[:, None] * diff
+        return val
 
     def _smoothness(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         """``E_smo`` (eq. 9) and its gradient, shape (26,)."""

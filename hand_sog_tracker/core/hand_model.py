@@ -267,14 +267,18 @@ def default_hand_model(right: bool = True) -> HandModel:
         offs += of
         sigs += si
     deg = np.deg2rad
-    # Limits in pose order per chain: flex1, abd, flex2, flex3.
+    # Limits in pose order per chain: flex1, abd, flex2, flex3.  MCP abduction (positive
+    # turns a finger toward the little-finger side) is asymmetric as in real hands: the
+    # index spreads away from the middle finger (radially) far more than toward it, the
+    # little finger the other way; no finger can swing far over its neighbour.
+    abd = ((-25, 12), (-15, 15), (-12, 20), (-12, 25))  # index .. little, degrees
     low = np.array(
         [deg(-20), deg(-45), deg(-20), deg(-25)]
-        + [deg(-25), deg(-25), deg(-5), deg(-10)] * 4
+        + [v for a_lo, _ in abd for v in (deg(-25), deg(a_lo), deg(-5), deg(-10))]
     )
     high = np.array(
         [deg(60), deg(45), deg(80), deg(90)]
-        + [deg(95), deg(25), deg(110), deg(90)] * 4
+        + [v for _, a_hi in abd for v in (deg(95), deg(a_hi), deg(110), deg(90))]
     )
     return HandModel(
         bases=bases,

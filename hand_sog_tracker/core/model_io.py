@@ -12,7 +12,13 @@ scale factors and the handedness, plus optional flat ``key: value`` extras
     width: 0.98
     depth: 1.0
     sigma: 1.01
-    energy_before: 0.512
+    fit_score_before: 0.512
+    holdout_score_fitted: 0.861
+
+:func:`calibration_metadata` builds the extras the ``~/calibrate`` service
+writes (when, on which frames and poses the model was fitted, and the guard's
+numbers); :func:`read_calibration_info` reads them back, old names
+(``energy_before``, ``energy_after``, ``frames``) mapped to the new ones.
 
 Only this flat subset of YAML is written and read (scalars, ``#`` comments,
 JSON-style double-quoted strings), so no YAML library is needed.  Writes are
@@ -26,8 +32,9 @@ import math
 import os
 import re
 import tempfile
+import time
 from pathlib import Path
-from typing import Mapping, Union
+from typing import Any, Mapping, Sequence, Union
 
 from hand_sog_tracker.core.hand_model import HandShape
 from hand_sog_tracker.errors import InputError, ModelFileError
@@ -39,6 +46,8 @@ __all__ = [
     "save_hand_shape",
     "load_hand_shape",
     "read_model_file",
+    "calibration_metadata",
+    "read_calibration_info",
 ]
 
 FORMAT_NAME = "hand_sog_tracker/hand_model"
@@ -244,3 +253,82 @@ def load_hand_shape(path: PathLike) -> tuple[HandShape, bool]:
     except InputError as err:
         raise ModelFileError(f"{p}: {err}") from err
     return shape, hand == "right"
+
+
+#: Extras written by earlier versions, and their current names.
+_OLD_NAMES = {"energy_before": "fit_score_before", "energy_after": "fit_score_after", "frames": "fit_frames"}
+
+
+def _stamps(stamps_ns: Sequence[int]) -> str:
+    return " ".join(f"{int(t) // 10**9}.{int(t) % 10**9:09d}" for t in stamps_ns)
+
+
+def calibration_metadata(
+    result: Any,
+    fit_stamps_ns: Sequence[int] = (),
+    holdout_stamps_ns: Sequence[int] = (),
+) -> dict[str, Scalar]:
+    """Flat extras describing a calibration, for :func:`save_hand_shape`.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+        From :func:`hand_sog_tracker.core.calibration.calibrate` (read: ``score_before``,
+        ``score_after``, ``seconds``, ``poses``, ``used_frames``, ``validation``).
+    fit_stamps_ns, holdout_stamps_ns : sequence of int
+        Image stamps (ns) of the frames the model was fitted on / checked on.
+
+    Returns
+    -------
+    dict
+        ``calibrated_at`` (UTC, ISO 8601), ``fit_frames``, ``fit_stamps`` (``sec.nsec``
+        separated by spaces), ``fit_pose_<k>`` (the 26 pose values of fit frame ``k``:
+        mm, rad), ``fit_score_before`` / ``fit_score_after`` (mean shape score on the fit
+        frames), ``fit_seconds`` and, with a guard result, ``holdout_frames``,
+        ``holdout_stamps``, ``holdout_score_current`` / ``holdout_score_fitted`` and
+        ``guard_margin``.
+    """
+    out: dict[str, Scalar] = {
+        "calibrated_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "fit_frames": len(result.used_frames) if result.used_frames else 1,
+        "fit_score_before": float(result.score_before),
+        "fit_score_after": float(result.score_after),
+        "fit_seconds": round(float(result.seconds), 3),
+    }
+    if fit_stamps_ns:
+        out["fit_stamps"] = _stamps(fit_stamps_ns)
+    poses = result.poses if result.poses is not None else [result.pose]
+    for k, pose in enumerate(poses):
+        out[f"fit_pose_{k}"] = " ".join(f"{float(v):.4g}" for v in pose)
+    v = result.validation
+    if v is not None:
+        out["holdout_frames"] = int(v.frames)
+        if holdout_stamps_ns:
+            out["holdout_stamps"] = _stamps(holdout_stamps_ns)
+        out["holdout_score_current"] = float(v.score_current)
+        out["holdout_score_fitted"] = float(v.score_fitted)
+        out["guard_margin"] = float(v.margin)
+    return out
+
+
+def read_calibration_info(path: PathLike) -> dict[str, Scalar]:
+    """The extras of a hand model file (everything but format, version, handedness, factors).
+
+    Names written by earlier versions are returned under their current names
+    (``energy_before`` -> ``fit_score_before``, ``energy_after`` -> ``fit_score_after``,
+    ``frames`` -> ``fit_frames``).
+
+    Raises
+    ------
+    ModelFileError
+        Missing, unreadable or malformed file.
+    """
+    values = read_model_file(path)
+    out: dict[str, Scalar] = {}
+    for key, value in values.items():
+        if key in _RESERVED:
+            continue
+        if key in _OLD_NAMES and _OLD_NAMES[key] in values:
+            continue  # both names present: the current one wins
+        out[_OLD_NAMES.get(key, key)] = value
+    return out

@@ -79,6 +79,7 @@ def maximise(
     steps: StepSizes = StepSizes(),
     active: NDArray[np.bool_] | None = None,
     initial_scale: float = 1.0,
+    bounds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
 ) -> OptimizeResult:
     """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps.
 
@@ -95,11 +96,16 @@ def maximise(
         Parameters allowed to move (default: all).
     initial_scale : float
         Multiplies the initial step lengths (e.g. larger when initialising).
+    bounds : (low, high) arrays, shape (26,) each, optional
+        Every iterate is projected into ``[low, high]`` (seed 004's joint limits by
+        projection; use +-inf for free parameters).  ``x0`` itself is projected too.
     """
     x = np.array(x0, dtype=np.float64)
     step = steps.expand(steps.initial) * initial_scale
     lo, hi = steps.expand(steps.minimum), steps.expand(steps.maximum)
     mask = np.ones(N_PARAMS, bool) if active is None else np.asarray(active, bool)
+    if bounds is not None:
+        x = np.clip(x, bounds[0], bounds[1])
     val, grad = fun(x)
     assert grad is not None
     best_x, best_val = x.copy(), val
@@ -113,6 +119,8 @@ def maximise(
         step = np.where(agree < 0, np.maximum(step * steps.shrink, lo), step)
         sign = np.where(agree < 0, 0.0, sign)
         x = x + step * sign
+        if bounds is not None:
+            x = np.clip(x, bounds[0], bounds[1])
         prev_sign = sign
         val, grad = fun(x)
         assert grad is not None

@@ -76,5 +76,7 @@ def draw_overlay(
             if np.isfinite(u) and np.isfinite(v):
                 cv2.circle(img, (int(round(u)), int(round(v))), 2 * scale + 1, colour, -1, cv2.LINE_AA)
     if label:
-        cv2.putText(img, label, (4, 12 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.35 * scale, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            img, label, (4, 12 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.35 * scale, (255, 255, 255), 1, cv2.LINE_AA
+        )
     return img

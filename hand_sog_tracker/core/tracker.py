@@ -13,12 +13,13 @@ the depth by itself and tries several starting poses (see :mod:`.initialise`).
 from __future__ import annotations
 
 import time
+from dataclasses import replace as replace_config
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess, quadtree_sog
-from hand_sog_tracker.core.energy import Objective
+from hand_sog_tracker.core.energy import SALIENT_SCALE_MM, Objective, TipTargets
 from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
 from hand_sog_tracker.core.initialise import find_hand, initial_hypotheses
 from hand_sog_tracker.core.kinematics import (
@@ -28,6 +29,8 @@ from hand_sog_tracker.core.kinematics import (
     skeleton_points,
 )
 from hand_sog_tracker.core.optimizer import OptimizeResult, maximise
+from hand_sog_tracker.core.salient import Detections, assign_detections, detect_fingertips
+from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.types import (
     Intrinsics,
     TrackerConfig,
@@ -50,6 +53,17 @@ _EXTENDED = np.array([0.1, 0.0, 0.1, 0.1])
 _CURLED = np.array([1.3, 0.0, 1.5, 0.9])
 #: Data farther than this beyond the wrist plane are treated as forearm (mm).
 WRIST_MARGIN_MM = 0.0
+#: Cost (mm) of a fingertip without a detection in the assignment (seed 001's lambda); a
+#: detection costs this times its confidence when declared a false positive.
+ASSIGN_LAMBDA_MM = 30.0
+#: A confident detection this far (mm) from its nearest fingertip is a finger the model
+#: has not found: the neighbouring fingers are restarted onto it.
+UNEXPLAINED_DETECTION_MM = 20.0
+UNEXPLAINED_CONFIDENCE = 0.5
+#: Whether detections of fingers seen end-on (knuckles of a fist look the same) pull fingertips.
+SALIENT_END_ON = False
+#: Without an unexplained detection, finger-shifted restarts are tried every this many frames.
+SHIFT_EVERY = 6
 
 
 def gaussian_support(model: HandModel, theta: NDArray[np.float64], data: ImageSoG) -> NDArray[np.float64]:
@@ -129,6 +143,7 @@ class Tracker:
         self._prev: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
+        self._frame_count = 0
 
     @property
     def config(self) -> TrackerConfig:
@@ -198,24 +213,67 @@ class Tracker:
         return result
 
     # -- internals -----------------------------------------------------------
-    def _data_near(self, pre: Preprocessed, theta: NDArray[np.float64]) -> ImageSoG:
+    def _data_near(
+        self, pre: Preprocessed, theta: NDArray[np.float64], detect: bool = False
+    ) -> tuple[ImageSoG, Detections, Silhouette | None]:
         """Data Gaussians around the hand at ``theta``, without the forearm.
 
         Quads beyond the wrist (more than ``WRIST_MARGIN_MM`` on the arm side of
         the plane through the wrist normal to the hand's long axis) are
         dropped: the model has no forearm, and forearm data would pull the palm
-        down the arm.
+        down the arm.  With ``detect``, also the fingertip detections in the same
+        region (used by the salient term and the restarts), else none; and the
+        silhouette of the depth in the same depth window (None when ``w_sil`` is 0).
         """
         roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
+        sil = silhouette(pre, window) if self._config.w_sil > 0 else None
+        det = Detections.empty()
+        if detect:
+            det = detect_fingertips(pre, roi, window)
+            if det.n:
+                along = (det.points - theta[:3]) @ global_rotation(theta)[:, 1]
+                det = det.subset(along > -WRIST_MARGIN_MM)
         data = quadtree_sog(
             pre, self._config.quadtree_threshold_mm, roi, window, self._config.min_quad_px
         )
         if data.n == 0:
-            return data
+            return data, det, sil
         axis = global_rotation(theta)[:, 1]
         along = (data.points - theta[:3]) @ axis
         keep = along > -WRIST_MARGIN_MM
-        return data if keep.all() else data.subset(keep)
+        return (data if keep.all() else data.subset(keep)), det, sil
+
+    def _assignment_cost(self, theta: NDArray[np.float64], det: Detections) -> float:
+        """Seed 001's assignment cost (eq. 11) at ``theta``, in units of ``SALIENT_SCALE_MM``.
+
+        Assigned pairs cost their distance, detections left over ``lambda * confidence``,
+        fingertips without a detection ``lambda``: a hypothesis whose fingertips are not
+        where the fingertips are seen (a hand flipped palm-for-back, fingers swapped) scores
+        worse even where the depth overlap cannot tell.
+        """
+        if det.n == 0:
+            return 0.0
+        tips = fingertips(self._model, theta)
+        assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
+        has = assigned >= 0
+        d = np.linalg.norm(tips[has] - det.points[assigned[has]], axis=1).sum()
+        unused = np.ones(det.n, bool)
+        unused[assigned[has]] = False
+        cost = d + ASSIGN_LAMBDA_MM * ((~has).sum() + det.confidence[unused].sum())
+        return float(cost / SALIENT_SCALE_MM)
+
+    def _targets(self, theta: NDArray[np.float64], det: Detections) -> TipTargets | None:
+        """Detections assigned to the fingertips at ``theta`` (seed 001, Table 1)."""
+        if det.n == 0:
+            return None
+        assigned = assign_detections(fingertips(self._model, theta), det, ASSIGN_LAMBDA_MM)
+        has = assigned >= 0
+        if not SALIENT_END_ON:
+            has &= ~det.end_on[np.maximum(assigned, 0)]
+        points = np.zeros((5, 3))
+        points[has] = det.points[assigned[has]]
+        weights = np.where(has, det.confidence[np.maximum(assigned, 0)], 0.0)
+        return TipTargets(points=points, weights=weights)
 
     def _track(self, pre: Preprocessed) -> TrackResult:
         cfg = self._config
@@ -225,11 +283,14 @@ class Tracker:
         # constant-velocity extrapolation damped by alpha.
         x0 = p1 + ALPHA * (p1 - p2)
         tq = time.perf_counter()
-        data = self._data_near(pre, x0)
+        data, det, sil = self._data_near(pre, x0, detect=True)
         tq2 = time.perf_counter()
-        obj = Objective(self._model, data, cfg, previous=(p1, p2))
-        res = maximise(obj, x0, iterations=cfg.iterations)
+        targets = self._targets(x0, det)
+        obj = Objective(self._model, data, cfg, previous=(p1, p2), targets=targets, silhouette=sil)
+        res = self._maximise(obj, x0, iterations=cfg.iterations)
         res = self._finger_restarts(obj, res, data)
+        res = self._shift_restarts(obj, res, det)
+        res = self._detection_restarts(obj, res, det)
         conf = coverage(self._model, res.x, data)
         if conf < cfg.lost_confidence:
             self._low_frames += 1
@@ -271,9 +332,119 @@ class Tracker:
         for joints in candidates:
             x0 = res.x.copy()
             x0[sl] = joints
-            cand = maximise(obj, x0, iterations=RESTART_ITERATIONS)
+            cand = self._maximise(obj, x0, iterations=RESTART_ITERATIONS)
             if cand.fun > best.fun:
                 best = cand
+        return best
+
+    def _maximise(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> OptimizeResult:
+        """:func:`maximise` with the joint angles projected into the model's limits."""
+        m = self._model
+        lo = np.concatenate([np.full(6, -np.inf), m.limits_low])
+        hi = np.concatenate([np.full(6, np.inf), m.limits_high])
+        return maximise(obj, x0, bounds=(lo, hi), **kwargs)  # type: ignore[arg-type]
+
+    def _shift_restarts(
+        self, obj: Objective, res: OptimizeResult, det: Detections, force: bool = False
+    ) -> OptimizeResult:
+        """Move every finger's articulation to its neighbour (seed 004's finger-shifted restarts).
+
+        A model whose fingers each lie on their neighbour's data (one curled into the palm,
+        the others spread over its place) is a deep local optimum: every finger explains
+        data.  The candidate gives index .. little the flexions of their neighbour on one
+        side (the last finger keeps its own) and neutral abductions, is refined for
+        ``RESTART_ITERATIONS`` and is kept only if its :meth:`_score` is higher.  Tried in
+        both directions when a confident detection is unexplained (see
+        :meth:`_detection_restarts`) or with ``force`` (initialisation), otherwise one
+        direction every ``SHIFT_EVERY`` frames.
+        """
+        if not force:
+            self._frame_count += 1
+        if force or self._lonely(res.x, det).size:
+            sides = (1, -1)
+        elif self._frame_count % SHIFT_EVERY == 0:
+            sides = (1 if (self._frame_count // SHIFT_EVERY) % 2 else -1,)
+        else:
+            return res
+        plain = self._plain(obj)
+        best, best_val = res, self._score(plain, res.x, det)
+        q = res.x[6:].reshape(5, 4)
+        for side in sides:
+            # Each finger takes its neighbour's flexions, with the abductions neutral: the
+            # neighbour's abduction is what carried it over onto this finger's data.
+            shifted = q[np.clip(np.arange(1, 5) + side, 1, 4)].copy()
+            shifted[:, 1] = 0.0
+            x0 = res.x.copy()
+            x0[10:] = shifted.ravel()
+            cand = self._maximise(plain, x0, iterations=RESTART_ITERATIONS)
+            val = self._score(plain, cand.x, det)
+            if val > best_val:
+                best, best_val = cand, val
+        return best
+
+    def _score(self, plain: Objective, theta: NDArray[np.float64], det: Detections) -> float:
+        """How well ``theta`` explains the frame: the objective without the salient term,
+        minus the assignment cost of the detections at ``theta`` (fresh, not the one the
+        frame started with), weighted like the salient term."""
+        return plain(theta, gradient=False)[0] - self._config.w_sal * self._assignment_cost(theta, det)
+
+    def _plain(self, obj: Objective) -> Objective:
+        """``obj`` without the salient term (to judge candidates built from detections)."""
+        if obj.targets is None or self._config.w_sal == 0:
+            return obj
+        return Objective(
+            self._model,
+            obj.data,
+            replace_config(self._config, w_sal=0.0),
+            previous=obj.previous,
+            silhouette=obj.silhouette,
+        )
+
+    def _lonely(self, theta: NDArray[np.float64], det: Detections) -> NDArray[np.int64]:
+        """Confident detections farther than ``UNEXPLAINED_DETECTION_MM`` from every fingertip."""
+        if det.n == 0:
+            return np.zeros(0, dtype=np.int64)
+        tips = fingertips(self._model, theta)
+        dist = np.linalg.norm(det.points[:, None, :] - tips[None, :, :], axis=-1).min(axis=1)
+        return np.flatnonzero(
+            (dist > UNEXPLAINED_DETECTION_MM) & (det.confidence >= UNEXPLAINED_CONFIDENCE)
+        )
+
+    def _detection_restarts(
+        self, obj: Objective, res: OptimizeResult, det: Detections
+    ) -> OptimizeResult:
+        """Put a finger onto a detection that no model finger explains (seed 001 + 004).
+
+        A confident detection farther than ``UNEXPLAINED_DETECTION_MM`` from every model
+        fingertip is a finger the model has missed (typically one curled toward the camera
+        while the model finger lies on its neighbour).  Each of the two model fingers
+        nearest to it is pulled onto it (the salient term alone, strongly weighted, for
+        ``RESTART_ITERATIONS``), then released into the objective without the salient term
+        (which would favour the assignment the frame started with); a candidate is kept only
+        if its :meth:`_score` is higher than before.
+        """
+        lonely = self._lonely(res.x, det)
+        if lonely.size == 0:
+            return res
+        s = int(lonely[np.argmax(det.confidence[lonely])])
+        dist = np.linalg.norm(det.points[s] - fingertips(self._model, res.x), axis=1)
+        cfg = self._config
+        plain = self._plain(obj)
+        best, best_val = res, self._score(plain, res.x, det)
+        for c in np.argsort(dist)[:2]:
+            w = np.zeros(5)
+            w[c] = 1.0
+            pts = np.zeros((5, 3))
+            pts[c] = det.points[s]
+            pull = Objective(
+                self._model, obj.data, replace_config(cfg, w_sal=max(cfg.w_sal, 1.0) * 20.0),
+                previous=obj.previous, targets=TipTargets(pts, w), silhouette=obj.silhouette,
+            )
+            cand = self._maximise(pull, res.x, iterations=RESTART_ITERATIONS)
+            cand = self._maximise(plain, cand.x, iterations=RESTART_ITERATIONS)
+            val = self._score(plain, cand.x, det)
+            if val > best_val:
+                best, best_val = cand, val
         return best
 
     def _initialise(self, pre: Preprocessed) -> TrackResult:
@@ -285,28 +456,37 @@ class Tracker:
         rigid = np.zeros(self._model.limits_low.size + 6, dtype=bool)
         rigid[:6] = True
         scored = []
+        det = None
         for x0 in initial_hypotheses(self._model, blob, cfg.init_hypotheses):
-            data = self._data_near(pre, x0)
+            data, det_x, _ = self._data_near(pre, x0, detect=det is None)
+            det = det_x if det is None else det
             if data.n == 0:
                 continue
+            # No silhouette term while the hypotheses are still far off: it would pull
+            # them into the outline before the depth has placed them (a hand flipped
+            # palm-for-back has the same outline).
             obj = Objective(self._model, data, cfg)
             # Rigid alignment first, then articulation (seed 004's coarse-to-fine).
-            res = maximise(obj, x0, iterations=INIT_ITERATIONS[0], initial_scale=2.0, active=rigid)
-            res = maximise(obj, res.x, iterations=INIT_ITERATIONS[0], initial_scale=2.0)
-            scored.append((res.fun, len(scored), res.x))
-        if not scored:
+            res = self._maximise(obj, x0, iterations=INIT_ITERATIONS[0], initial_scale=2.0, active=rigid)
+            res = self._maximise(obj, res.x, iterations=INIT_ITERATIONS[0], initial_scale=2.0)
+            score = self._score(obj, res.x, det)
+            scored.append((score, len(scored), res.x))
+        if not scored or det is None:
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, {})
         best = None
         for _, _, x in sorted(scored, reverse=True)[:INIT_FINALISTS]:
-            data_x = self._data_near(pre, x)
-            obj = Objective(self._model, data_x, cfg)
-            cand = maximise(obj, x, iterations=INIT_ITERATIONS[1])
+            data_x, _, sil = self._data_near(pre, x)
+            obj = Objective(self._model, data_x, cfg, targets=self._targets(x, det), silhouette=sil)
+            cand = self._maximise(obj, x, iterations=INIT_ITERATIONS[1])
             for _ in range(2):
                 cand = self._finger_restarts(obj, cand, data_x)
-            if best is None or cand.fun > best[0].fun:
-                best = (cand, data_x)
-        res, data = best
+                cand = self._shift_restarts(obj, cand, det, force=True)
+                cand = self._detection_restarts(obj, cand, det)
+            score = self._score(self._plain(obj), cand.x, det)
+            if best is None or score > best[2]:
+                best = (cand, data_x, score)
+        res, data, _ = best
         conf = coverage(self._model, res.x, data)
         if conf < cfg.lost_confidence:
             self._status = TrackerStatus.NO_HAND

@@ -86,9 +86,12 @@ class TrackerConfig:
     w_dan: float = 0.1
     w_lim: float = 0.2
     w_smo: float = 0.0  #: paper: 1.0; see energy.py for why the default is 0
+    w_ord: float = 1.0  #: finger order across the palm (not in the paper; energy.py)
+    w_sal: float = 0.15  #: salient points (fingertip detections; seed 001; measured here)
+    w_sil: float = 1.0  #: silhouette: model Gaussians outside the hand's pixels (silhouette.py)
     right_hand: bool = True
     roi_radius_mm: float = 160.0  #: data farther than this from the last hand centre is ignored
-    lost_confidence: float = 0.35  #: confidence below this for ``lost_frames`` frames means LOST
+    lost_confidence: float = 0.2  #: confidence below this for ``lost_frames`` frames means LOST
     lost_frames: int = 3
     init_hypotheses: int = 16  #: starting poses tried when (re)initialising
 
@@ -105,7 +108,7 @@ class TrackerConfig:
             raise InputError("max_width_px must be at least 80")
         if not (1 <= self.iterations <= 200):
             raise InputError("iterations must be in [1, 200]")
-        for w in ("w_col", "w_dan", "w_lim", "w_smo"):
+        for w in ("w_col", "w_dan", "w_lim", "w_smo", "w_ord", "w_sal", "w_sil"):
             if getattr(self, w) < 0:
                 raise InputError(f"{w} must be >= 0")
         if self.roi_radius_mm <= 0:

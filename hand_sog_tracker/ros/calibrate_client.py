@@ -1,11 +1,15 @@
 """``calibrate_hand``: ask a running tracker node to fit the hand model to the current frames.
 
-Hold an open, flat hand toward the camera while the tracker follows it, then run::
+Hold an open, flat hand with relaxed fingers toward the camera for about a second
+while the tracker follows it, then run::
 
     calibrate_hand [--timeout 10] [--node-name hand_sog_tracker]
 
-Prints the service's answer (fitted scale factors, energy before and after,
-where the model was saved) and exits 0 on success, 1 otherwise.
+Prints the service's answer (fitted scale factors, the fit score before and
+after, the guard's held-out scores of the current and the fitted model, where
+the model was saved) and exits 0 on success, 1 otherwise (including a fit the
+guard refused: then nothing was changed or saved).  The node keeps tracking
+while it fits.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from std_srvs.srv import Trigger
 
 __all__ = ["service_name", "main"]
 
-#: Seconds added to ``--timeout`` while waiting for the answer (the fit itself takes < 1 s).
+#: Seconds added to ``--timeout`` while waiting for the answer (a fit takes 0.5-2 s).
 CALL_MARGIN_S = 30.0
 
 
@@ -41,7 +45,8 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="calibrate_hand",
         description="Calibrate the hand model of a running hand_sog_tracker node: hold an open "
-        "hand toward the camera, then run this.",
+        "hand with relaxed fingers toward the camera for a second, then run this. The fitted model "
+        "is used and saved only if it explains frames it was not fitted on better (exit 1 otherwise).",
     )
     parser.add_argument(
         "--timeout", type=float, default=10.0, metavar="S",

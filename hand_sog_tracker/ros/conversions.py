@@ -1,26 +1,30 @@
 """Conversion between ROS messages and the core's NumPy values.
 
 Input side (duck-typed through :class:`ImageLike` / :class:`CameraInfoLike`, so
-the same functions take rclpy messages and rosbags records):
+the same functions take rclpy messages and rosbags records; defined in the ROS-free
+:mod:`hand_sog_tracker.interface` and re-exported here):
 
 * :func:`image_to_depth_mm` - ``sensor_msgs/Image`` to a float32 depth map in mm.
 * :func:`camera_info_to_intrinsics` - ``sensor_msgs/CameraInfo`` to :class:`Intrinsics`.
 
+* :func:`compressed_image_to_depth_mm` - ``sensor_msgs/CompressedImage`` from the
+  ``compressedDepth`` transport to mm (decoding in :mod:`hand_sog_tracker.compressed_depth`).
+
 Output side (rclpy messages; units converted from mm to metres):
-:func:`joint_state_msg`, :func:`pose_msg`, :func:`fingertip_markers`,
+:func:`joint_state_msg`, :func:`pose_msg`, :func:`keypoints_msg`, :func:`hand_transforms`,
+:func:`fingertip_markers`,
 :func:`delete_all_markers`, :func:`bgr_to_image_msg` (the debug image drawn by
 :func:`hand_sog_tracker.core.overlay.draw_overlay`) and :func:`diagnostic_array`.
 """
 
 from __future__ import annotations
 
-import array
-from typing import Any, Mapping, Protocol, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, PoseStamped
+from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped, TransformStamped
 from numpy.typing import NDArray
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import ColorRGBA, Header
@@ -28,191 +32,48 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from hand_sog_tracker.core.hand_model import FINGERS, JOINT_NAMES, N_PARAMS
 from hand_sog_tracker.core.kinematics import global_rotation
-from hand_sog_tracker.core.types import Intrinsics
-from hand_sog_tracker.errors import DepthImageError, InputError, IntrinsicsError
+from hand_sog_tracker.core.urdf import WRIST_JOINT_NAMES, WRIST_LINK
+from hand_sog_tracker.errors import InputError
+
+# The input side is pure NumPy on duck-typed messages: it lives in the ROS-free interface module
+# (so bag tools can use it without sensor_msgs) and is re-exported here.
+from hand_sog_tracker.interface import (
+    DEPTH_ENCODINGS,
+    FINGERTIPS_NS,
+    SKELETON_MARKER_ID,
+    SKELETON_NS,
+    CameraInfoLike,
+    CompressedImageLike,
+    ImageLike,
+    camera_info_to_intrinsics,
+    compressed_image_to_depth_mm,
+    image_to_depth_mm,
+    stamp_to_ns,
+)
 
 __all__ = [
     "ImageLike",
     "CameraInfoLike",
     "DEPTH_ENCODINGS",
     "image_to_depth_mm",
+    "CompressedImageLike",
+    "compressed_image_to_depth_mm",
     "camera_info_to_intrinsics",
     "rotation_to_quaternion",
     "stamp_to_ns",
     "SKELETON_BONES",
     "joint_state_msg",
     "pose_msg",
+    "KEYPOINT_NAMES",
+    "keypoints_mm",
+    "keypoints_msg",
+    "TF_TIP_FRAMES",
+    "hand_transforms",
     "fingertip_markers",
     "delete_all_markers",
     "bgr_to_image_msg",
     "diagnostic_array",
 ]
-
-
-class ImageLike(Protocol):
-    """The fields of ``sensor_msgs/Image`` this module reads (rclpy message or rosbags record)."""
-
-    height: int
-    width: int
-    encoding: str
-    is_bigendian: int
-    step: int
-    data: Any  # bytes, bytearray, memoryview, array.array('B'), list[int] or uint8 ndarray
-
-
-class RegionOfInterestLike(Protocol):
-    """The fields of ``sensor_msgs/RegionOfInterest``."""
-
-    x_offset: int
-    y_offset: int
-    height: int
-    width: int
-
-
-class CameraInfoLike(Protocol):
-    """The fields of ``sensor_msgs/CameraInfo`` this module reads."""
-
-    height: int
-    width: int
-    k: Any  # 9 numbers, row-major 3x3
-    binning_x: int
-    binning_y: int
-    roi: RegionOfInterestLike
-
-
-#: Supported depth encodings: name -> (little-endian dtype, metres per unit or None for mm).
-DEPTH_ENCODINGS: dict[str, tuple[str, float | None]] = {
-    "16UC1": ("<u2", None),
-    "MONO16": ("<u2", None),
-    "32FC1": ("<f4", 1000.0),
-}
-
-
-def _as_bytes(data: Any) -> NDArray[np.uint8]:
-    """View the message ``data`` field as a flat uint8 array without copying when possible."""
-    if isinstance(data, np.ndarray):
-        if data.dtype != np.uint8:
-            raise DepthImageError(f"image data array must be uint8, got dtype {data.dtype}")
-        return data.reshape(-1)
-    if isinstance(data, (bytes, bytearray, memoryview)):
-        return np.frombuffer(data, dtype=np.uint8)
-    if isinstance(data, array.array):
-        if data.itemsize != 1:
-            raise DepthImageError(f"image data array.array must hold bytes, got typecode {data.typecode!r}")
-        return np.frombuffer(data, dtype=np.uint8)
-    try:
-        return np.asarray(data, dtype=np.uint8).reshape(-1)
-    except (TypeError, ValueError, OverflowError) as err:
-        raise DepthImageError(f"image data is not a byte sequence: {err}") from err
-
-
-def image_to_depth_mm(msg: ImageLike) -> NDArray[np.float32]:
-    """Convert a depth ``sensor_msgs/Image`` to millimetres.
-
-    Parameters
-    ----------
-    msg : ImageLike
-        ``16UC1`` / ``mono16`` (mm, 0 = invalid) or ``32FC1`` (metres; NaN,
-        Inf, 0 and negative values are invalid).  ``step`` (row padding) and
-        ``is_bigendian`` are honoured.
-
-    Returns
-    -------
-    array, shape (H, W), float32, mm
-        A new array; invalid pixels are 0.
-
-    Raises
-    ------
-    DepthImageError
-        Unknown encoding, zero size, ``step < width * bytes_per_pixel`` or
-        ``data`` shorter than the image needs.
-    """
-    enc = str(msg.encoding)
-    spec = DEPTH_ENCODINGS.get(enc.upper())
-    if spec is None:
-        raise DepthImageError(
-            f"unsupported depth encoding {enc!r} (expected one of 16UC1, mono16, 32FC1)"
-        )
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    if h <= 0 or w <= 0:
-        raise DepthImageError(f"depth image has zero size ({w}x{h})")
-    dtype = np.dtype(spec[0])
-    if msg.is_bigendian:
-        dtype = dtype.newbyteorder(">")
-    bpp = dtype.itemsize
-    if step < w * bpp:
-        raise DepthImageError(f"step {step} is smaller than width * {bpp} bytes = {w * bpp} ({enc})")
-    buf = _as_bytes(msg.data)
-    needed = step * (h - 1) + w * bpp  # the last row's padding may be absent
-    if buf.size < needed:
-        raise DepthImageError(
-            f"depth image data is truncated: {buf.size} bytes, need {step * h} "
-            f"({h} rows of step {step})"
-        )
-    view = np.ndarray(shape=(h, w), dtype=dtype, buffer=buf, offset=0, strides=(step, bpp))
-    depth = view.astype(np.float32)  # native byte order, contiguous copy
-    scale = spec[1]
-    if scale is not None:
-        with np.errstate(invalid="ignore", over="ignore"):
-            depth *= np.float32(scale)
-            depth[~(np.isfinite(depth) & (depth > 0.0))] = 0.0
-    return depth
-
-
-def camera_info_to_intrinsics(msg: CameraInfoLike) -> Intrinsics:
-    """Pinhole intrinsics of the published (binned) image from ``sensor_msgs/CameraInfo``.
-
-    Binning is honoured like ``image_geometry``: ``fx, cx`` are divided by
-    ``binning_x``, ``fy, cy`` by ``binning_y`` and the image size is
-    ``width // binning_x`` by ``height // binning_y`` (0 and 1 mean no binning).
-    A region of interest other than the full image is rejected: the camera
-    would publish a crop this node does not expect.
-
-    Parameters
-    ----------
-    msg : CameraInfoLike
-
-    Returns
-    -------
-    Intrinsics
-        Pixels, for the image size the camera publishes.
-
-    Raises
-    ------
-    IntrinsicsError
-        ``K`` not 9 finite numbers, all zero (uncalibrated) or with
-        non-positive focal lengths, zero image size, or a partial ROI.
-    """
-    try:
-        k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as err:
-        raise IntrinsicsError(f"CameraInfo K is not numeric: {err}") from err
-    if k.shape != (9,):
-        raise IntrinsicsError(f"CameraInfo K must have 9 elements, got {k.size}")
-    if not np.all(np.isfinite(k)):
-        raise IntrinsicsError("CameraInfo K contains NaN or Inf")
-    if not np.any(k):
-        raise IntrinsicsError("CameraInfo K is all zeros (uncalibrated camera)")
-    width, height = int(msg.width), int(msg.height)
-    if width <= 0 or height <= 0:
-        raise IntrinsicsError(f"CameraInfo has zero image size ({width}x{height})")
-    roi = msg.roi
-    rx, ry, rw, rh = int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height)
-    full_roi = (rx, ry, rw, rh) in ((0, 0, 0, 0), (0, 0, width, height))
-    if not full_roi:
-        raise IntrinsicsError(
-            f"CameraInfo ROI (x={rx}, y={ry}, {rw}x{rh}) is not the full {width}x{height} "
-            "image; cropped depth streams are not supported"
-        )
-    bx = max(int(msg.binning_x), 1)
-    by = max(int(msg.binning_y), 1)
-    fx, fy, cx, cy = float(k[0]) / bx, float(k[4]) / by, float(k[2]) / bx, float(k[5]) / by
-    return Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width // bx, height=height // by)
-
-
-def stamp_to_ns(stamp: Any) -> int:
-    """``builtin_interfaces/Time`` (``sec``, ``nanosec``) to integer nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def rotation_to_quaternion(rot: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -247,13 +108,21 @@ def _check_pose(pose: NDArray[np.float64]) -> NDArray[np.float64]:
     return p
 
 
-def joint_state_msg(header: Header, pose: NDArray[np.float64]) -> JointState:
+def joint_state_msg(header: Header, pose: NDArray[np.float64], wrist_joints: bool = False) -> JointState:
     """``sensor_msgs/JointState`` with the 20 joint angles (rad) of ``pose`` (26,).
 
-    Names are :data:`hand_model.JOINT_NAMES` in pose-vector order.
+    Names are :data:`hand_model.JOINT_NAMES` in pose-vector order.  With ``wrist_joints``
+    the six virtual joints of :data:`hand_sog_tracker.core.urdf.WRIST_JOINT_NAMES` follow
+    (``hand_tx, hand_ty, hand_tz`` in metres, ``hand_rz, hand_rx, hand_ry`` in radians, so
+    that ``R = Rz Rx Ry`` as in the pose vector).
     """
     p = _check_pose(pose)
-    return JointState(header=header, name=list(JOINT_NAMES), position=p[6:].tolist())
+    names, values = list(JOINT_NAMES), p[6:].tolist()
+    if wrist_joints:
+        names += list(WRIST_JOINT_NAMES)
+        values += [float(p[0]) / 1000.0, float(p[1]) / 1000.0, float(p[2]) / 1000.0]
+        values += [float(p[5]), float(p[3]), float(p[4])]
+    return JointState(header=header, name=names, position=values)
 
 
 def pose_msg(header: Header, pose: NDArray[np.float64]) -> PoseStamped:
@@ -272,6 +141,95 @@ def pose_msg(header: Header, pose: NDArray[np.float64]) -> PoseStamped:
         float(v) for v in q
     )
     return msg
+
+
+#: The 21 keypoints of ``hand/keypoints`` in MediaPipe Hands' landmark order.
+KEYPOINT_NAMES: tuple[str, ...] = ("wrist",) + tuple(
+    f"{f}_{j}"
+    for f, joints in zip(
+        FINGERS,
+        [("cmc", "mcp", "ip", "tip")] + [("mcp", "pip", "dip", "tip")] * 4,
+    )
+    for j in joints
+)
+
+
+def keypoints_mm(skeleton_mm: NDArray[np.float64], fingertips_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The 21 keypoints (MediaPipe order), shape (21, 3), mm.
+
+    :func:`kinematics.skeleton_points` already lists the wrist, then per chain (thumb ..
+    little) its three joints and its segment end, which is MediaPipe's order (0 wrist, 1-4
+    thumb CMC, MCP, IP, TIP, 5-8 index MCP, PIP, DIP, TIP, ... 17-20 little).  The TIP
+    keypoints (4, 8, 12, 16, 20) are the fingertips the tracker reports
+    (:func:`kinematics.fingertips`, the centre of the fingertip sphere, as on
+    ``hand/fingertips``) instead of the bone ends.
+    """
+    sk = np.asarray(skeleton_mm, dtype=np.float64)
+    tips = np.asarray(fingertips_mm, dtype=np.float64)
+    if sk.shape != (21, 3) or tips.shape != (5, 3):
+        raise InputError(f"need skeleton (21, 3) and fingertips (5, 3), got {sk.shape} and {tips.shape}")
+    out = sk.copy()
+    out[4::4] = tips
+    return out
+
+
+def keypoints_msg(header: Header, skeleton_mm: NDArray[np.float64], fingertips_mm: NDArray[np.float64]) -> PoseArray:
+    """``geometry_msgs/PoseArray`` of the 21 keypoints (metres, identity orientations); see :func:`keypoints_mm`."""
+    pts = keypoints_mm(skeleton_mm, fingertips_mm) / 1000.0
+    poses = []
+    for x, y, z in pts:
+        p = Pose()
+        p.position.x, p.position.y, p.position.z = float(x), float(y), float(z)
+        p.orientation.w = 1.0
+        poses.append(p)
+    return PoseArray(header=header, poses=poses)
+
+
+#: TF child frames of the fingertips (thumb .. little).  They coincide with the URDF's
+#: ``<finger>_tip`` links but are named differently, so the node and a robot_state_publisher
+#: never both publish the same frame.
+TF_TIP_FRAMES: tuple[str, ...] = tuple(f"{f}_fingertip" for f in FINGERS)
+
+
+def hand_transforms(
+    header: Header, pose: NDArray[np.float64], fingertips_mm: NDArray[np.float64], prefix: str = ""
+) -> list[TransformStamped]:
+    """TF frames of the hand: the wrist in the image frame and the five fingertips in the wrist frame.
+
+    ``<prefix>hand_wrist`` has the position and orientation of ``hand/pose``;
+    ``<prefix><finger>_fingertip`` (:data:`TF_TIP_FRAMES`) has identity rotation and the
+    fingertip position expressed in the wrist frame (for a left hand the wrist frame is the
+    rotation of ``hand/pose``, and tips are placed where the tracker reports them).
+
+    Returns
+    -------
+    list of geometry_msgs/TransformStamped
+        Six transforms, all with ``header.stamp``.
+    """
+    p = _check_pose(pose)
+    tips = np.asarray(fingertips_mm, dtype=np.float64)
+    if tips.shape != (5, 3):
+        raise InputError(f"fingertips must have shape (5, 3), got {tips.shape}")
+    rot = global_rotation(p)
+    q = rotation_to_quaternion(rot)
+    wrist = TransformStamped()
+    wrist.header.stamp = header.stamp
+    wrist.header.frame_id = header.frame_id
+    wrist.child_frame_id = prefix + WRIST_LINK
+    t = wrist.transform
+    t.translation.x, t.translation.y, t.translation.z = (float(v) / 1000.0 for v in p[:3])
+    t.rotation.x, t.rotation.y, t.rotation.z, t.rotation.w = (float(v) for v in q)
+    out = [wrist]
+    local = (tips - p[:3]) @ rot / 1000.0  # R^T (tip - t), metres
+    for name, xyz in zip(TF_TIP_FRAMES, local):
+        tf = TransformStamped()
+        tf.header.stamp = header.stamp
+        tf.header.frame_id = prefix + WRIST_LINK
+        tf.child_frame_id = prefix + name
+        tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (float(v) for v in xyz)
+        tf.transform.rotation.w = 1.0
+        out.append(tf)
+    return out
 
 
 #: Bones of the 21-point skeleton (:func:`kinematics.skeleton_points`): wrist to each
@@ -321,7 +279,7 @@ def fingertip_markers(
     radii = np.full(5, 8.0) if tip_radii_mm is None else np.asarray(tip_radii_mm, dtype=np.float64)
     out = MarkerArray()
     for i in range(5):
-        m = Marker(header=header, ns="fingertips", id=i, type=Marker.SPHERE, action=Marker.ADD)
+        m = Marker(header=header, ns=FINGERTIPS_NS, id=i, type=Marker.SPHERE, action=Marker.ADD)
         m.pose.position = _point_m(tips[i])
         m.pose.orientation.w = 1.0
         d = 2.0 * float(radii[i]) / 1000.0
@@ -334,7 +292,7 @@ def fingertip_markers(
         sk = np.asarray(skeleton_mm, dtype=np.float64)
         if sk.shape != (21, 3):
             raise InputError(f"skeleton must have shape (21, 3), got {sk.shape}")
-        line = Marker(header=header, ns="skeleton", id=0, type=Marker.LINE_LIST, action=Marker.ADD)
+        line = Marker(header=header, ns=SKELETON_NS, id=SKELETON_MARKER_ID, type=Marker.LINE_LIST, action=Marker.ADD)
         line.pose.orientation.w = 1.0
         line.scale.x = 0.004
         line.color = ColorRGBA(r=0.9, g=0.9, b=0.9, a=1.0)

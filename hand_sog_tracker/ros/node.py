@@ -4,9 +4,14 @@ Topics (relative names, so a namespace or remapping moves them):
 
 ========================================  =====================================================
 ``camera/depth/image_rect_raw`` (sub)     ``sensor_msgs/Image`` 16UC1/mono16 (mm) or 32FC1 (m)
+``.../image_rect_raw/compressedDepth``    ``sensor_msgs/CompressedImage`` instead, with
+  (sub)                                   ``input_transport: compressedDepth`` (png or rvl)
 ``camera/depth/camera_info`` (sub)        ``sensor_msgs/CameraInfo`` (K; binning honoured, ROI rejected)
-``hand/joint_states``                     ``sensor_msgs/JointState``, 20 angles (rad)
+``hand/joint_states``                     ``sensor_msgs/JointState``, 20 angles (rad) (+ 6 wrist joints)
 ``hand/pose``                             ``geometry_msgs/PoseStamped``, wrist pose (m)
+``hand/keypoints``                        ``geometry_msgs/PoseArray``, 21 points, MediaPipe order (m)
+``hand/robot_description``                ``std_msgs/String`` URDF of the current model (latched)
+``/tf``                                   ``tf2_msgs/TFMessage`` with ``publish_tf: true``
 ``hand/fingertips``                       ``visualization_msgs/MarkerArray`` fingertips + skeleton
 ``hand/debug_image``                      ``sensor_msgs/Image`` bgr8, only while subscribed
                                           (or with ``debug_image: true``)
@@ -21,8 +26,8 @@ Real time: the subscriptions use sensor-data QoS with depth 1 (overridable via
 frame is being processed and there is never a backlog.  The image callback
 only stores the newest frame and wakes the processing callback through a
 guard condition.  Frames that are never processed are counted: ``dropped``
-(received but replaced before processing, possible under a multi-threaded
-executor) and ``missed`` (replaced inside DDS, so never received; estimated
+(received but replaced by a newer one before processing) and ``missed`` (replaced inside
+DDS, so never received; estimated
 from gaps in the image stamps against the shortest stamp interval seen).
 :func:`main` spins a single-threaded executor (see :func:`make_executor`).
 
@@ -42,14 +47,14 @@ import threading
 import time
 import traceback
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseArray, PoseStamped
 from numpy.typing import NDArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -60,20 +65,22 @@ from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
-from sensor_msgs.msg import CameraInfo, Image, JointState
-from std_msgs.msg import Header
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
+from std_msgs.msg import Header, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from hand_sog_tracker.core.calibration import calibrate
+from hand_sog_tracker.core.calibration import CalibrationRejected, CalibrationResult, calibrate, select_frames
 from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
-from hand_sog_tracker.core.model_io import load_hand_shape, save_hand_shape
+from hand_sog_tracker.core.model_io import calibration_metadata, load_hand_shape, save_hand_shape
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerStatus, TrackResult
+from hand_sog_tracker.core.urdf import hand_urdf
 from hand_sog_tracker.errors import (
     CalibrationError,
     DepthImageError,
@@ -81,16 +88,34 @@ from hand_sog_tracker.errors import (
     IntrinsicsError,
     ModelFileError,
 )
+from hand_sog_tracker.interface import (
+    CALIBRATE_SERVICE,
+    COMPRESSED_DEPTH_TOPIC,
+    DEBUG_IMAGE_TOPIC,
+    DEPTH_TOPIC,
+    DESCRIPTION_TOPIC,
+    DIAGNOSTICS_TOPIC,
+    FINGERTIPS_TOPIC,
+    INFO_TOPIC,
+    JOINTS_TOPIC,
+    KEYPOINTS_TOPIC,
+    NODE_NAME,
+    POSE_TOPIC,
+    TF_TOPIC,
+    camera_info_to_intrinsics,
+    compressed_image_to_depth_mm,
+    image_to_depth_mm,
+    stamp_to_ns,
+)
 from hand_sog_tracker.ros.conversions import (
     bgr_to_image_msg,
-    camera_info_to_intrinsics,
     delete_all_markers,
     diagnostic_array,
     fingertip_markers,
-    image_to_depth_mm,
+    hand_transforms,
     joint_state_msg,
+    keypoints_msg,
     pose_msg,
-    stamp_to_ns,
 )
 from hand_sog_tracker.ros.params import (
     NodeSettings,
@@ -101,14 +126,20 @@ from hand_sog_tracker.ros.params import (
 
 __all__ = ["TrackerNode", "NodeStats", "make_executor", "main", "NODE_NAME"]
 
-NODE_NAME = "hand_sog_tracker"
-IMAGE_TOPIC = "camera/depth/image_rect_raw"
-INFO_TOPIC = "camera/depth/camera_info"
+# NODE_NAME and the topic names: hand_sog_tracker.interface (relative names).
+IMAGE_TOPIC = DEPTH_TOPIC
+#: Where image_transport's compressedDepth plugin publishes (``<image topic>/compressedDepth``).
+COMPRESSED_TOPIC = COMPRESSED_DEPTH_TOPIC
 #: Minimum seconds between two warnings of the same kind.
 WARN_THROTTLE_S = 2.0
 #: A gap between two received images longer than this is a pause, not missed frames.
 MAX_GAP_S = 1.0
 _NUMBERS = re.compile(r"\d+(\.\d+)?")
+#: Tracked frames kept for ~/calibrate (one at least CALIB_SPACING_S after the previous).
+CALIB_HISTORY = 15
+CALIB_SPACING_S = 0.06
+#: Frames of the history held out of the fit to check it (the guard).
+CALIB_HOLDOUT = 3
 
 
 @dataclass(frozen=True)
@@ -136,35 +167,26 @@ class NodeStats:
         Confidence of the last processed frame.
     """
 
-    received: int
-    processed: int
-    dropped: int
-    missed: int
-    rejected: int
-    last_problem: str
-    status: TrackerStatus
-    confidence: float
+    received: int = 0
+    processed: int = 0
+    dropped: int = 0
+    missed: int = 0
+    rejected: int = 0
+    last_problem: str = ""
+    status: TrackerStatus = TrackerStatus.NO_HAND
+    confidence: float = 0.0
 
 
-class _Counters:
-    """Mutable counters shared by the callbacks (guarded by the node's lock)."""
+@dataclass
+class _Window:
+    """What happened since the last diagnostics message (frame counts, summed ms, its start)."""
 
-    def __init__(self) -> None:
-        self.received = 0
-        self.processed = 0
-        self.dropped = 0
-        self.missed = 0
-        self.rejected = 0
-        self.last_problem = ""
-        self.status = TrackerStatus.NO_HAND
-        self.confidence = 0.0
-        # Window since the last diagnostics message.
-        self.win_received = 0
-        self.win_processed = 0
-        self.win_rejected = 0
-        self.win_proc_ms = 0.0
-        self.win_latency_ms = 0.0
-        self.win_start = time.monotonic()
+    received: int = 0
+    processed: int = 0
+    rejected: int = 0
+    proc_ms: float = 0.0
+    latency_ms: float = 0.0
+    start: float = field(default_factory=time.monotonic)
 
 
 class TrackerNode(Node):
@@ -194,64 +216,78 @@ class TrackerNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._on_parameters_set)
 
-        self._lock = threading.Lock()  # frame slot, intrinsics, counters
-        self._tracker_lock = threading.Lock()  # the tracker: processing vs. calibration
+        # One executor thread runs every callback (see make_executor), so the node's state needs
+        # no lock: the counters are a frozen NodeStats replaced whole, safe to read from any
+        # thread.  _tracker_lock stays: ~/calibrate holds it for its snapshot of the history and
+        # model and for the model switch, hand_model for reads from other threads (uncontended
+        # under the single-threaded executor, so it costs nothing).
+        self._tracker_lock = threading.Lock()
         self._warn_loggers: dict[str, RcutilsLogger] = {}
-        self._counters = _Counters()
-        self._pending: Image | None = None
+        self._stats = NodeStats()
+        self._window = _Window()
+        self._pending: Image | CompressedImage | None = None
         self._rx_stamp_ns: int | None = None  # stamp of the last received image
         self._period_ns: int | None = None  # shortest interval between received images
         self._intrinsics: Intrinsics | None = None
         self._intrinsics_problem = ""
-        # Tracking state: used by the work group; the tracker also by ~/calibrate (_tracker_lock).
+        # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).
         self._tracker = Tracker(self._settings.tracker, self._initial_model())
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
         self._markers_shown = False
         self._frame_id = ""
-        self._calib_frames: deque[tuple[NDArray[np.float32], Intrinsics]] = deque(maxlen=3)
+        # Recent tracked frames for ~/calibrate: (depth, intrinsics, pose or None, stamp ns).
+        self._calib_history: deque[_CalibFrame] = deque(maxlen=CALIB_HISTORY)
 
-        # Groups and locks keep the node correct under a multi-threaded executor too; main()
-        # uses a single-threaded one (see make_executor).
-        self._input_group = MutuallyExclusiveCallbackGroup()
-        self._work_group = MutuallyExclusiveCallbackGroup()
+        # Every callback is in the node's default group except ~/calibrate: its coroutine holds
+        # its callback group while it awaits the calibration worker thread, so it gets a group
+        # of its own (one call at a time) and tracking goes on in the default group meanwhile.
         self._calib_group = MutuallyExclusiveCallbackGroup()
         sensor_qos = copy.copy(qos_profile_sensor_data)
         sensor_qos.depth = 1
         out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
         overrides = QoSOverridingOptions.with_default_policies()
 
+        compressed = self._settings.input_transport == "compressedDepth"
         self._image_sub = self.create_subscription(
-            Image, IMAGE_TOPIC, self._on_image, sensor_qos,
-            callback_group=self._input_group, qos_overriding_options=overrides,
+            CompressedImage if compressed else Image, COMPRESSED_TOPIC if compressed else IMAGE_TOPIC,
+            self._on_image, sensor_qos, qos_overriding_options=overrides,
         )
         self._info_sub = self.create_subscription(
-            CameraInfo, INFO_TOPIC, self._on_camera_info, sensor_qos,
-            callback_group=self._input_group, qos_overriding_options=overrides,
+            CameraInfo, INFO_TOPIC, self._on_camera_info, sensor_qos, qos_overriding_options=overrides,
         )
         self._joint_pub = self.create_publisher(
-            JointState, "hand/joint_states", out_qos, qos_overriding_options=overrides
+            JointState, JOINTS_TOPIC, out_qos, qos_overriding_options=overrides
         )
         self._pose_pub = self.create_publisher(
-            PoseStamped, "hand/pose", out_qos, qos_overriding_options=overrides
+            PoseStamped, POSE_TOPIC, out_qos, qos_overriding_options=overrides
         )
         self._marker_pub = self.create_publisher(
-            MarkerArray, "hand/fingertips", out_qos, qos_overriding_options=overrides
+            MarkerArray, FINGERTIPS_TOPIC, out_qos, qos_overriding_options=overrides
         )
+        self._keypoints_pub = self.create_publisher(
+            PoseArray, KEYPOINTS_TOPIC, out_qos, qos_overriding_options=overrides
+        )
+        latched = QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+        )
+        self._description_pub = self.create_publisher(String, DESCRIPTION_TOPIC, latched)
+        self._described: tuple[HandModel, str | None] | None = None
+        self._tf_pub: Any = None  # created on first use (tf2_msgs is optional)
         self._debug_pub = self.create_publisher(
-            Image, "hand/debug_image", QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+            Image, DEBUG_IMAGE_TOPIC, QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         )
-        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self._publish_description(None)
 
-        self._frame_ready = self.create_guard_condition(
-            self._process_pending, callback_group=self._work_group
-        )
+        self._frame_ready = self.create_guard_condition(self._process_pending)
         self._calibrate_srv = self.create_service(
-            Trigger, "~/calibrate", self._on_calibrate, callback_group=self._calib_group
+            Trigger, CALIBRATE_SERVICE, self._on_calibrate, callback_group=self._calib_group
         )
-        self._diag_timer = self.create_timer(
-            1.0, self._publish_diagnostics, callback_group=self._input_group
-        )
+        # Triggered by the calibration worker when it is done: wakes the executor, which then
+        # resumes the waiting (async) service callback.
+        self._calib_wake = self.create_guard_condition(lambda: None)
+        self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f"tracking the {'right' if self._settings.tracker.right_hand else 'left'} hand from "
             f"{self._image_sub.topic_name} + {self._info_sub.topic_name}"
@@ -266,24 +302,12 @@ class TrackerNode(Node):
     @property
     def stats(self) -> NodeStats:
         """A snapshot of the node's counters."""
-        with self._lock:
-            c = self._counters
-            return NodeStats(
-                received=c.received,
-                processed=c.processed,
-                dropped=c.dropped,
-                missed=c.missed,
-                rejected=c.rejected,
-                last_problem=c.last_problem,
-                status=c.status,
-                confidence=c.confidence,
-            )
+        return self._stats
 
     @property
     def intrinsics(self) -> Intrinsics | None:
         """Intrinsics from the last usable CameraInfo (None before one arrived or after a bad one)."""
-        with self._lock:
-            return self._intrinsics
+        return self._intrinsics
 
     @property
     def hand_model(self) -> HandModel:
@@ -323,16 +347,17 @@ class TrackerNode(Node):
         return default_hand_model(right).scaled(shape)
 
     # -- input group ------------------------------------------------------------
-    def _on_image(self, msg: Image) -> None:
+    def _on_image(self, msg: Image | CompressedImage) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
-        with self._lock:
-            c = self._counters
-            c.received += 1
-            c.win_received += 1
-            if self._pending is not None:
-                c.dropped += 1
-            self._pending = msg
-            c.missed += self._missed_before(stamp)
+        s = self._stats
+        self._stats = replace(
+            s,
+            received=s.received + 1,
+            dropped=s.dropped + (self._pending is not None),
+            missed=s.missed + self._missed_before(stamp),
+        )
+        self._window.received += 1
+        self._pending = msg
         self._frame_ready.trigger()
 
     def _missed_before(self, stamp: int) -> int:
@@ -361,39 +386,34 @@ class TrackerNode(Node):
         try:
             intr = camera_info_to_intrinsics(msg)
         except IntrinsicsError as err:
-            with self._lock:
-                self._intrinsics = None
-                self._intrinsics_problem = f"unusable CameraInfo: {err}"
+            self._intrinsics = None
+            self._intrinsics_problem = f"unusable CameraInfo: {err}"
             self._warn(f"unusable CameraInfo on {self._info_sub.topic_name}: {err}")
             return
-        with self._lock:
-            self._intrinsics = intr
-            self._intrinsics_problem = ""
+        self._intrinsics = intr
+        self._intrinsics_problem = ""
 
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()
-        with self._lock:
-            c = self._counters
-            dt = max(now - c.win_start, 1e-3)
-            n_proc = c.win_processed
-            values = {
-                "input_rate_hz": c.win_received / dt,
-                "output_rate_hz": n_proc / dt,
-                "processing_ms": c.win_proc_ms / n_proc if n_proc else 0.0,
-                "latency_ms": c.win_latency_ms / n_proc if n_proc else 0.0,
-                "status": c.status.value,
-                "confidence": c.confidence,
-                "frames_received": c.received,
-                "frames_processed": c.processed,
-                "frames_dropped": c.dropped,
-                "frames_missed": c.missed,
-                "frames_rejected": c.rejected,
-                "last_problem": c.last_problem,
-            }
-            win_received, win_rejected, last_problem = c.win_received, c.win_rejected, c.last_problem
-            c.win_received = c.win_processed = c.win_rejected = 0
-            c.win_proc_ms = c.win_latency_ms = 0.0
-            c.win_start = now
+        c, w = self._stats, self._window
+        dt = max(now - w.start, 1e-3)
+        n_proc = w.processed
+        values = {  # keys: hand_sog_tracker.interface.DIAG_KEYS
+            "input_rate_hz": w.received / dt,
+            "output_rate_hz": n_proc / dt,
+            "processing_ms": w.proc_ms / n_proc if n_proc else 0.0,
+            "latency_ms": w.latency_ms / n_proc if n_proc else 0.0,
+            "status": c.status.value,
+            "confidence": c.confidence,
+            "frames_received": c.received,
+            "frames_processed": c.processed,
+            "frames_dropped": c.dropped,
+            "frames_missed": c.missed,
+            "frames_rejected": c.rejected,
+            "last_problem": c.last_problem,
+        }
+        win_received, win_rejected, last_problem = w.received, w.rejected, c.last_problem
+        self._window = _Window(start=now)
         if win_received == 0:
             level, message = DiagnosticStatus.WARN, "no depth images received"
         elif win_rejected:
@@ -413,9 +433,8 @@ class TrackerNode(Node):
 
     # -- work group -------------------------------------------------------------
     def _process_pending(self) -> None:
-        with self._lock:
-            msg, self._pending = self._pending, None
-            intr, intr_problem = self._intrinsics, self._intrinsics_problem
+        msg, self._pending = self._pending, None
+        intr, intr_problem = self._intrinsics, self._intrinsics_problem
         if msg is None:
             return
         t0 = time.perf_counter()
@@ -423,8 +442,7 @@ class TrackerNode(Node):
             with self._tracker_lock:
                 processed = self._process(msg, intr, intr_problem)
             if processed:
-                with self._lock:
-                    self._counters.win_proc_ms += (time.perf_counter() - t0) * 1e3
+                self._window.proc_ms += (time.perf_counter() - t0) * 1e3
         except Exception as err:  # noqa: BLE001 - a bug in one frame must not kill the node
             if not self.context.ok():
                 return
@@ -446,27 +464,23 @@ class TrackerNode(Node):
         output and /rosout look the same) per kind keeps different problems from hiding each other.
         """
         kind = _NUMBERS.sub("#", text)
-        with self._lock:
-            logger = self._warn_loggers.get(kind)
-            if logger is None:
-                if len(self._warn_loggers) > 64:
-                    self._warn_loggers.clear()
-                logger = self._warn_loggers[kind] = get_logger(self.get_logger().name)
+        logger = self._warn_loggers.get(kind)
+        if logger is None:
+            if len(self._warn_loggers) > 64:
+                self._warn_loggers.clear()
+            logger = self._warn_loggers[kind] = get_logger(self.get_logger().name)
         logger.warning(text, throttle_duration_sec=WARN_THROTTLE_S)
 
     def _reject(self, problem: str) -> None:
-        with self._lock:
-            self._counters.rejected += 1
-            self._counters.win_rejected += 1
-            self._counters.last_problem = problem
+        self._stats = replace(self._stats, rejected=self._stats.rejected + 1, last_problem=problem)
+        self._window.rejected += 1
 
-    def _process(self, msg: Image, intr: Intrinsics | None, intr_problem: str) -> bool:
+    def _process(self, msg: Image | CompressedImage, intr: Intrinsics | None, intr_problem: str) -> bool:
         """Track one frame and publish; False when the frame was rejected."""
         header = msg.header
         settings = self._settings
         if settings.tracker != self._tracker.config:
             self._tracker.set_config(settings.tracker)
-        self._calib_frames = _resized(self._calib_frames, settings.calibration_frames)
 
         stamp = stamp_to_ns(header.stamp)
         if self._last_stamp_ns is not None and stamp < self._last_stamp_ns:
@@ -488,7 +502,7 @@ class TrackerNode(Node):
             return False
 
         try:
-            depth = image_to_depth_mm(msg)
+            depth = compressed_image_to_depth_mm(msg) if isinstance(msg, CompressedImage) else image_to_depth_mm(msg)
         except DepthImageError as err:
             self._reject(f"bad depth image: {err}")
             self._warn(f"bad depth image: {err}: frame skipped")
@@ -501,7 +515,7 @@ class TrackerNode(Node):
                 f"{shape[1]}x{shape[0]}: tracker reset"
             )
             self._reset_track(header)
-            self._calib_frames.clear()
+            self._calib_history.clear()
         self._last_shape = shape
         if shape != (intr.height, intr.width):
             problem = (
@@ -524,15 +538,16 @@ class TrackerNode(Node):
 
         self._frame_id = header.frame_id
         self._publish_result(header, result, depth, intr)
-        self._calib_frames.append((depth, intr))
+        self._remember(depth, intr, result.pose, stamp)
         latency_ms = (self.get_clock().now().nanoseconds - stamp) * 1e-6
-        with self._lock:
-            c = self._counters
-            c.processed += 1
-            c.win_processed += 1
-            c.win_latency_ms += latency_ms
-            c.status = result.status
-            c.confidence = float(result.confidence)
+        self._stats = replace(
+            self._stats,
+            processed=self._stats.processed + 1,
+            status=result.status,
+            confidence=float(result.confidence),
+        )
+        self._window.processed += 1
+        self._window.latency_ms += latency_ms
         return True
 
     def _reset_track(self, header: Header) -> None:
@@ -545,8 +560,14 @@ class TrackerNode(Node):
         self, header: Header, result: TrackResult, depth: NDArray[np.float32], intr: Intrinsics
     ) -> None:
         if result.pose is not None and result.fingertips_mm is not None:
-            self._joint_pub.publish(joint_state_msg(header, result.pose))
+            wrist_joints = self._settings.publish_wrist_joints
+            self._publish_description(header.frame_id if wrist_joints else None)
+            self._joint_pub.publish(joint_state_msg(header, result.pose, wrist_joints))
             self._pose_pub.publish(pose_msg(header, result.pose))
+            if result.skeleton_mm is not None:
+                self._keypoints_pub.publish(keypoints_msg(header, result.skeleton_mm, result.fingertips_mm))
+            if self._settings.publish_tf:
+                self._publish_tf(header, result.pose, result.fingertips_mm)
             self._marker_pub.publish(
                 fingertip_markers(
                     header, result.fingertips_mm, result.skeleton_mm, self._tracker.model.tip_radii
@@ -569,45 +590,135 @@ class TrackerNode(Node):
             )
             self._debug_pub.publish(bgr_to_image_msg(header, bgr))
 
-    def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        """Fit the hand model to the last frames; tracking goes on meanwhile (own callback group)."""
-        with self._tracker_lock:  # a consistent snapshot of the frames and the model
-            frames = list(self._calib_frames)[::-1]  # newest first
+    def _publish_description(self, camera_frame: str | None) -> None:
+        """Publish the URDF of the current model on hand/robot_description when it changed."""
+        model = self._tracker.model
+        if self._described is not None and self._described[0] is model and self._described[1] == camera_frame:
+            return
+        self._described = (model, camera_frame)
+        self._description_pub.publish(String(data=hand_urdf(model, camera_frame=camera_frame or None)))
+
+    def _publish_tf(self, header: Header, pose: NDArray[np.float64], tips_mm: NDArray[np.float64]) -> None:
+        """Broadcast the wrist and fingertip frames on /tf (publish_tf is validated: tf2_msgs exists)."""
+        if self._tf_pub is None:
+            from tf2_msgs.msg import TFMessage  # optional dependency, checked by the parameter
+
+            self._tf_msg_type = TFMessage
+            self._tf_pub = self.create_publisher(
+                TFMessage, TF_TOPIC, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+            )
+        self._tf_pub.publish(self._tf_msg_type(transforms=hand_transforms(header, pose, tips_mm)))
+
+    def _remember(
+        self, depth: NDArray[np.float32], intr: Intrinsics, pose: NDArray[np.float64] | None, stamp: int
+    ) -> None:
+        """Keep a tracked frame for ~/calibrate (at most one per CALIB_SPACING_S)."""
+        last = self._calib_history[-1] if self._calib_history else None
+        if last is not None and 0 <= stamp - last.stamp_ns < CALIB_SPACING_S * 1e9:
+            return
+        self._calib_history.append(_CalibFrame(depth, intr, None if pose is None else pose.copy(), stamp))
+
+    async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Fit the hand model to recent frames on a worker thread; tracking goes on meanwhile.
+
+        The callback is a coroutine: it starts the fit on a thread and awaits its result, so
+        the single-threaded executor keeps running the image callbacks in between (the
+        worker triggers a guard condition when done, which wakes the executor).  The fit
+        uses ``calibration_frames`` open-hand frames of the last second (the least spread
+        ones) and is checked on up to CALIB_HOLDOUT other frames of it (the guard of
+        :func:`~hand_sog_tracker.core.calibration.calibrate`); a refused fit changes and
+        saves nothing.  Calls are served one at a time (own callback group).
+        """
+        with self._tracker_lock:  # a consistent snapshot of the history and the model
+            history = list(self._calib_history)
             model = self._tracker.model
-        if not frames:
+        settings = self._settings
+        if not history:
             response.success = False
             response.message = (
                 "no depth frames received yet: start the camera and hold an open hand in view"
             )
             self.get_logger().warning(f"calibration refused: {response.message}")
             return response
-        intr = frames[0][1]
-        depths = [d for d, i in frames if i == intr]
-        settings = self._settings
-        self.get_logger().info(f"calibrating the hand model on {len(depths)} frames ...")
+        intr = history[-1].intrinsics
+        history = [h for h in history if h.intrinsics == intr]
+        fit_idx, hold_idx = select_frames([h.pose for h in history], settings.calibration_frames, CALIB_HOLDOUT)
+        if not fit_idx or not hold_idx:
+            tracked = sum(h.pose is not None for h in history)
+            response.success = False
+            response.message = (
+                f"calibration failed: {tracked} tracked frames in the last "
+                f"{CALIB_HISTORY * CALIB_SPACING_S:.1f} s, {len(fit_idx)} with an open hand; need an open "
+                "hand on at least one frame and one more frame to check the fit on (hold an open hand "
+                "toward the camera for a second)"
+            )
+            self.get_logger().warning(response.message)
+            return response
+        fit = [history[i] for i in fit_idx]
+        hold = [history[i] for i in hold_idx]
+        self.get_logger().info(
+            f"calibrating the hand model on {len(fit)} frames, checking it on {len(hold)} others "
+            "(tracking goes on) ..."
+        )
+        future: Future = Future()
+
+        def work() -> None:
+            try:
+                try:  # Linux: a nicer thread leaves the CPU to tracking when cores are busy
+                    import os
+
+                    os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+                except (AttributeError, OSError):
+                    pass
+                future.set_result(
+                    calibrate(
+                        [h.depth for h in fit], intr, settings.tracker, model,
+                        poses=[h.pose for h in fit],
+                        holdout=[h.depth for h in hold], holdout_poses=[h.pose for h in hold],
+                    )
+                )
+            except BaseException as err:  # noqa: BLE001 - handed to the service callback
+                future.set_exception(err)
+            finally:
+                try:
+                    self._calib_wake.trigger()
+                except Exception:  # noqa: BLE001 - the node was destroyed meanwhile
+                    pass
+
+        threading.Thread(target=work, name="hand_sog_calibration", daemon=True).start()
         try:
-            # calibrate() finds the pose itself: the tracked pose can sit in a worse local optimum
-            # than a fresh initialisation on the newest frame, which makes the fit fail.
-            res = calibrate(depths, intr, settings.tracker, model, start_pose=None)
+            res: CalibrationResult = await future
+        except CalibrationRejected as err:
+            response.success = False
+            response.message = f"calibration rejected, nothing changed or saved: {err}"
+            self.get_logger().warning(response.message)
+            return response
         except HandSogError as err:
             kind = "calibration failed" if isinstance(err, CalibrationError) else "calibration error"
             response.success = False
             response.message = f"{kind}: {err}"
             self.get_logger().warning(response.message)
             return response
-        with self._tracker_lock:
+        except Exception as err:  # noqa: BLE001 - a bug in the fit must not kill the node
+            response.success = False
+            response.message = f"calibration error: {err!r}"
+            self.get_logger().error(response.message)
+            return response
+        with self._tracker_lock:  # atomic switch between two frames
             self._tracker.set_model(res.model)
         s = res.shape
+        v = res.validation
+        assert v is not None
         try:
             path = save_hand_shape(
                 settings.user_model_path,
                 s,
                 right=settings.tracker.right_hand,
-                extra={
-                    "energy_before": float(res.energy_before),
-                    "energy_after": float(res.energy_after),
-                    "frames": len(depths),
-                },
+                extra=calibration_metadata(
+                    res,
+                    fit_stamps_ns=[fit[i].stamp_ns for i in res.used_frames],
+                    holdout_stamps_ns=[h.stamp_ns for h in hold],
+                ),
             )
             saved = f"saved to {path}"
         except HandSogError as err:
@@ -616,17 +727,21 @@ class TrackerNode(Node):
         response.success = True
         response.message = (
             f"length={s.length:.3f} width={s.width:.3f} depth={s.depth:.3f} sigma={s.sigma:.3f}; "
-            f"energy {res.energy_before:.4f} -> {res.energy_after:.4f} "
-            f"({len(depths)} frames, {res.seconds:.2f} s); {saved}"
+            f"fit score {res.score_before:.4f} -> {res.score_after:.4f} "
+            f"({len(res.used_frames)} frames, {res.seconds:.2f} s); {v.describe()}; {saved}"
         )
         self.get_logger().info(f"calibrated: {response.message}")
         return response
 
 
-def _resized(
-    frames: deque[tuple[NDArray[np.float32], Intrinsics]], n: int
-) -> deque[tuple[NDArray[np.float32], Intrinsics]]:
-    return frames if frames.maxlen == n else deque(frames, maxlen=n)
+@dataclass(frozen=True, eq=False)
+class _CalibFrame:
+    """A tracked frame kept for ~/calibrate."""
+
+    depth: NDArray[np.float32]
+    intrinsics: Intrinsics
+    pose: NDArray[np.float64] | None
+    stamp_ns: int
 
 
 def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
@@ -634,9 +749,8 @@ def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
 
     rclpy 7.1's ``MultiThreadedExecutor`` re-wakes itself thousands of times a second while
     callbacks run in its pool (measured with this node: ~3000 wake-ups/s, end-to-end latency
-    up to seconds instead of ~17 ms), so the node runs single-threaded: a calibration pauses
-    tracking for the fit time, and frames arriving meanwhile are replaced by DDS (depth 1) and
-    counted as missed.
+    up to seconds instead of ~17 ms), so the node runs single-threaded.  A ``~/calibrate`` call
+    does not pause tracking: its callback is a coroutine awaiting a worker thread.
     """
     return SingleThreadedExecutor(context=context)
 
@@ -647,8 +761,10 @@ def _parse_cli(argv: Sequence[str]) -> None:
         description="Sum-of-Gaussians hand tracker (ROS 2 node). Configure it with ROS "
         "parameters: --ros-args --params-file config/hand_sog_tracker.yaml, -p name:=value; "
         "remap topics with -r from:=to.",
-        epilog="Subscribes camera/depth/image_rect_raw and camera/depth/camera_info; publishes "
-        "hand/joint_states, hand/pose, hand/fingertips, hand/debug_image and /diagnostics; "
+        epilog="Subscribes camera/depth/image_rect_raw (or .../compressedDepth with "
+        "-p input_transport:=compressedDepth) and camera/depth/camera_info; publishes "
+        "hand/joint_states, hand/pose, hand/keypoints, hand/fingertips, hand/robot_description, "
+        "hand/debug_image, /diagnostics (and /tf with -p publish_tf:=true); "
         "service ~/calibrate (see calibrate_hand).",
     )
     parser.parse_args(list(argv))

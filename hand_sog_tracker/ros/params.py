@@ -3,7 +3,8 @@
 Every tunable of :class:`~hand_sog_tracker.core.types.TrackerConfig` becomes a
 parameter of the same name (units in the name), except ``right_hand`` which is
 the string parameter ``handedness`` (``right`` / ``left``).  Node-only
-parameters: ``user_model_path``, ``debug_image`` and ``calibration_frames``.
+parameters: ``user_model_path``, ``debug_image``, ``calibration_frames``,
+``input_transport``, ``publish_wrist_joints`` and ``publish_tf``.
 
 The values are validated as a whole by building a :class:`NodeSettings` (which
 builds a ``TrackerConfig``), both at start-up and in the on-set callback, so a
@@ -13,6 +14,7 @@ rejected change names the reason (e.g. ``need 0 < near_mm < far_mm``).
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Union
@@ -37,6 +39,7 @@ __all__ = [
     "PARAM_SPECS",
     "PARAM_NAMES",
     "settings_from_values",
+    "tf_available",
     "declare_node_parameters",
     "read_settings",
     "validate_parameter_change",
@@ -116,6 +119,9 @@ _TRACKER_META: dict[str, tuple[str, float | None, float | None]] = {
     "w_dan": ("Weight of the dominant-angle (pose prior) term.", 0.0, 100.0),
     "w_lim": ("Weight of the joint-limit term.", 0.0, 100.0),
     "w_smo": ("Weight of the temporal smoothness term.", 0.0, 100.0),
+    "w_ord": ("Weight of the finger-order term (neighbouring fingers may not cross).", 0.0, 100.0),
+    "w_sal": ("Weight of the salient-point term (fingertip detections pull fingertips).", 0.0, 100.0),
+    "w_sil": ("Weight of the silhouette term (model parts outside the hand's pixels).", 0.0, 100.0),
     "roi_radius_mm": ("Depth data farther than this from the last hand centre is ignored (mm).", 20.0, 1000.0),
     "lost_confidence": ("Confidence below this for lost_frames frames means the track is lost.", 0.0, 1.0),
     "lost_frames": ("Consecutive low-confidence frames before the track is declared lost.", 1, 1000),
@@ -167,6 +173,27 @@ PARAM_SPECS: tuple[ParamSpec, ...] = _tracker_specs() + (
         1,
         3,
     ),
+    ParamSpec(
+        "input_transport",
+        "raw",
+        "How depth images arrive: raw = sensor_msgs/Image on camera/depth/image_rect_raw; "
+        "compressedDepth = sensor_msgs/CompressedImage on camera/depth/image_rect_raw/compressedDepth "
+        "(compressed_depth_image_transport, png or rvl).",
+        read_only=True,
+        choices=("raw", "compressedDepth"),
+    ),
+    ParamSpec(
+        "publish_wrist_joints",
+        False,
+        "Append the six virtual wrist joints hand_tx, hand_ty, hand_tz (m) and hand_rz, hand_rx, hand_ry "
+        "(rad) to hand/joint_states; hand/robot_description then starts at the image frame.",
+    ),
+    ParamSpec(
+        "publish_tf",
+        False,
+        "Broadcast hand_wrist (in the image frame) and <finger>_fingertip frames on /tf "
+        "(needs the tf2_msgs package).",
+    ),
 )
 PARAM_NAMES: tuple[str, ...] = tuple(s.name for s in PARAM_SPECS)
 _SPEC_BY_NAME = {s.name: s for s in PARAM_SPECS}
@@ -184,12 +211,26 @@ class NodeSettings:
         Expanded path of the user hand-model file.
     debug_image : bool
     calibration_frames : int
+    input_transport : {"raw", "compressedDepth"}
+    publish_wrist_joints : bool
+    publish_tf : bool
     """
 
     tracker: TrackerConfig
     user_model_path: Path
     debug_image: bool
     calibration_frames: int
+    input_transport: str = "raw"
+    publish_wrist_joints: bool = False
+    publish_tf: bool = False
+
+
+def tf_available() -> bool:
+    """Whether the ``tf2_msgs`` Python package (needed by ``publish_tf``) is importable."""
+    try:
+        return importlib.util.find_spec("tf2_msgs") is not None
+    except (ImportError, ValueError):
+        return False
 
 
 def settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
@@ -226,12 +267,20 @@ def settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
     }
     tracker_kwargs["right_hand"] = v["handedness"] == "right"
     tracker = TrackerConfig(**tracker_kwargs)  # raises InputError naming the problem
+    if v["publish_tf"] and not tf_available():
+        raise InputError(
+            "parameter publish_tf=true needs the tf2_msgs Python package, which is not installed here "
+            "(install ros-jazzy-tf2-msgs / source a ROS installation); use hand/pose instead"
+        )
     path = Path(v["user_model_path"]).expanduser() if v["user_model_path"] else default_model_path()
     return NodeSettings(
         tracker=tracker,
         user_model_path=path,
         debug_image=bool(v["debug_image"]),
         calibration_frames=int(v["calibration_frames"]),
+        input_transport=str(v["input_transport"]),
+        publish_wrist_joints=bool(v["publish_wrist_joints"]),
+        publish_tf=bool(v["publish_tf"]),
     )
 
 

@@ -32,6 +32,8 @@ from hand_sog_tracker.errors import InputError
 
 __all__ = [
     "MOTIONS",
+    "EXTRA_MOTIONS",
+    "ALL_MOTIONS",
     "START_TRANSLATION_MM",
     "PALM_CENTRE_HAND_MM",
     "RAMP_S",
@@ -49,6 +51,10 @@ MOTIONS: Final[tuple[str, ...]] = (
     "tigergrasp",
     "random",
 )
+#: Motions added for the mesh renderer's protocol sets (not in the default capsule bag set).
+EXTRA_MOTIONS: Final[tuple[str, ...]] = ("fistopen", "rotate")
+#: Every motion :func:`motion_poses` knows.
+ALL_MOTIONS: Final[tuple[str, ...]] = MOTIONS + EXTRA_MOTIONS
 #: Wrist position (mm, camera frame) of the default start pose: wrist below
 #: the image centre so that the upward-pointing fingers stay in view.
 START_TRANSLATION_MM: Final[tuple[float, float, float]] = (0.0, 60.0, 400.0)
@@ -258,6 +264,49 @@ def _random_articulation(t: NDArray[np.float64], rng: np.random.Generator) -> ND
     return q
 
 
+@lru_cache(maxsize=1)
+def _deep_fist_cached() -> tuple[float, ...]:
+    """A full fist near the upper joint limits, thumb folded across the curled fingers."""
+    model = default_hand_model(True)
+    d = _DEG
+    q = rest_pose()[6:].copy()
+    for c, (mcp, pip, dip) in zip(range(1, 5), ((86, 102, 72), (88, 104, 75), (89, 104, 77), (90, 105, 78))):
+        q[4 * c : 4 * c + 4] = (mcp * d, 0.0, pip * d, dip * d)
+    # Thumb: its tip over the dorsal side of the curled index and middle middle phalanges.
+    th = rest_pose()
+    th[6:] = q
+    pts = attached_points(
+        model, th, np.array([1, 2, -1, -1]), np.array([1, 1, 0, 0]),
+        np.array([[0.0, 0.45 * model.lengths[1, 1], 0.0], [0.0, 0.3 * model.lengths[2, 1], 0.0],
+                  [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+    )
+    palmar = pts[3] - pts[2]
+    r_mid = float(np.mean(model.g_sigmas[(model.g_chain == 1) & (model.g_segment == 1)]))
+    target = 0.6 * pts[0] + 0.4 * pts[1] + palmar * (r_mid + float(model.tip_radii[0]))
+    q[0:4] = _thumb_ik(th, target, 0.0)
+    return tuple(np.clip(q, model.limits_low, model.limits_high))
+
+
+def _fistopen(t: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
+    """Open hand -> full fist (near the limits) -> open, 1.2 s per cycle, fingers staggered."""
+    k = key_articulations()
+    fist = np.array(_deep_fist_cached())
+    s = np.empty((t.size, 20))
+    for c in range(5):  # index closes first, little last; the thumb follows the fingers
+        lag = 0.1 if c == 0 else 0.04 * (c - 1)
+        s[:, 4 * c : 4 * c + 4] = _smoothstep(1.3 * _cosine_cycle(t, 1.2, phase_s=lag) - 0.15)[:, None]
+    return _lerp(k["open"], fist, s)
+
+
+def _rotate_articulation(t: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
+    """Half-open hand whose flexion varies mildly (the global rotation is added in motion_poses)."""
+    k = key_articulations()
+    level = np.clip(0.4 + _smooth_random(t, rng, 5, 0.15, 0.3, 0.8), 0.0, 0.8)
+    q = _lerp(k["open"], k["fist"], np.repeat(level, 4, axis=1))
+    q[:, 1::4] += _smooth_random(t, rng, 5, 6 * _DEG, 0.2, 0.6)
+    return q
+
+
 _SCRIPTS: Final[dict[str, Callable[[NDArray[np.float64], np.random.Generator], NDArray[np.float64]]]] = {
     "abdadd": _abdadd,
     "fingercount": _fingercount,
@@ -266,6 +315,8 @@ _SCRIPTS: Final[dict[str, Callable[[NDArray[np.float64], np.random.Generator], N
     "pinch": _pinch,
     "tigergrasp": _tigergrasp,
     "random": _random_articulation,
+    "fistopen": _fistopen,
+    "rotate": _rotate_articulation,
 }
 
 
@@ -318,7 +369,7 @@ def motion_poses(
     Parameters
     ----------
     name : str
-        One of :data:`MOTIONS`.
+        One of :data:`ALL_MOTIONS` (:data:`MOTIONS` plus :data:`EXTRA_MOTIONS`).
     n_frames : int
         Number of frames ``T`` (>= 1).
     fps : float
@@ -340,7 +391,7 @@ def motion_poses(
         Unknown motion, ``n_frames < 1``, ``fps <= 0`` or a bad ``start``.
     """
     if name not in _SCRIPTS:
-        raise InputError(f"unknown motion {name!r}; choose one of {', '.join(MOTIONS)}")
+        raise InputError(f"unknown motion {name!r}; choose one of {', '.join(ALL_MOTIONS)}")
     if int(n_frames) != n_frames or n_frames < 1:
         raise InputError(f"n_frames must be a positive integer, got {n_frames!r}")
     if not (np.isfinite(fps) and fps > 0):
@@ -371,6 +422,15 @@ def motion_poses(
             ],
             axis=1,
         )
+        glob_ramp = _smoothstep(t / 0.3)[:, None]
+    elif name == "rotate":
+        # Fast turns: pronation/supination about the hand axis up to ~70 deg (palm sideways),
+        # tilt (palm away) up to ~40 deg, roll ~25 deg; peaks > 150 deg/s.
+        period = rng_glob.uniform(1.7, 2.1, 3)
+        sign = np.where(rng_glob.random(3) < 0.5, -1.0, 1.0)
+        amp = np.array([40.0, 70.0, 25.0]) * _DEG * rng_glob.uniform(0.9, 1.0, 3) * sign
+        d_angles = amp * np.sin(2.0 * np.pi * t[:, None] / period)
+        d_centre = np.concatenate([_smooth_random(t, rng_glob, 1, a, 0.3, 0.6) for a in (15.0, 8.0, 15.0)], axis=1)
         glob_ramp = _smoothstep(t / 0.3)[:, None]
     else:
         # Gentle drift: a few degrees, a few millimetres.

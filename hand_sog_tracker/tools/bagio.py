@@ -3,7 +3,11 @@
 Bag convention (contract 5)
 ---------------------------
 ``/camera/depth/image_rect_raw`` (sensor_msgs/Image)
-    Depth images: ``16UC1`` millimetres or ``32FC1`` metres.
+    Depth images: ``16UC1`` millimetres or ``32FC1`` metres.  Instead, a bag may hold them
+    compressed as ``compressed_depth_image_transport`` writes them: sensor_msgs/CompressedImage
+    on ``/camera/depth/image_rect_raw/compressedDepth`` (or on the depth topic itself), format
+    ``"16UC1; compressedDepth png"`` / ``"32FC1; compressedDepth rvl"`` ... (decoded by
+    :mod:`hand_sog_tracker.compressed_depth`).
 ``/camera/depth/camera_info`` (sensor_msgs/CameraInfo)
     Intrinsics of the depth images (one per image, or at least one).
 ``/hand/ground_truth/fingertips`` (geometry_msgs/PoseArray)
@@ -35,8 +39,16 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, W
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
+from hand_sog_tracker import interface
 from hand_sog_tracker.core.types import Intrinsics
-from hand_sog_tracker.errors import BagError, HandSogError
+from hand_sog_tracker.errors import BagError, HandSogError, InputError
+from hand_sog_tracker.interface import (
+    COMPRESSED_SUFFIX,
+    camera_info_to_intrinsics,
+    compressed_image_to_depth_mm,
+    image_to_depth_mm,
+    stamp_to_ns,
+)
 
 __all__ = [
     "DEPTH_TOPIC",
@@ -44,6 +56,8 @@ __all__ = [
     "GT_TOPIC",
     "OPTICAL_FRAME",
     "IMAGE_TYPE",
+    "COMPRESSED_TYPE",
+    "COMPRESSED_SUFFIX",
     "INFO_TYPE",
     "GT_TYPE",
     "BagTopics",
@@ -61,16 +75,19 @@ __all__ = [
     "stamp_to_ns",
     "ns_to_stamp",
     "depth_image_msg",
+    "compressed_depth_msg",
     "camera_info_msg",
     "fingertips_msg",
     "fingertips_from_msg",
 ]
 
-DEPTH_TOPIC: Final[str] = "/camera/depth/image_rect_raw"
-INFO_TOPIC: Final[str] = "/camera/depth/camera_info"
-GT_TOPIC: Final[str] = "/hand/ground_truth/fingertips"
+#: Topics of the bag convention (:mod:`hand_sog_tracker.interface`, absolute names).
+DEPTH_TOPIC: Final[str] = interface.BAG_DEPTH_TOPIC
+INFO_TOPIC: Final[str] = interface.BAG_INFO_TOPIC
+GT_TOPIC: Final[str] = interface.GROUND_TRUTH_TOPIC
 OPTICAL_FRAME: Final[str] = "camera_depth_optical_frame"
 IMAGE_TYPE: Final[str] = "sensor_msgs/msg/Image"
+COMPRESSED_TYPE: Final[str] = "sensor_msgs/msg/CompressedImage"
 INFO_TYPE: Final[str] = "sensor_msgs/msg/CameraInfo"
 GT_TYPE: Final[str] = "geometry_msgs/msg/PoseArray"
 
@@ -84,17 +101,13 @@ def typestore() -> Typestore:
 
 
 # -- small message helpers ---------------------------------------------------
-def stamp_to_ns(stamp: Any) -> int:
-    """``builtin_interfaces/Time``-like object (``sec``, ``nanosec``) to nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
+# stamp_to_ns is :func:`hand_sog_tracker.interface.stamp_to_ns` (imported above).
 def ns_to_stamp(ns: int) -> Any:
     """Nanoseconds to a rosbags ``builtin_interfaces/msg/Time``."""
-    if ns < 0:
-        raise BagError(f"negative time stamp {ns} ns")
-    Time = typestore().types["builtin_interfaces/msg/Time"]
-    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+    try:
+        return interface.ns_to_stamp(ns, typestore().types["builtin_interfaces/msg/Time"])
+    except InputError as err:
+        raise BagError(str(err)) from None
 
 
 def _header(stamp_ns: int, frame_id: str) -> Any:
@@ -141,6 +154,30 @@ def depth_image_msg(
         is_bigendian=0,
         step=w * pix.itemsize,
         data=np.frombuffer(np.ascontiguousarray(pix).tobytes(), dtype=np.uint8),
+    )
+
+
+def compressed_depth_msg(
+    depth_mm: ArrayLike,
+    stamp_ns: int,
+    frame_id: str = OPTICAL_FRAME,
+    encoding: Literal["16UC1", "32FC1"] = "16UC1",
+    codec: Literal["png", "rvl"] = "png",
+) -> Any:
+    """A rosbags ``sensor_msgs/msg/CompressedImage`` as compressed_depth_image_transport writes it.
+
+    See :func:`hand_sog_tracker.compressed_depth.encode_compressed_depth` (32FC1 quantises
+    inverse depth with the plugin's default parameters).
+    """
+    from hand_sog_tracker.compressed_depth import encode_compressed_depth
+    from hand_sog_tracker.errors import DepthImageError
+
+    try:
+        fmt, data = encode_compressed_depth(depth_mm, encoding, codec)
+    except DepthImageError as err:
+        raise BagError(str(err)) from err
+    return typestore().types[COMPRESSED_TYPE](
+        header=_header(stamp_ns, frame_id), format=fmt, data=np.frombuffer(data, dtype=np.uint8)
     )
 
 
@@ -233,7 +270,7 @@ def resolve_bag_path(path: str | Path) -> Path:
     return p
 
 
-class open_bag:  # noqa: N801 - used like a function: ``with open_bag(path) as reader``
+class open_bag:  # lower case: used like a function: ``with open_bag(path) as reader``
     """Context manager opening a bag with :class:`AnyReader`; errors become BagError.
 
     Parameters
@@ -289,16 +326,22 @@ def _format_topics(table: dict[str, tuple[str, int]]) -> str:
     return "\n".join(f"  {name}  [{typ}, {n} msgs]" for name, (typ, n) in table.items())
 
 
-def require_topic(reader: AnyReader, path: Path, topic: str, msgtype: str, role: str) -> list[Connection]:
-    """Connections of ``topic``; BagError listing the bag's topics if absent or mistyped."""
+def require_topic(
+    reader: AnyReader, path: Path, topic: str, msgtype: str | tuple[str, ...], role: str
+) -> list[Connection]:
+    """Connections of ``topic``; BagError listing the bag's topics if absent or mistyped.
+
+    ``msgtype`` may be a tuple of accepted types.
+    """
     table = topic_table(reader)
     if topic not in table:
         raise BagError(
             f"{role} topic {topic!r} not in bag {path}; the bag's topics are:\n{_format_topics(table)}"
         )
     typ, count = table[topic]
-    if typ != msgtype:
-        raise BagError(f"{role} topic {topic!r} in bag {path} has type {typ}, expected {msgtype}")
+    accepted = (msgtype,) if isinstance(msgtype, str) else msgtype
+    if typ not in accepted:
+        raise BagError(f"{role} topic {topic!r} in bag {path} has type {typ}, expected {' or '.join(accepted)}")
     if count == 0:
         raise BagError(
             f"{role} topic {topic!r} in bag {path} has no messages; the bag's topics are:\n"
@@ -319,7 +362,7 @@ def iter_messages(
             return
         except HandSogError:
             raise
-        except Exception as err:  # noqa: BLE001 - truncated/corrupt storage raises many types
+        except Exception as err:  # truncated/corrupt storage raises many types
             raise BagError(f"bag {path} is corrupt or truncated: {_describe(err)}") from err
         yield item
 
@@ -328,7 +371,7 @@ def deserialize(reader: AnyReader, path: Path, raw: bytes, connection: Connectio
     """Deserialise one message; failures become BagError."""
     try:
         return reader.deserialize(raw, connection.msgtype)
-    except Exception as err:  # noqa: BLE001
+    except Exception as err:
         raise BagError(
             f"bag {path}: cannot decode a {connection.msgtype} message on {connection.topic}: {_describe(err)}"
         ) from err
@@ -433,6 +476,10 @@ class DepthBagReader:
         self.topic_table: dict[str, tuple[str, int]] = {}
         #: Number of depth images announced by the bag index.
         self.n_depth: int = 0
+        #: The topic the depth images are read from (``topics.depth`` or its ``/compressedDepth``).
+        self.depth_topic: str = topics.depth
+        #: Whether that topic holds compressedDepth ``CompressedImage`` messages.
+        self.depth_compressed: bool = False
 
     def __enter__(self) -> "DepthBagReader":
         self._reader = self._opener.__enter__()
@@ -453,13 +500,18 @@ class DepthBagReader:
         self._opener.__exit__(exc_type, exc, tb)
 
     def _load(self) -> None:
-        from hand_sog_tracker.ros.conversions import camera_info_to_intrinsics
 
         reader = self._reader
         assert reader is not None
         self.topic_table = topic_table(reader)
-        self._depth_conns = require_topic(reader, self.path, self.topics.depth, IMAGE_TYPE, "depth")
-        self.n_depth = self.topic_table[self.topics.depth][1]
+        depth_topic = self.topics.depth
+        alt = depth_topic + COMPRESSED_SUFFIX
+        if depth_topic not in self.topic_table and self.topic_table.get(alt, ("", 0))[0] == COMPRESSED_TYPE:
+            depth_topic = alt
+        self._depth_conns = require_topic(reader, self.path, depth_topic, (IMAGE_TYPE, COMPRESSED_TYPE), "depth")
+        self.depth_topic = depth_topic
+        self.depth_compressed = self.topic_table[depth_topic][0] == COMPRESSED_TYPE
+        self.n_depth = self.topic_table[depth_topic][1]
         info_conns = require_topic(reader, self.path, self.topics.info, INFO_TYPE, "CameraInfo")
         truth_conns: list[Connection] = []
         if self.require_truth or self.topics.truth in self.topic_table:
@@ -494,8 +546,8 @@ class DepthBagReader:
         return self._reader
 
     def connections(self, which: tuple[str, ...] = ("depth", "info")) -> list[Connection]:
-        """Connections of the named roles (``depth``, ``info``, ``truth``)."""
-        names = {getattr(self.topics, w) for w in which}
+        """Connections of the named roles (``depth`` = :attr:`depth_topic`, ``info``, ``truth``)."""
+        names = {self.depth_topic if w == "depth" else getattr(self.topics, w) for w in which}
         return [c for c in self.reader.connections if c.topic in names]
 
     def frames(self) -> Iterator[BagFrame]:
@@ -506,7 +558,8 @@ class DepthBagReader:
         BagError
             If the bag turns out to be truncated or corrupt while reading.
         """
-        from hand_sog_tracker.ros.conversions import image_to_depth_mm
+
+        decode = compressed_image_to_depth_mm if self.depth_compressed else image_to_depth_mm
 
         reader = self._reader
         if reader is None:
@@ -518,7 +571,7 @@ class DepthBagReader:
             depth: NDArray[np.float32] | None = None
             error: str | None = None
             try:
-                depth = image_to_depth_mm(msg)
+                depth = decode(msg)
                 if depth.shape != (intr.height, intr.width):
                     raise BagError(
                         f"depth image is {depth.shape[1]}x{depth.shape[0]} but its CameraInfo is "
@@ -566,14 +619,14 @@ class BagWriter:
             if compress:
                 mode = CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE
                 self._writer.set_compression(mode, CompressionFormat.ZSTD)
-        except Exception as err:  # noqa: BLE001 - rosbags WriterError etc.
+        except Exception as err:  # rosbags WriterError etc.
             raise BagError(f"cannot create bag {self.path}: {_describe(err)}") from err
         self._conns: dict[str, Connection] = {}
 
     def __enter__(self) -> "BagWriter":
         try:
             self._writer.open()
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:
             raise BagError(f"cannot create bag {self.path}: {_describe(err)}") from err
         return self
 
@@ -597,7 +650,7 @@ class BagWriter:
         if exc_type is None:
             try:
                 self._writer.close()
-            except Exception as err:  # noqa: BLE001
+            except Exception as err:
                 shutil.rmtree(self.path, ignore_errors=True)
                 raise BagError(f"cannot finish bag {self.path}: {_describe(err)}") from err
         else:
@@ -637,8 +690,12 @@ def write_depth_bag(
     storage: StorageName = "mcap",
     compress: bool = True,
     frame_id: str = OPTICAL_FRAME,
+    depth_codec: Literal["png", "rvl"] | None = None,
 ) -> int:
     """Write frames as a contract-5 bag: CameraInfo, then depth, then ground truth per frame.
+
+    With ``depth_codec`` the depth images are written as compressedDepth
+    ``CompressedImage`` on ``topics.depth + "/compressedDepth"`` instead of raw images.
 
     Returns
     -------
@@ -650,7 +707,11 @@ def write_depth_bag(
         for s in samples:
             if s.intrinsics is not None:
                 w.write(topics.info, camera_info_msg(s.intrinsics, s.stamp_ns, frame_id), s.stamp_ns)
-            w.write(topics.depth, depth_image_msg(s.depth_mm, s.stamp_ns, frame_id, encoding), s.stamp_ns)
+            if depth_codec is None:
+                w.write(topics.depth, depth_image_msg(s.depth_mm, s.stamp_ns, frame_id, encoding), s.stamp_ns)
+            else:
+                msg = compressed_depth_msg(s.depth_mm, s.stamp_ns, frame_id, encoding, depth_codec)
+                w.write(topics.depth + COMPRESSED_SUFFIX, msg, s.stamp_ns)
             if s.truth_mm is not None:
                 w.write(topics.truth, fingertips_msg(s.truth_mm, s.stamp_ns, frame_id), s.stamp_ns)
             n += 1

@@ -65,7 +65,8 @@ def run_benchmark(
     depth_frames = [f.depth_mm for f in seq]
     config = TrackerConfig()
     tracker = Tracker(config)
-    stage: dict[str, list[float]] = {k: [] for k in ("preprocess", "quadtree", "model_update", "energy_gradient", "total")}
+    stages = ("preprocess", "quadtree", "model_update", "energy_gradient", "total")
+    stage: dict[str, list[float]] = {k: [] for k in stages}
     rss_first = None
     n_tracked = 0
     wall = 0.0

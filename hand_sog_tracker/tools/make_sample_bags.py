@@ -4,6 +4,8 @@ Usage::
 
     make_sample_bags [--out bags] [--frames N] [--motions M [M ...]]
                      [--storage mcap|sqlite3] [--no-hires] [--no-force] [--background-mm MM]
+                     [--renderer capsule|mesh] [--sensor tof|structured|clean]
+    make_sample_bags --set mesh_dev|mesh_test [--out bags/<set>]
 
 One rosbag2 per motion family of :mod:`hand_sog_tracker.synth.motions`,
 rendered by :func:`hand_sog_tracker.synth.sequence.synthetic_sequence` with
@@ -28,25 +30,39 @@ and would make the bags 7x larger; the tracker ignores depth beyond
 
 An existing bag directory of the same name is replaced unless ``--no-force`` (only if it holds a
 ``metadata.yaml``; anything else is an error).
+
+``--renderer mesh`` renders the skinned WebXR mesh hand of
+:mod:`hand_sog_tracker.synth.mesh` instead of the capsule hand (default, whose
+output is unchanged).  Every bag directory also gets a sidecar
+``hand_sog_sample.json`` (renderer, split, motion, seed, handedness, shape
+factors, sensor model, width, height, encoding, frames); it is a separate file,
+so the messages (and :func:`bag_digest`) do not change.
+
+``--set mesh_dev`` / ``--set mesh_test`` write the protocol sets of
+:func:`protocol_set` (9 motions each, mesh renderer, fixed seeds, shapes and
+sensors that differ between the sets) into ``bags/mesh_dev`` / ``bags/mesh_test``:
+tune and look at ``mesh_dev``; only score ``mesh_test``.
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import shutil
 import sys
 import time
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal, Sequence
+from typing import Callable, Iterable, Literal, Sequence
 
 from hand_sog_tracker.core.types import Intrinsics
 from hand_sog_tracker.errors import BagError, HandSogError, InputError
-from hand_sog_tracker.synth.motions import MOTIONS
+from hand_sog_tracker.synth.mesh import SENSORS, MeshRenderOptions, MeshShape, mesh_sequence
+from hand_sog_tracker.synth.motions import ALL_MOTIONS, MOTIONS
 from hand_sog_tracker.synth.render import RenderOptions
-from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
+from hand_sog_tracker.synth.sequence import SyntheticFrame, default_intrinsics, synthetic_sequence
 from hand_sog_tracker.tools.bagio import (
     DepthSample,
     StorageName,
@@ -55,11 +71,30 @@ from hand_sog_tracker.tools.bagio import (
     write_depth_bag,
 )
 
-__all__ = ["BASE_STAMP_NS", "SampleBag", "motion_seed", "write_sample_bag", "make_sample_bags", "bag_digest", "main"]
+__all__ = [
+    "BASE_STAMP_NS",
+    "SIDECAR",
+    "PROTOCOL_SETS",
+    "PROTOCOL_MOTIONS",
+    "SampleBag",
+    "BagSpec",
+    "motion_seed",
+    "protocol_set",
+    "write_sample_bag",
+    "write_protocol_set",
+    "make_sample_bags",
+    "bag_digest",
+    "main",
+]
 
 #: Stamp of the first frame of every sample bag (2024-01-01T00:00:00Z), ns.
 BASE_STAMP_NS = 1_704_067_200 * 1_000_000_000
 FPS = 30.0
+#: Sidecar file written into every bag directory.
+SIDECAR = "hand_sog_sample.json"
+#: Sensor label of the capsule renderer's artefacts in the sidecar.
+CAPSULE_SENSOR = "capsule_tof"
+Renderer = Literal["capsule", "mesh"]
 
 
 @dataclass(frozen=True)
@@ -96,15 +131,20 @@ def write_sample_bag(
     seed: int | None = None,
     force: bool = False,
     background_mm: float | None = None,
+    renderer: Renderer = "capsule",
+    sensor: str | None = None,
+    shape: MeshShape | None = None,
+    right: bool = True,
+    split: str | None = None,
 ) -> SampleBag:
-    """Render one synthetic sequence and write it as a rosbag2.
+    """Render one synthetic sequence and write it as a rosbag2 (plus its sidecar).
 
     Parameters
     ----------
     path : str or Path
         Bag directory to create.
     motion : str
-        One of :data:`hand_sog_tracker.synth.motions.MOTIONS`.
+        One of :data:`hand_sog_tracker.synth.motions.ALL_MOTIONS`.
     frames : int
         Number of frames (30 fps).
     width, height : int
@@ -119,6 +159,16 @@ def write_sample_bag(
     background_mm : float or None
         Depth of a wall behind the hand (mm); None = no return (0) there.
         A noisy wall costs ~60 KB per 320x240 frame even compressed.
+    renderer : {"capsule", "mesh"}
+        Capsule hand (:mod:`synth.render`) or skinned mesh hand (:mod:`synth.mesh`).
+    sensor : str, optional
+        Mesh renderer only: one of :data:`synth.mesh.SENSORS` (default ``tof``).
+    shape : MeshShape, optional
+        Mesh renderer only: hand shape factors (default all 1).
+    right : bool
+        Right or left hand.
+    split : str, optional
+        Sidecar ``split``; default ``capsule`` for the capsule renderer, ``dev`` for the mesh.
 
     Raises
     ------
@@ -127,10 +177,21 @@ def write_sample_bag(
     InputError
         Unknown motion or ``frames < 1``.
     """
-    if motion not in MOTIONS:
-        raise InputError(f"unknown motion {motion!r}; choose from {', '.join(MOTIONS)}")
+    known = ALL_MOTIONS
+    if renderer not in ("capsule", "mesh"):
+        raise InputError(f"unknown renderer {renderer!r}; choose capsule or mesh")
+    if motion not in known:
+        raise InputError(f"unknown motion {motion!r}; choose from {', '.join(known)}")
     if frames < 1:
         raise InputError(f"frames must be >= 1, got {frames}")
+    if renderer == "capsule" and (sensor is not None or shape is not None):
+        raise InputError("sensor and shape are options of the mesh renderer")
+    if renderer == "mesh":
+        sensor = "tof" if sensor is None else sensor
+        if sensor not in SENSORS:
+            raise InputError(f"unknown sensor {sensor!r}; choose from {', '.join(SENSORS)}")
+        shape = MeshShape() if shape is None else shape
+    seed_used = motion_seed(motion) if seed is None else int(seed)
     out = Path(path)
     if out.exists():
         if not force:
@@ -147,16 +208,41 @@ def write_sample_bag(
     scratch.mkdir(parents=True)
     tmp = scratch / out.name
     try:
-        _write_frames(
-            tmp,
-            motion,
-            frames,
-            intr,
-            encoding,
-            storage,
-            motion_seed(motion) if seed is None else seed,
-            RenderOptions(background_mm=background_mm),
+        if renderer == "capsule":
+            seq = synthetic_sequence(
+                motion, frames, intrinsics=intr, right=right, seed=seed_used,
+                options=RenderOptions(background_mm=background_mm), fps=FPS,
+            )
+            sample = {
+                "renderer": "capsule",
+                "split": split or "capsule",
+                "sensor": CAPSULE_SENSOR,
+                "shape": {"length": 1.0, "width": 1.0, "depth": 1.0, "sigma": 1.0},
+            }
+        else:
+            assert shape is not None and sensor is not None
+            seq = mesh_sequence(
+                motion, frames, intrinsics=intr, shape=shape, right=right, seed=seed_used,
+                options=MeshRenderOptions(sensor=sensor, background_mm=background_mm), fps=FPS,
+            )
+            sample = {
+                "renderer": "mesh",
+                "split": split or "dev",
+                "sensor": sensor,
+                "shape": {"length": shape.length, "palm_width": shape.palm_width, "thickness": shape.thickness},
+            }
+        _write_frames(tmp, seq, intr, encoding, storage)
+        sample.update(
+            motion=motion,
+            seed=seed_used,
+            handedness="right" if right else "left",
+            width=int(width),
+            height=int(height),
+            encoding=encoding,
+            frames=int(frames),
+            background_mm=background_mm,
         )
+        (tmp / SIDECAR).write_text(json.dumps(sample, indent=2, sort_keys=True) + "\n", encoding="utf-8")
         if out.exists():
             shutil.rmtree(out)
         tmp.rename(out)
@@ -176,15 +262,11 @@ def write_sample_bag(
 
 def _write_frames(
     path: Path,
-    motion: str,
-    frames: int,
+    seq: Iterable[SyntheticFrame],
     intr: Intrinsics,
     encoding: Literal["16UC1", "32FC1"],
     storage: StorageName,
-    seed: int,
-    options: RenderOptions,
 ) -> None:
-    seq = synthetic_sequence(motion, frames, intrinsics=intr, seed=seed, options=options, fps=FPS)
     samples = (
         DepthSample(
             stamp_ns=BASE_STAMP_NS + int(round(f.index * 1e9 / FPS)),
@@ -223,6 +305,8 @@ def make_sample_bags(
     force: bool = True,
     background_mm: float | None = None,
     on_written: Callable[[SampleBag], None] | None = None,
+    renderer: Renderer = "capsule",
+    sensor: str | None = None,
 ) -> list[SampleBag]:
     """Write one bag per motion (plus the optional 640x480 32FC1 one) into ``out``.
 
@@ -243,15 +327,21 @@ def make_sample_bags(
         See :func:`write_sample_bag`.
     on_written : callable, optional
         Called with each :class:`SampleBag` once written.
+    renderer : {"capsule", "mesh"}
+        See :func:`write_sample_bag`.  Both renderers know :data:`synth.motions.ALL_MOTIONS`;
+        the default set stays :data:`MOTIONS` (without ``fistopen``, ``rotate``).
+    sensor : str, optional
+        Mesh renderer's sensor model (default ``tof``).
 
     Returns
     -------
     list of SampleBag
     """
+    known = ALL_MOTIONS
     names = list(MOTIONS) if not motions else list(motions)
-    unknown = [m for m in names if m not in MOTIONS]
+    unknown = [m for m in names if m not in known]
     if unknown:
-        raise InputError(f"unknown motion(s) {', '.join(unknown)}; choose from {', '.join(MOTIONS)}")
+        raise InputError(f"unknown motion(s) {', '.join(unknown)}; choose from {', '.join(known)}")
     root = Path(out)
     written: list[SampleBag] = []
     jobs: list[tuple[Path, str, int, int, int, Literal["16UC1", "32FC1"]]] = [
@@ -261,7 +351,122 @@ def make_sample_bags(
         jobs.append((root / f"{names[0]}_640x480_32fc1", names[0], max(frames // 3, 1), 640, 480, "32FC1"))
     for path, motion, n, w, h, enc in jobs:
         bag = write_sample_bag(
-            path, motion, n, w, h, enc, storage=storage, force=force, background_mm=background_mm
+            path, motion, n, w, h, enc, storage=storage, force=force, background_mm=background_mm,
+            renderer=renderer, sensor=sensor,
+        )
+        written.append(bag)
+        if on_written is not None:
+            on_written(bag)
+    return written
+
+
+#: Motions of the mesh protocol sets.
+PROTOCOL_MOTIONS: tuple[str, ...] = (
+    "abdadd", "fingercount", "fingerwave", "flexex", "pinch", "random", "tigergrasp", "fistopen", "rotate",
+)
+#: Names of the protocol sets.
+PROTOCOL_SETS: tuple[str, ...] = ("mesh_dev", "mesh_test")
+
+# Per set: split, hand shapes (length, palm_width, thickness) cycled over the
+# motions, sensors cycled over the motions, indices of the 640x480 32FC1 bags
+# and of the left-hand bag.  The sets share no shape, seed or (motion, sensor,
+# shape) assignment.
+_SET_DEFS = {
+    "mesh_dev": dict(
+        split="dev",
+        shapes=((1.0, 1.0, 1.0), (0.9, 1.05, 0.95), (1.1, 0.92, 1.08)),
+        sensors=("tof", "structured"),
+        hires=(4, 7),  # pinch (tof), fistopen (structured)
+        left=(2,),  # fingerwave (tof)
+    ),
+    "mesh_test": dict(
+        split="test",
+        shapes=((0.87, 0.9, 0.88), (1.13, 1.12, 1.1), (0.95, 1.14, 1.02)),
+        sensors=("structured", "tof"),
+        hires=(3, 8),  # flexex (tof), rotate (structured)
+        left=(6,),  # tigergrasp (structured)
+    ),
+}
+
+
+@dataclass(frozen=True)
+class BagSpec:
+    """One bag of a protocol set (see :func:`protocol_set`)."""
+
+    name: str
+    motion: str
+    seed: int
+    shape: MeshShape
+    sensor: str
+    right: bool
+    width: int
+    height: int
+    encoding: Literal["16UC1", "32FC1"]
+    frames: int
+    split: str
+
+
+def protocol_set(name: str, frames: int = 60, hires_frames: int = 20) -> list[BagSpec]:
+    """The bags of a mesh protocol set, deterministic.
+
+    ``mesh_dev`` (split ``dev``: look, tune) and ``mesh_test`` (split ``test``:
+    score only) hold the 9 :data:`PROTOCOL_MOTIONS` each, with seeds
+    ``crc32("<set>/<motion>")``, three hand shapes cycled over the motions,
+    sensors ``tof`` / ``structured`` alternating, two bags at 640x480
+    ``32FC1`` (``<motion>_640x480_32fc1``, ``hires_frames`` frames), one left
+    hand (``<motion>_left``) and the rest 320x240 ``16UC1`` (``frames`` frames).
+    Shapes, seeds and sensor assignment differ between the sets.
+
+    Raises
+    ------
+    InputError
+        Unknown set name or frame counts < 1.
+    """
+    if name not in _SET_DEFS:
+        raise InputError(f"unknown protocol set {name!r}; choose from {', '.join(PROTOCOL_SETS)}")
+    if frames < 1 or hires_frames < 1:
+        raise InputError("frame counts must be >= 1")
+    d = _SET_DEFS[name]
+    out = []
+    for i, motion in enumerate(PROTOCOL_MOTIONS):
+        hires = i in d["hires"]
+        right = i not in d["left"]
+        suffix = "_640x480_32fc1" if hires else ("" if right else "_left")
+        out.append(
+            BagSpec(
+                name=motion + suffix,
+                motion=motion,
+                seed=zlib.crc32(f"{name}/{motion}".encode("utf-8")) & 0x7FFFFFFF,
+                shape=MeshShape(*d["shapes"][i % len(d["shapes"])]),
+                sensor=d["sensors"][i % len(d["sensors"])],
+                right=right,
+                width=640 if hires else 320,
+                height=480 if hires else 240,
+                encoding="32FC1" if hires else "16UC1",
+                frames=hires_frames if hires else frames,
+                split=str(d["split"]),
+            )
+        )
+    return out
+
+
+def write_protocol_set(
+    name: str,
+    out: str | Path | None = None,
+    frames: int = 60,
+    hires_frames: int = 20,
+    storage: StorageName = "mcap",
+    force: bool = True,
+    on_written: Callable[[SampleBag], None] | None = None,
+) -> list[SampleBag]:
+    """Write every bag of :func:`protocol_set` ``name`` into ``out`` (default ``bags/<name>``)."""
+    root = Path("bags") / name if out is None else Path(out)
+    written = []
+    for spec in protocol_set(name, frames, hires_frames):
+        bag = write_sample_bag(
+            root / spec.name, spec.motion, spec.frames, spec.width, spec.height, spec.encoding,
+            storage=storage, seed=spec.seed, force=force, renderer="mesh", sensor=spec.sensor,
+            shape=spec.shape, right=spec.right, split=spec.split,
         )
         written.append(bag)
         if on_written is not None:
@@ -282,9 +487,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="make_sample_bags",
         description="Write deterministic synthetic depth bags with fingertip ground truth, one per motion.",
     )
-    p.add_argument("--out", default="bags", help="output directory (default %(default)s)")
-    p.add_argument("--frames", type=int, default=90, help="frames per bag at 30 fps (default %(default)s)")
-    p.add_argument("--motions", nargs="+", metavar="M", help="motions to write (default all)")
+    p.add_argument("--out", default=None, help="output directory (default bags, with --set bags/<set>)")
+    p.add_argument("--frames", type=int, default=None,
+                   help="frames per bag at 30 fps (default 90; with --set 60 per 320x240 bag, "
+                   "a third of it per 640x480 bag)")
+    p.add_argument("--motions", nargs="+", metavar="M",
+                   help=f"motions to write (default: {' '.join(MOTIONS)}; also known: "
+                   f"{' '.join(m for m in ALL_MOTIONS if m not in MOTIONS)})")
+    p.add_argument("--renderer", choices=("capsule", "mesh"), default="capsule",
+                   help="capsule hand (default) or the skinned WebXR mesh hand")
+    p.add_argument("--sensor", choices=SENSORS, default=None, help="mesh renderer's sensor model (default tof)")
+    p.add_argument("--set", choices=PROTOCOL_SETS, default=None, dest="protocol_set",
+                   help="write a mesh protocol set (mesh_dev: look and tune; mesh_test: score only) "
+                   "instead of one bag per motion")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (default mcap)")
     p.add_argument("--no-hires", action="store_true", help="skip the 640x480 32FC1 bag")
     p.add_argument("--no-force", action="store_true", help="fail instead of replacing existing bags")
@@ -292,21 +507,39 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="render a noisy wall at this depth behind the hand (default: none, i.e. no return; "
                    "a wall makes each 90-frame bag ~5 MB instead of ~0.7 MB)")
     args = p.parse_args(argv)
-    if args.frames < 1:
+    if args.frames is not None and args.frames < 1:
         p.error("--frames must be >= 1")
+    if args.sensor is not None and args.renderer != "mesh":
+        p.error("--sensor needs --renderer mesh")
+    if args.protocol_set is not None and (args.motions or args.sensor or args.background_mm is not None):
+        p.error("--set fixes motions, sensors and background; drop --motions/--sensor/--background-mm")
     if args.background_mm is not None and not args.background_mm > 0:
         p.error("--background-mm must be > 0")
     try:
-        bags = make_sample_bags(
-            args.out,
-            frames=args.frames,
-            motions=args.motions,
-            storage=args.storage,
-            hires=not args.no_hires,
-            force=not args.no_force,
-            background_mm=args.background_mm,
-            on_written=_report,
-        )
+        if args.protocol_set is not None:
+            n = 60 if args.frames is None else args.frames
+            bags = write_protocol_set(
+                args.protocol_set,
+                args.out,
+                frames=n,
+                hires_frames=max(n // 3, 1),
+                storage=args.storage,
+                force=not args.no_force,
+                on_written=_report,
+            )
+        else:
+            bags = make_sample_bags(
+                "bags" if args.out is None else args.out,
+                frames=90 if args.frames is None else args.frames,
+                motions=args.motions,
+                storage=args.storage,
+                hires=not args.no_hires,
+                force=not args.no_force,
+                background_mm=args.background_mm,
+                on_written=_report,
+                renderer=args.renderer,
+                sensor=args.sensor,
+            )
     except HandSogError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -4,6 +4,7 @@ Usage::
 
     replay_bag BAG [--rate R] [--loop] [--start-offset S] [--topics T [T ...]]
                    [--domain-id N] [--wait-for-subscribers S] [--qos-depth N]
+                   [--decompress-depth]
 
 Reads the bag with ``rosbags`` (rosbag2 sqlite3/mcap, ROS 1) and publishes
 every selected topic with rclpy at the recorded rate:
@@ -15,6 +16,14 @@ every selected topic with rclpy at the recorded rate:
 
 Topics whose message type has no Python package here are skipped with a
 warning (an error if named with ``--topics``).
+
+Compressed depth: a ``sensor_msgs/CompressedImage`` topic (e.g.
+``/camera/depth/image_rect_raw/compressedDepth`` from compressed_depth_image_transport) is
+replayed as recorded, for a node with ``input_transport: compressedDepth``.  With
+``--decompress-depth`` every CompressedImage topic whose name ends in ``/compressedDepth`` is
+decoded and published as ``sensor_msgs/Image`` (16UC1 mm or 32FC1 m, as the original) on the
+name without that suffix, like ``image_transport republish compressedDepth raw``; frames that
+cannot be decoded are skipped with a warning.
 
 QoS: reliable, volatile, keep-last ``--qos-depth`` (default 10); best-effort
 (sensor-data) subscribers connect to reliable publishers.  A topic recorded
@@ -45,7 +54,14 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from hand_sog_tracker.errors import BagError, HandSogError, InputError
-from hand_sog_tracker.tools.bagio import deserialize, iter_messages, open_bag, topic_table
+from hand_sog_tracker.interface import COMPRESSED_SUFFIX
+from hand_sog_tracker.tools.bagio import (
+    COMPRESSED_TYPE,
+    deserialize,
+    iter_messages,
+    open_bag,
+    topic_table,
+)
 
 __all__ = [
     "ReplayStats",
@@ -176,6 +192,9 @@ class BagPublisher:
         Publish bag topic ``k`` under the name ``rename[k]``.
     qos_depth : int
         Keep-last depth of the reliable publishers.
+    decompress_depth : bool
+        Publish ``.../compressedDepth`` CompressedImage topics decoded, as ``sensor_msgs/Image``
+        on the topic name without the suffix (see the module docstring).
 
     Raises
     ------
@@ -191,6 +210,7 @@ class BagPublisher:
         topics: Sequence[str] | None = None,
         rename: dict[str, str] | None = None,
         qos_depth: int = 10,
+        decompress_depth: bool = False,
     ) -> None:
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -207,9 +227,15 @@ class BagPublisher:
         self.publishers: dict[str, Any] = {}
         self.classes: dict[str, type] = {}
         self.connections = []
+        #: Topics published decoded (compressedDepth -> Image).
+        self.decompressed: set[str] = set()
         for topic in wanted:
             conns = [c for c in reader.connections if c.topic == topic]
             msgtype = table[topic][0]
+            out_name = topic
+            if decompress_depth and msgtype == COMPRESSED_TYPE and topic.endswith(COMPRESSED_SUFFIX):
+                self.decompressed.add(topic)
+                msgtype, out_name = "sensor_msgs/msg/Image", topic[: -len(COMPRESSED_SUFFIX)]
             try:
                 cls = ros_message_class(msgtype)
             except BagError as err:
@@ -225,17 +251,43 @@ class BagPublisher:
                     DurabilityPolicy.TRANSIENT_LOCAL if _durability_transient(conns) else DurabilityPolicy.VOLATILE
                 ),
             )
-            name = (rename or {}).get(topic, topic)
+            name = (rename or {}).get(topic, out_name)
             self.publishers[topic] = node.create_publisher(cls, name, qos)
             self.classes[topic] = cls
             self.connections.extend(conns)
 
     def payload(self, connection: Any, raw: bytes) -> Any:
-        """What to publish for one bag message: CDR bytes, or a converted rclpy message."""
+        """What to publish for one bag message: CDR bytes, or a converted rclpy message.
+
+        Raises
+        ------
+        DepthImageError
+            A compressedDepth message to decompress cannot be decoded.
+        """
+        if connection.topic in self.decompressed:
+            return self._decompressed(deserialize(self.reader, self.path, raw, connection))
         if self.raw:
             return bytes(raw)
         record = deserialize(self.reader, self.path, raw, connection)
         return to_rclpy(record, self.classes[connection.topic])
+
+    def _decompressed(self, record: Any) -> Any:
+        from sensor_msgs.msg import Image
+        from std_msgs.msg import Header
+
+        from hand_sog_tracker.compressed_depth import decode_compressed_depth, parse_format
+
+        encoding = parse_format(record.format).encoding
+        mm = decode_compressed_depth(record.format, record.data)
+        if encoding == "16UC1":
+            pix = mm.astype("<u2")
+        else:
+            pix = np.where(mm > 0, mm / 1000.0, np.nan).astype("<f4")
+        h, w = pix.shape
+        return Image(
+            header=to_rclpy(record.header, Header), height=h, width=w, encoding=encoding,
+            is_bigendian=0, step=w * pix.itemsize, data=pix.tobytes(),
+        )
 
     def publish(self, topic: str, payload: Any) -> None:
         """Publish ``payload`` (bytes or message) on ``topic``."""
@@ -276,6 +328,7 @@ def replay(
     qos_depth: int = 10,
     stop: threading.Event | None = None,
     on_publish: Callable[[str, int, float], None] | None = None,
+    decompress_depth: bool = False,
 ) -> ReplayStats:
     """Publish a bag's topics at the recorded rate.
 
@@ -303,6 +356,8 @@ def replay(
         Set it to end the replay early.
     on_publish : callable, optional
         Called as ``on_publish(topic, log_time_ns, monotonic_time)`` after each publication.
+    decompress_depth : bool
+        See :class:`BagPublisher`.
 
     Raises
     ------
@@ -335,7 +390,7 @@ def replay(
         opener = open_bag(bag)
         with opener as reader:
             path = opener.path
-            pub = BagPublisher(node, reader, path, topics, qos_depth=qos_depth)
+            pub = BagPublisher(node, reader, path, topics, qos_depth=qos_depth, decompress_depth=decompress_depth)
             for topic, why in pub.skipped.items():
                 node.get_logger().warning(f"not replaying {topic}: {why}")
             if not pub.publishers:
@@ -358,7 +413,12 @@ def replay(
                     if not context.ok():
                         stop.set()
                         break
-                    pub.publish(conn.topic, pub.payload(conn, raw))
+                    try:
+                        payload = pub.payload(conn, raw)
+                    except InputError as err:  # an undecodable compressedDepth frame
+                        node.get_logger().warning(f"skipping a message on {conn.topic}: {err}")
+                        continue
+                    pub.publish(conn.topic, payload)
                     counts[conn.topic] = counts.get(conn.topic, 0) + 1
                     if on_publish is not None:
                         on_publish(conn.topic, log_ns, time.monotonic())
@@ -399,6 +459,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="wait up to S seconds for subscribers before starting (until every topic has one, "
                    "or 0.5 s after the first one appeared)")
     p.add_argument("--qos-depth", type=int, default=10, help="publisher keep-last depth (default 10)")
+    p.add_argument("--decompress-depth", action="store_true",
+                   help="publish .../compressedDepth CompressedImage topics decoded, as sensor_msgs/Image on the "
+                   "topic without the suffix (like image_transport republish)")
     return p
 
 
@@ -427,6 +490,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             wait_for_subscribers_s=args.wait_for_subscribers,
             qos_depth=args.qos_depth,
             stop=stop,
+            decompress_depth=args.decompress_depth,
         )
     except HandSogError as err:
         print(f"error: {err}", file=sys.stderr)
