@@ -224,8 +224,8 @@ def test_calibrate_fits_on_the_first_frames_then_tracks_all(tmp_path: Path, monk
     seen: dict[str, object] = {}
     fitted_shape = HandShape(length=1.1, width=0.9, sigma=1.0, depth=1.05)
 
-    def fake_calibrate(frames, intrinsics, config, model, start_pose=None):  # type: ignore[no-untyped-def]
-        seen["n"], seen["intr"], seen["model"] = len(frames), intrinsics, model
+    def fake_calibrate(frames, intrinsics, config, model, start_pose=None, holdout=()):  # type: ignore[no-untyped-def]
+        seen["n"], seen["intr"], seen["model"], seen["holdout"] = len(frames), intrinsics, model, len(holdout)
         fitted = default_hand_model(True).scaled(fitted_shape)
         return calibration.CalibrationResult(fitted_shape, fitted, np.zeros(26), 1.0, 2.0, 0.25)
 
@@ -244,12 +244,13 @@ def test_calibrate_fits_on_the_first_frames_then_tracks_all(tmp_path: Path, monk
     monkeypatch.setattr(calibration, "calibrate", fake_calibrate)
     tr = CalibratableTracker()
     ev = evaluate_core(tmp_path / "b", calibrate=True, tracker=tr, progress=False)
-    assert seen["n"] == 3 and seen["intr"] == INTR  # the first three usable frames
+    assert seen["n"] == 3 and seen["intr"] == INTR  # fitted on the first three usable frames
+    assert seen["holdout"] == 3  # checked on the next three
     assert tr.model.shape == fitted_shape and tr.resets == 1
     assert ev.frames == 6 and tr.calls == 6  # the calibration frames are tracked too
     js = ev.to_json()
     assert js["calibration"]["shape"] == pytest.approx({"length": 1.1, "width": 0.9, "sigma": 1.0, "depth": 1.05})
-    assert js["calibration"]["energy_after"] == 2.0
+    assert js["calibration"]["fit_score_after"] == 2.0 and js["calibration"]["accepted"]
     assert js["mean_fingertip_error_mm"] == pytest.approx(16.5)  # same scoring as without calibration
 
 
@@ -263,3 +264,31 @@ def test_core_mode_is_deterministic_on_a_synthetic_hand(tmp_path: Path) -> None:
     assert runs[0]["status_counts"] == runs[1]["status_counts"]
     assert runs[0]["status_counts"].get("tracking", 0) >= 1
     assert runs[0]["image_size"] == [160, 120]
+
+
+def test_calibrate_keeps_the_model_when_the_guard_refuses_the_fit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from hand_sog_tracker.core import calibration
+    from hand_sog_tracker.core.hand_model import HandShape, default_hand_model
+
+    _known_bag(tmp_path / "b", np.random.default_rng(26))
+
+    def refusing(frames, intrinsics, config, model, start_pose=None, holdout=()):  # type: ignore[no-untyped-def]
+        raise calibration.CalibrationRejected(HandShape(length=1.2), calibration.Validation(3, 0.8, 0.79, 0.01))
+
+    class CalibratableTracker(FakeTracker):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = default_hand_model(True)
+
+        def set_model(self, model: object) -> None:
+            self.model = model
+
+    monkeypatch.setattr(calibration, "calibrate", refusing)
+    tr = CalibratableTracker()
+    ev = evaluate_core(tmp_path / "b", calibrate=True, tracker=tr, progress=False)
+    assert tr.model.shape == HandShape()  # the default model stays
+    info = ev.to_json()["calibration"]
+    assert info["accepted"] is False and "rejected" in info["reason"]
+    assert info["holdout_score_fitted"] == pytest.approx(0.79)

@@ -48,7 +48,7 @@ INIT_ITERATIONS = (8, 30)
 INIT_FINALISTS = 2
 #: A fingertip this far from all data (mm) triggers a restart of its finger.
 RESTART_TIP_MM = 25.0
-RESTART_ITERATIONS = 5
+RESTART_ITERATIONS = 12
 _EXTENDED = np.array([0.1, 0.0, 0.1, 0.1])
 _CURLED = np.array([1.3, 0.0, 1.5, 0.9])
 #: Data farther than this beyond the wrist plane are treated as forearm (mm).
@@ -440,11 +440,17 @@ class Tracker:
                 self._model, obj.data, replace_config(cfg, w_sal=max(cfg.w_sal, 1.0) * 20.0),
                 previous=obj.previous, targets=TipTargets(pts, w), silhouette=obj.silhouette,
             )
-            cand = self._maximise(pull, res.x, iterations=RESTART_ITERATIONS)
-            cand = self._maximise(plain, cand.x, iterations=RESTART_ITERATIONS)
-            val = self._score(plain, cand.x, det)
-            if val > best_val:
-                best, best_val = cand, val
+            starts = [self._maximise(pull, res.x, iterations=RESTART_ITERATIONS).x]
+            if det.end_on[s] and c > 0:
+                # A finger seen end-on is curled toward the camera: also try it curled.
+                curled = res.x.copy()
+                curled[6 + 4 * c : 10 + 4 * c] = _CURLED
+                starts.append(curled)
+            for x0 in starts:
+                cand = self._maximise(plain, x0, iterations=RESTART_ITERATIONS)
+                val = self._score(plain, cand.x, det)
+                if val > best_val:
+                    best, best_val = cand, val
         return best
 
     def _initialise(self, pre: Preprocessed) -> TrackResult:

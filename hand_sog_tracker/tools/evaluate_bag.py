@@ -88,7 +88,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one tracker parameter (repeatable; wins over --params), e.g. --set iterations=20")
     g.add_argument("--handedness", choices=("right", "left"),
                    help="hand to track (default: the bag sidecar's handedness, else right)")
-    g.add_argument("--calibrate", action="store_true", help="fit the hand model on the first frames, then track")
+    g.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="fit the hand model on the first 3 frames, check it on the next 3 (a refused fit keeps the default), "
+        "then track",
+    )
     g.add_argument("--max-frames", type=int, metavar="N", help="evaluate only the first N depth images of each bag")
     g = p.add_argument_group("output")
     g.add_argument("--json", metavar="OUT", help="write all results (per bag, totals, per-frame records) as JSON")

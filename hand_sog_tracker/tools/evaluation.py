@@ -29,6 +29,7 @@ from hand_sog_tracker.errors import BagError, CalibrationError, InputError
 from hand_sog_tracker.tools.bagio import BagFrame, BagTopics, DepthBagReader
 from hand_sog_tracker.tools.records import (
     CALIBRATION_FRAMES,
+    FIT_FRAMES,
     STATUS_ERROR,
     Evaluation,
     FrameRecord,
@@ -49,8 +50,12 @@ def _status_name(status: TrackerStatus) -> str:
 def _calibrate_model(
     frames: Sequence[BagFrame], config: TrackerConfig, model: HandModel
 ) -> tuple[HandModel, dict[str, Any]]:
-    """Fit the hand model on ``frames`` (usable ones, same intrinsics)."""
-    from hand_sog_tracker.core.calibration import calibrate
+    """Fit the hand model on the first three usable frames, checked on the next three.
+
+    A fit the guard refuses (it does not explain the held-out frames better than ``model``)
+    leaves ``model`` in use; the numbers are in the returned info either way.
+    """
+    from hand_sog_tracker.core.calibration import CalibrationRejected, calibrate
 
     usable = [f for f in frames if f.depth_mm is not None and f.intrinsics is not None]
     if not usable:
@@ -58,16 +63,26 @@ def _calibrate_model(
     intr = usable[0].intrinsics
     assert intr is not None
     same = [f.depth_mm for f in usable if f.intrinsics == intr and f.depth_mm is not None]
-    res = calibrate(same, intr, config, model)
-    info = {
-        "frames": len(same),
-        "shape": {k: float(v) for k, v in dataclasses.asdict(res.shape).items()},
-        "energy_before": res.energy_before,
-        "energy_after": res.energy_after,
-        "seconds": res.seconds,
-    }
+    fit, holdout = same[:FIT_FRAMES], same[FIT_FRAMES:CALIBRATION_FRAMES]
+    info: dict[str, Any] = {"frames": len(fit), "holdout_frames": len(holdout)}
+    try:
+        res = calibrate(fit, intr, config, model, holdout=holdout)
+    except CalibrationRejected as err:
+        v = err.validation
+        info.update(accepted=False, reason=str(err), holdout_score_current=v.score_current,
+                    holdout_score_fitted=v.score_fitted)
+        return model, info
+    info.update(
+        accepted=True,
+        shape={k: float(v) for k, v in dataclasses.asdict(res.shape).items()},
+        fit_score_before=res.score_before,
+        fit_score_after=res.score_after,
+        seconds=res.seconds,
+    )
+    if res.validation is not None:
+        info.update(holdout_score_current=res.validation.score_current,
+                    holdout_score_fitted=res.validation.score_fitted)
     return res.model, info
-
 
 
 def evaluate_core(

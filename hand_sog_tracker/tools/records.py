@@ -39,6 +39,7 @@ from hand_sog_tracker.tools.metrics import (
 
 __all__ = [
     "CALIBRATION_FRAMES",
+    "FIT_FRAMES",
     "STATUS_ERROR",
     "STATUS_NO_OUTPUT",
     "STATUS_NO_ESTIMATE",
@@ -54,8 +55,10 @@ __all__ = [
     "json_clean",
 ]
 
-#: Frames used by ``--calibrate`` (the calibration uses at most three).
-CALIBRATION_FRAMES = 3
+#: Frames ``--calibrate`` fits the hand model on; the next ones up to ``CALIBRATION_FRAMES``
+#: are held out to check the fit (the calibration's guard).
+FIT_FRAMES = 3
+CALIBRATION_FRAMES = 6
 #: Status of a frame whose image could not be used (bad encoding, size mismatch).
 STATUS_ERROR = "error"
 #: Status of a frame the node published nothing for (``--through-node``: dropped or no hand).
