@@ -107,3 +107,79 @@ def test_normaliser_approximates_exact_self_overlap() -> None:
     sog = quadtree_sog(preprocess(depth, INTR, TrackerConfig()), 20.0)
     exact = self_overlap_2d(sog.mu, sog.sigma)
     assert 0.75 * sog.norm < exact < 1.05 * sog.norm
+
+
+def test_depth_window_is_bit_identical_to_the_numpy_expression() -> None:
+    from hand_sog_tracker.core.depth_sog import _in_window
+
+    rng = np.random.default_rng(0)
+    bounds = [
+        (300.0, 700.0),  # Python floats: NumPy compares in float32
+        (np.float64(300.1), np.float64(699.9)),  # NumPy floats: compared in float64
+        (np.float32(250.5), 800.25),
+        (299.99999999, 700.00000001),
+        (-5.0, 1e9),
+    ]
+    for lo, hi in bounds:
+        img = rng.uniform(0.0, 1000.0, (37, 53)).astype(np.float32)
+        img[rng.random(img.shape) < 0.2] = 0.0
+        for k, b in enumerate((lo, hi)):  # values at and one float32 step around each bound
+            r = np.float32(b)
+            img[k, :3] = [np.nextafter(r, np.float32(-np.inf)), r, np.nextafter(r, np.float32(np.inf))]
+        for a in (img, img[3:30, 5:40]):  # whole and a strided view
+            ref = np.where((a > lo) & (a < hi), a, np.float32(0.0))
+            out = _in_window(a, lo, hi)
+            assert out.dtype == np.float32 and out.shape == a.shape
+            assert out.tobytes() == ref.tobytes()
+
+
+def _quadtree_reference(img: np.ndarray, threshold: float, min_quad: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Leaves (mu, sigma, depth) of a padded image by the plain 2x2-block recursion."""
+    valid = img > 0
+    vmin, vmax, vsum, cnt = np.where(valid, img, np.inf), np.where(valid, img, -np.inf), img, valid.astype(np.int16)
+    levels, size = [], 1
+    while size < MAX_QUAD_PX:
+        q = [(a[0::2, 0::2], a[1::2, 0::2], a[0::2, 1::2], a[1::2, 1::2]) for a in (vmin, vmax, vsum, cnt)]
+        vmin = np.minimum(np.minimum(q[0][0], q[0][1]), np.minimum(q[0][2], q[0][3]))
+        vmax = np.maximum(np.maximum(q[1][0], q[1][1]), np.maximum(q[1][2], q[1][3]))
+        vsum = (q[2][0] + q[2][1]) + (q[2][2] + q[2][3])
+        cnt = (q[3][0] + q[3][1]) + (q[3][2] + q[3][3])
+        size *= 2
+        if size >= min_quad:
+            levels.append((size, vmin, vmax, vsum, cnt))
+    mus, sigmas, depths, taken = [], [], [], None
+    for size, vmin, vmax, vsum, cnt in reversed(levels):
+        full = cnt * 2 >= size * size if size == min_quad else cnt == size * size
+        leaf = full & ((vmax - vmin) < threshold)
+        if taken is not None:
+            covered = np.repeat(np.repeat(taken, 2, axis=0), 2, axis=1)
+            leaf &= ~covered
+            leaf_or = covered | leaf
+        else:
+            leaf_or = leaf
+        taken = leaf_or
+        bv, bu = np.nonzero(leaf)
+        mus.append(np.stack([(bu + 0.5) * size - 0.5, (bv + 0.5) * size - 0.5], axis=1))
+        sigmas.append(np.full(bv.size, size / np.sqrt(2.0)))
+        depths.append(vsum[bv, bu].astype(np.float64) / cnt[bv, bu])
+    return np.concatenate(mus), np.concatenate(sigmas), np.concatenate(depths)
+
+
+@pytest.mark.parametrize("min_quad", [2, 4, 8])
+def test_quadtree_equals_the_plain_recursion(min_quad: int) -> None:
+    # Same leaves, in the same order, with bit-identical depths, as the straightforward
+    # implementation (the module reduces rows first and keeps invalid pixels as 0 for the max).
+    rng = np.random.default_rng(min_quad)
+    h, w = 64, 96
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = (500.0 + 0.8 * xx + 0.3 * yy + 40.0 * (xx > 50)).astype(np.float32)
+    img += rng.normal(0.0, 0.7, img.shape).astype(np.float32)
+    img[rng.random(img.shape) < 0.05] = 0.0
+    img[10:20, 30:44] = 0.0
+    intr = Intrinsics(fx=200.0, fy=200.0, cx=w / 2, cy=h / 2, width=w, height=h)
+    pre = preprocess(img, intr, TrackerConfig(median_kernel=0))
+    sog = quadtree_sog(pre, 10.0, min_quad_px=min_quad)
+    mu, sigma, depth = _quadtree_reference(pre.depth_mm, 10.0, min_quad)
+    np.testing.assert_array_equal(sog.mu, mu)
+    np.testing.assert_array_equal(sog.sigma, sigma)
+    np.testing.assert_array_equal(sog.depth, depth)

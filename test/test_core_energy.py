@@ -55,7 +55,7 @@ def silhouette_of(model, theta: np.ndarray, skip_chain: int | None = None) -> Si
         if c != skip_chain:
             cv2.circle(mask, (int(round(u)), int(round(v))), int(round(rad)), 1, -1)
     dist = cv2.distanceTransform(1 - mask, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return Silhouette(distance=dist.astype(np.float64), intrinsics=INTR)
+    return Silhouette(distance=dist, origin=(0, 0), intrinsics=INTR)
 
 
 def numeric_gradient(obj: Objective, theta: np.ndarray) -> np.ndarray:
@@ -194,3 +194,53 @@ def test_silhouette_term_is_zero_inside_and_grows_outside() -> None:
         moved[0] += shift
         values.append(obj.evaluate(moved, gradient=False)[0].sil)
     assert 0.0 < values[0] < values[1] < values[2]
+
+
+def _dense_data_terms(obj: Objective, theta: np.ndarray) -> tuple[float, float]:
+    """``E_sim`` and ``E_dan`` over all model x data pairs, straight from the module docstring."""
+    model, data = obj.model, obj.data
+    intr = data.intrinsics
+    f = np.sqrt(intr.fx * intr.fy)
+    P = gaussian_centres(model, theta)
+    z = P[:, 2]
+    u = intr.fx * P[:, 0] / z + intr.cx
+    v = intr.fy * P[:, 1] / z + intr.cy
+    sp2 = ((model.g_sigmas * f / z) ** 2)[:, None]
+    sq2 = (data.sigma**2)[None, :]
+    r2 = (u[:, None] - data.mu[None, :, 0]) ** 2 + (v[:, None] - data.mu[None, :, 1]) ** 2
+    s2 = sp2 + sq2
+    D = 2 * np.pi * sp2 * sq2 / s2 * np.exp(-0.5 * r2 / s2)
+    dd = (z - model.g_sigmas)[:, None] - data.depth[None, :]
+    delta = np.maximum(1.0 - np.abs(dd) / (2.0 * model.g_sigmas[:, None]), 0.0)
+    sim = float((delta * D).sum() / data.norm)
+    lat = np.maximum(np.sqrt(r2) - data.sigma[None, :] / np.sqrt(2.0), 0.0) * (z / f)[:, None]
+    dist = np.sqrt(lat**2 + np.maximum(-dd, 0.0) ** 2)
+    w = np.clip((dist.min(axis=1) - 15.0) / 15.0, 0.0, 1.0)
+    phi = np.clip((dist - 15.0) / 45.0, 0.0, 1.0)
+    dan = float((w * (phi * (1.0 - np.exp(-0.5 * r2 / s2))).sum(axis=1)).sum() / data.n)
+    return sim, dan
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sparse_data_terms_equal_the_dense_definition(seed: int) -> None:
+    # The objective evaluates E_sim on candidate pairs only and the dangle distances of all
+    # data only for the model Gaussians no candidate pair settles: same values as all pairs,
+    # with dangling fingers, data in front of the model (occluders) and model off the data.
+    model = default_hand_model()
+    rng = np.random.default_rng(seed)
+    truth = rest_pose((0.0, 60.0, 400.0))
+    data = data_near(model, truth, rng, skip_chain=seed + 1)
+    front = data.depth.copy()
+    front[: data.n // 5] -= 40.0  # a fifth of the data 40 mm nearer: occluders
+    data = ImageSoG(data.mu, data.sigma, front, INTR.backproject(data.mu, front), INTR, data.norm)
+    obj = Objective(model, data, TrackerConfig())
+    for shift in (0.0, 8.0, 30.0):
+        theta = truth.copy()
+        theta[0] += shift
+        theta[6:] += rng.normal(0.0, 0.1, theta.size - 6)
+        terms, _ = obj.evaluate(theta)
+        sim, dan = _dense_data_terms(obj, theta)
+        assert terms.sim == pytest.approx(sim, rel=1e-6)
+        assert terms.dan == pytest.approx(dan, rel=1e-9, abs=1e-12)
+        if shift == 30.0:
+            assert terms.dan > 0

@@ -134,3 +134,27 @@ def test_bad_pose_rejected() -> None:
     bad[7] = np.nan
     with pytest.raises(InputError):
         gaussian_centres(model, bad)
+
+
+def test_point_index_cache_follows_the_arrays_contents() -> None:
+    # Index arrays are cached per (chain, segment) array pair; changing the arrays in place or
+    # passing new ones must give the same points and Jacobian as a fresh computation.
+    model = default_hand_model()
+    rng = np.random.default_rng(3)
+    theta = rest_pose((0.0, 50.0, 400.0))
+    theta[6:] = rng.normal(0.0, 0.3, theta.size - 6)
+    chain = np.array([0, 1, 2, -1, 4])
+    segment = np.array([2, 0, 1, 0, 2])
+    offsets = rng.normal(0.0, 5.0, (5, 3))
+    p1, j1 = attached_points(model, theta, chain, segment, offsets, jacobian=True)
+    chain[:] = [3, 3, -1, 2, 0]  # in place: same array objects
+    segment[:] = [0, 1, 2, 2, 1]
+    p2, j2 = attached_points(model, theta, chain, segment, offsets, jacobian=True)
+    p3, j3 = attached_points(model, theta, chain.copy(), segment.copy(), offsets, jacobian=True)
+    np.testing.assert_array_equal(p2, p3)
+    np.testing.assert_array_equal(j2, j3)
+    assert not np.allclose(p1, p2)
+    for k in range(5):  # and one point at a time
+        pk, jk = attached_points(model, theta, chain[k : k + 1], segment[k : k + 1], offsets[k : k + 1], jacobian=True)
+        np.testing.assert_allclose(pk[0], p2[k], atol=1e-12)
+        np.testing.assert_allclose(jk[0], j2[k], atol=1e-12)

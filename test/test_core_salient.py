@@ -93,3 +93,130 @@ def test_assignment_gives_each_finger_its_own_detection() -> None:
     # A detection far from every fingertip is a false positive.
     far = Detections(np.array([[500.0, 0, 0]]), np.zeros((1, 2)), np.ones(1), np.zeros(1, bool))
     np.testing.assert_array_equal(assign_detections(tips, far, 30.0), [-1] * 5)
+
+
+
+def _detect_reference(pre, roi, window_mm, max_detections: int = 8) -> Detections:
+    """The detector as first written (one ring sample at a time, statistics by OpenCV)."""
+    import cv2
+
+    from hand_sog_tracker.core.salient import (
+        END_ON_MM,
+        MIN_REGION_SHARE,
+        RING_RADIUS_MM,
+        RING_SAMPLES,
+        SAME_SURFACE_MM,
+        TIP_DEPTH_OFFSET_MM,
+    )
+
+    def _ring_offsets(radius_px: float) -> np.ndarray:
+        a = 2.0 * np.pi * np.arange(RING_SAMPLES) / RING_SAMPLES
+        return np.round(np.stack([np.cos(a), np.sin(a)], 1) * radius_px).astype(np.int64)
+
+    roi = tuple(roi)
+    depth = pre.depth_mm
+    h, w = depth.shape
+    u0, v0, u1, v1 = max(roi[0], 0), max(roi[1], 0), min(roi[2], w), min(roi[3], h)
+    if u1 - u0 < 8 or v1 - v0 < 8:
+        return Detections.empty()
+    near, far = window_mm
+    d = depth[v0:v1, u0:u1]
+    d = np.where((d > near) & (d < far), d, np.float32(0.0))
+    valid = d > 0
+    if valid.sum() < 20:
+        return Detections.empty()
+    intr = pre.intrinsics
+    f = float(np.sqrt(intr.fx * intr.fy))
+    z_ref = float(np.median(d[valid]))
+    r_px = max(RING_RADIUS_MM * f / z_ref, 3.0)
+    offsets = _ring_offsets(r_px)
+    pad = int(np.abs(offsets).max()) + 1
+    # The ROI padded by the ring: outside the image is "unknown" (-1), invalid is 0.
+    hh, ww = v1 - v0, u1 - u0
+    big = np.full((hh + 2 * pad, ww + 2 * pad), -1.0, np.float32)
+    bu0, bv0 = max(u0 - pad, 0), max(v0 - pad, 0)
+    bu1, bv1 = min(u1 + pad, w), min(v1 + pad, h)
+    src = depth[bv0:bv1, bu0:bu1]
+    big[bv0 - v0 + pad : bv1 - v0 + pad, bu0 - u0 + pad : bu1 - u0 + pad] = np.where(
+        (src > near) & (src < far), src, np.float32(0.0)
+    )
+    # Candidates: valid pixels on a 2-pixel grid (a tip region is several pixels wide).
+    vv, uu = np.nonzero(valid[::2, ::2])
+    vv, uu = vv * 2, uu * 2
+    stride = big.shape[1]
+    flat = big.ravel()
+    centre = (vv + pad) * stride + (uu + pad)
+    dc = flat[centre]
+    same = np.empty((RING_SAMPLES, centre.size), bool)
+    blocked = np.zeros(centre.size, bool)
+    behind = np.zeros(centre.size, np.int32)
+    for k, (du, dv) in enumerate(offsets):
+        s = flat[centre + dv * stride + du]
+        diff = s - dc
+        same[k] = (s > 0) & (np.abs(diff) < SAME_SURFACE_MM)
+        blocked |= (s < 0) | ((s > 0) & (diff < -SAME_SURFACE_MM))
+        behind += (s == 0) | (diff > END_ON_MM)
+    n_same = same.sum(0)
+    transitions = (same != np.roll(same, 1, axis=0)).sum(0)
+    side_tip = (n_same >= 1) & (n_same <= RING_SAMPLES // 4) & (transitions == 2)
+    end_on = (n_same == 0) & (behind >= RING_SAMPLES - 2)
+    keep = ~blocked & (side_tip | end_on)
+    if not keep.any():
+        return Detections.empty()
+    grid = np.zeros(((hh + 1) // 2, (ww + 1) // 2), np.uint8)
+    grid[vv[keep] // 2, uu[keep] // 2] = 1
+    n_lab, labels, stats, cents = cv2.connectedComponentsWithStats(grid, connectivity=8)
+    expected = np.pi * (0.5 * r_px) ** 2 / 4.0  # in grid cells
+    area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
+    big = np.flatnonzero(area >= MIN_REGION_SHARE * expected)
+    if big.size == 0:
+        return Detections.empty()
+    # Per region: mean depth and share of end-on cells, from the candidate cells' labels.
+    lab = labels[vv[keep] // 2, uu[keep] // 2] - 1
+    n_reg = n_lab - 1
+    z_sum = np.bincount(lab, weights=dc[keep], minlength=n_reg)
+    end_sum = np.bincount(lab, weights=end_on[keep].astype(np.float64), minlength=n_reg)
+    cnt = np.maximum(np.bincount(lab, minlength=n_reg), 1)
+    uv_all = 2.0 * cents[1:] + np.array([u0, v0], dtype=np.float64)
+    z_all = z_sum / cnt + TIP_DEPTH_OFFSET_MM
+    uvs = uv_all[big]
+    pts = intr.backproject(uvs, z_all[big])
+    conf = np.minimum(1.0, area[big] / expected)
+    ends = end_sum[big] / cnt[big] > 0.5
+    order = np.argsort(conf)[::-1][:max_detections]
+    return Detections(points=pts[order], uv=uvs[order], confidence=conf[order], end_on=ends[order])
+
+
+@pytest.mark.parametrize("motion", ["abdadd", "fistopen", "pinch"])
+def test_detector_equals_its_reference_implementation(motion: str) -> None:
+    # The vectorised ring test, the label statistics from bincounts and the windowing by
+    # OpenCV thresholds give exactly the detections of the straightforward implementation.
+    intr = default_intrinsics()
+    model = default_hand_model()
+    found = 0
+    for frame in mesh_sequence(motion, 12, seed=7, options=MeshRenderOptions(sensor="tof")):
+        pre = preprocess(frame.depth_mm, intr, TrackerConfig())
+        for radius, shift in ((160.0, 0.0), (120.0, 25.0)):
+            pose = frame.pose.copy()
+            pose[0] += shift
+            roi, window = hand_roi(model, pose, pre.intrinsics, radius)
+            got, ref = detect_fingertips(pre, roi, window), _detect_reference(pre, roi, window)
+            found += got.n
+            for a, b in ((got.points, ref.points), (got.uv, ref.uv), (got.confidence, ref.confidence),
+                         (got.end_on, ref.end_on)):
+                np.testing.assert_array_equal(a, b)
+    assert found >= 12  # the comparison saw detections
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_assignment_is_optimal_with_many_detections(seed: int) -> None:
+    rng = np.random.default_rng(100 + seed)
+    tips = rng.normal(0.0, 40.0, (5, 3))
+    S = 6 + seed
+    points = tips[rng.integers(0, 5, S)] + rng.normal(0.0, 25.0, (S, 3))
+    points[1] = points[0]  # two identical detections: ties
+    det = Detections(points, np.zeros((S, 2)), rng.choice([0.5, 1.0], S), np.zeros(S, bool))
+    assigned = assign_detections(tips, det, 30.0)
+    used = assigned[assigned >= 0]
+    assert len(set(used.tolist())) == used.size
+    assert _cost(tips, det, assigned, 30.0) == pytest.approx(_brute_force(tips, det, 30.0))

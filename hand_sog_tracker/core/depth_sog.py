@@ -32,6 +32,24 @@ MAX_QUAD_PX = 16  #: largest quad side at the processing resolution
 MIN_QUAD_PX = 4  #: default smallest quad side
 
 
+def _raise_malloc_thresholds(nbytes: int = 16 << 20) -> None:
+    """Allocate and free one large block, once, at import.
+
+    glibc serves blocks above its mmap threshold (initially 128 KiB) by mmap and gives the
+    top of the heap back to the system when more than its trim threshold is free there.
+    Freeing an mmapped block raises both thresholds (to its size and twice that), so that
+    the tracker's per-frame working set (a few depth-sized arrays, about 0.3 MiB each at
+    320x240) then stays in the heap instead of being returned and page-faulted back every
+    frame (measured: up to 280 page faults and 0.3-0.5 ms per frame).  Harmless elsewhere.
+    """
+    block = np.empty(nbytes, dtype=np.uint8)
+    block[:: 1 << 12] = 0  # touch it so that the allocation is real
+    del block
+
+
+_raise_malloc_thresholds()
+
+
 @dataclass(frozen=True, eq=False)
 class Preprocessed:
     """A range-filtered, median-filtered depth image at processing resolution.
@@ -156,8 +174,13 @@ def preprocess(
             width=depth.shape[1],
             height=depth.shape[0],
         )
-    in_range = (depth > config.near_mm) & (depth < config.far_mm)
-    depth = np.where(in_range, depth, np.float32(0.0))
+    if config.near_mm >= 0:
+        # In range <=> nonzero after the window (a value > near >= 0 is positive).
+        depth = _in_window(depth, config.near_mm, config.far_mm)
+        in_range = depth > 0
+    else:
+        in_range = (depth > config.near_mm) & (depth < config.far_mm)
+        depth = np.where(in_range, depth, np.float32(0.0))
     if config.median_kernel >= 3:
         med = cv2.medianBlur(depth, config.median_kernel)
         # Keep a pixel only where it and its median agree: removes flying pixels
@@ -167,22 +190,49 @@ def preprocess(
     return Preprocessed(depth_mm=depth, intrinsics=intrinsics, decimation=k)
 
 
+def _in_window(a: NDArray, lo: float, hi: float) -> NDArray:
+    """``np.where((a > lo) & (a < hi), a, 0)``, for float32 images by two OpenCV thresholds.
+
+    The float32 thresholds are chosen with NumPy's own comparison (so its promotion rules
+    for ``lo`` and ``hi`` are kept): ``t_lo`` is the largest float32 that is not ``> lo``,
+    ``t_hi`` the largest that is ``< hi``; then for every float32 pixel ``x``,
+    ``x > t_lo <=> x > lo`` and ``x > t_hi <=> not x < hi``.  Bit-identical to the NumPy
+    expression and about ten times faster.
+    """
+    r_lo, r_hi = np.float32(lo), np.float32(hi)
+    if (
+        a.dtype != np.float32
+        or a.ndim != 2
+        or a.size == 0
+        or not (np.isfinite(r_lo) and np.isfinite(r_hi))
+        or np.isnan(a).any()
+    ):
+        return np.where((a > lo) & (a < hi), a, np.float32(0.0))
+    down, up = np.float32(-np.inf), np.float32(np.inf)
+    cand = np.array([np.nextafter(r_lo, down), r_lo, np.nextafter(r_lo, up)], dtype=np.float32)
+    t_lo = float(cand[~(cand > lo)].max())
+    cand = np.array([np.nextafter(r_hi, down), r_hi, np.nextafter(r_hi, up)], dtype=np.float32)
+    t_hi = float(cand[cand < hi].max())
+    out = cv2.threshold(np.ascontiguousarray(a), t_lo, 0.0, cv2.THRESH_TOZERO)[1]
+    return cv2.threshold(out, t_hi, 0.0, cv2.THRESH_TOZERO_INV)[1]
+
+
 def _block_reduce(
     vmin: NDArray, vmax: NDArray, vsum: NDArray, cnt: NDArray
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-    """Merge 2x2 children into parents (arrays of even shape (h, w) -> (h/2, w/2))."""
+    """Merge 2x2 children into parents (arrays of even shape (h, w) -> (h/2, w/2)).
 
-    def q(a: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-        return a[0::2, 0::2], a[1::2, 0::2], a[0::2, 1::2], a[1::2, 1::2]
-
-    a, b, c, d = q(vmin)
-    mn = np.minimum(np.minimum(a, b), np.minimum(c, d))
-    a, b, c, d = q(vmax)
-    mx = np.maximum(np.maximum(a, b), np.maximum(c, d))
-    a, b, c, d = q(vsum)
-    sm = (a + b) + (c + d)
-    a, b, c, d = q(cnt)
-    return mn, mx, sm, (a + b) + (c + d)
+    Row pairs first (contiguous rows), then column pairs: the sums are
+    ``(top-left + bottom-left) + (top-right + bottom-right)``, in this order.
+    """
+    t = np.minimum(vmin[0::2], vmin[1::2])
+    mn = np.minimum(t[:, 0::2], t[:, 1::2])
+    t = np.maximum(vmax[0::2], vmax[1::2])
+    mx = np.maximum(t[:, 0::2], t[:, 1::2])
+    t = vsum[0::2] + vsum[1::2]
+    sm = t[:, 0::2] + t[:, 1::2]
+    t = cnt[0::2] + cnt[1::2]
+    return mn, mx, sm, t[:, 0::2] + t[:, 1::2]
 
 
 def quadtree_sog(
@@ -217,19 +267,36 @@ def quadtree_sog(
     crop = depth[v0:v1, u0:u1]
     if depth_window_mm is not None:
         lo, hi = depth_window_mm
-        crop = np.where((crop > lo) & (crop < hi), crop, np.float32(0.0))
+        crop = _in_window(crop, lo, hi)
     S = MAX_QUAD_PX
+    # Only blocks with valid pixels can become leaves: cluster the box around the valid
+    # pixels, its corner moved back onto the block grid (same blocks, same leaf order).
+    has = crop > 0
+    rows = np.flatnonzero(has.any(axis=1))
+    if rows.size == 0:
+        return _empty(pre.intrinsics)
+    cols = np.flatnonzero(has.any(axis=0))
+    r0, c0 = (int(rows[0]) // S) * S, (int(cols[0]) // S) * S
+    crop = crop[r0 : int(rows[-1]) + 1, c0 : int(cols[-1]) + 1]
+    u0, v0 = u0 + c0, v0 + r0
     ph = -(-crop.shape[0] // S) * S
     pw = -(-crop.shape[1] // S) * S
-    img = np.zeros((ph, pw), dtype=np.float32)
-    img[: crop.shape[0], : crop.shape[1]] = crop
+    img = np.empty((ph, pw), dtype=np.float32)  # written in full (np.zeros may leave pages
+    img[: crop.shape[0], : crop.shape[1]] = crop  # untouched, to be page-faulted on reading)
+    img[crop.shape[0] :, :] = 0.0
+    img[: crop.shape[0], crop.shape[1] :] = 0.0
     valid = img > 0
     if not valid.any():
         return _empty(pre.intrinsics)
-    # Finest level: the pixels themselves.
+    # Finest level: the pixels themselves.  Invalid pixels are +inf for the minimum; for
+    # the maximum they may stay 0 (valid depths are > 0, and a block without any valid
+    # pixel never becomes a leaf).
     levels = []
-    vmin = np.where(valid, img, np.inf)
-    vmax = np.where(valid, img, -np.inf)
+    if img.dtype == np.float32:
+        vmin = img + cv2.threshold(img, 0.0, np.inf, cv2.THRESH_BINARY_INV)[1]
+    else:
+        vmin = np.where(valid, img, np.inf)
+    vmax = img
     vsum = img
     cnt = valid.astype(np.int16)
     size = 1

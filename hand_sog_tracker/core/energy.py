@@ -88,6 +88,20 @@ def _accumulate(index: NDArray[np.int64], weights: NDArray[np.float64], size: in
     return np.bincount(index, weights=weights, minlength=size).astype(np.float64, copy=False)
 
 
+_ROWS_COLS: dict[tuple[int, int], tuple[NDArray[np.int64], NDArray[np.int64]]] = {}
+
+
+def _flat_rows_cols(m: int, n: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Row and column of every flat index of an (m, n) array (cached: divmod is slow)."""
+    hit = _ROWS_COLS.get((m, n))
+    if hit is None:
+        if len(_ROWS_COLS) >= 4:  # n changes from frame to frame: keep only the latest few
+            _ROWS_COLS.clear()
+        hit = (np.repeat(np.arange(m), n), np.tile(np.arange(n), m))
+        _ROWS_COLS[(m, n)] = hit
+    return hit
+
+
 @dataclass(frozen=True)
 class EnergyTerms:
     """Values of the objective and its terms (unitless)."""
@@ -126,6 +140,7 @@ class _ModelConstants:
     pair_s2: NDArray[np.float64]  # sigma_i^2 + sigma_j^2, mm^2
     pair_amp: NDArray[np.float64]  # overlap at zero distance, (2 pi s_i^2 s_j^2 / s2)^1.5
     incidence: NDArray[np.float64]  # (m, pairs): +1 at i, -1 at j
+    scatter: NDArray[np.int64]  # (2 pairs 3,): flat index into (m, 3) of i's then j's coordinates
     norm_h: float
     fan: NDArray[np.float64]  # (4,) rest direction of index .. little in the palm plane, rad
 
@@ -165,6 +180,7 @@ def model_constants(model: HandModel) -> _ModelConstants:
         pair_s2=s2p,
         pair_amp=(_TWO_PI * s2[pi] * s2[pj] / s2p) ** 1.5,
         incidence=incidence,
+        scatter=np.concatenate([(3 * pi[:, None] + np.arange(3)).ravel(), (3 * pj[:, None] + np.arange(3)).ravel()]),
         norm_h=norm_h,
         fan=np.arctan2(model.rest_rotations[1:, 1, 0], model.rest_rotations[1:, 0, 0]),
     )
@@ -225,6 +241,7 @@ class Objective:
         self._sq2_36 = 36.0 * self._sq2
         self._half = data.sigma * _INV_SQRT2  # half a quad's side, px
         self._two_sh = (2.0 * model.g_sigmas)[:, None]
+        self._row_of, self._col_of = _flat_rows_cols(model.n_gaussians, data.n)
 
     def __call__(
         self, theta: NDArray[np.float64], gradient: bool = True
@@ -301,72 +318,102 @@ class Objective:
         dd_d = dp[:, None] - data.depth
         mask = (np.abs(dd_d) < self._two_sh) & (r2_d < (36.0 * sp * sp)[:, None] + self._sq2_36)
         flat = np.flatnonzero(mask)
-        n = data.n
-        pi, qi = np.divmod(flat, n)
+        pi, qi = self._row_of.take(flat), self._col_of.take(flat)
         du, dv, r2, dd = du_d.take(flat), dv_d.take(flat), r2_d.take(flat), dd_d.take(flat)
-        sp2 = sp[pi] ** 2
-        sq2 = sq2_all[qi]
+        sp_sq = sp * sp
+        sp2 = sp_sq.take(pi)
+        sq2 = sq2_all.take(qi)
         s2 = sp2 + sq2
         inv_s2 = 1.0 / s2
         e = np.exp(-0.5 * r2 * inv_s2)
-        D = _TWO_PI * sp2 * sq2 * inv_s2 * e
-        shp = sh[pi]
-        delta = 1.0 - np.abs(dd) / (2.0 * shp)
+        D = (_TWO_PI * sp_sq).take(pi) * sq2 * inv_s2 * e
+        two_shp = (2.0 * sh).take(pi)
+        delta = 1.0 - np.abs(dd) / two_shp
         inv_norm = 1.0 / data.norm
         sim = float((delta * D).sum() * inv_norm)
-        # Dangling Gaussians (eq. 7): distance from each model Gaussian to the
-        # data, occlusion-aware (see the module docstring).
-        r_d = np.sqrt(r2_d)
-        lat_px = np.maximum(r_d - self._half, 0.0)
-        scale = (z / self._f)[:, None]  # mm per px at the model's depth
-        behind = np.maximum(-dd_d, 0.0)  # data farther than the model's surface
-        dist2 = lat_px * lat_px * (scale * scale) + behind * behind
-        nearest = dist2.argmin(axis=1)
-        dmin = np.sqrt(dist2[np.arange(m), nearest])
-        wdang = np.clip((dmin - TAU1_MM) / TAU1_MM, 0.0, 1.0)
-        rows = np.nonzero(wdang > 0.0)[0]
+        # Dangling Gaussians (eq. 7): distance from each model Gaussian to the data,
+        # occlusion-aware (see the module docstring), dmin its minimum over the data.  A
+        # candidate pair within TAU1 settles dmin <= TAU1 (weight 0); only the other rows
+        # (typically none to a few) need the distances to all data Gaussians.
+        scale = z / self._f  # mm per px at the model's depth
+        lat_c = np.maximum(np.sqrt(r2) - self._half.take(qi), 0.0)
+        beh_c = np.maximum(-dd, 0.0)
+        near_c = lat_c * lat_c * (scale * scale).take(pi) + beh_c * beh_c <= TAU1_MM * TAU1_MM
+        settled = np.zeros(m, dtype=bool)
+        settled[pi[near_c]] = True
+        U = np.flatnonzero(~settled)
         dan = 0.0
+        sel = U[:0]
+        if U.size:
+            du_U, dv_U, r2_U = du_d[U], dv_d[U], r2_d[U]
+            r_U = np.sqrt(r2_U)
+            lat_U = np.maximum(r_U - self._half, 0.0)
+            scale_U = scale[U][:, None]
+            behind_U = np.maximum(-dd_d[U], 0.0)  # data farther than the model's surface
+            dist2_U = lat_U * lat_U * (scale_U * scale_U) + behind_U * behind_U
+            nearest_U = dist2_U.argmin(axis=1)
+            dmin_U = np.sqrt(dist2_U[np.arange(U.size), nearest_U])
+            wdang_U = np.clip((dmin_U - TAU1_MM) / TAU1_MM, 0.0, 1.0)
+            sel = np.flatnonzero(wdang_U > 0.0)
+        rows = U[sel]
         if rows.size:
-            dist_r = np.sqrt(dist2[rows])
+            dist_r = np.sqrt(dist2_U[sel])
             phi = np.clip((dist_r - TAU1_MM) / (TAU2_MM - TAU1_MM), 0.0, 1.0)
             s2r = (sp[rows] ** 2)[:, None] + sq2_all[None, :]
-            er = np.exp(-0.5 * r2_d[rows] / s2r)
+            r2_r = r2_U[sel]
+            er = np.exp(-0.5 * r2_r / s2r)
             per_p = (phi * (1.0 - er)).sum(1) / data.n
-            dan = float((wdang[rows] * per_p).sum())
+            dan = float((wdang_U[sel] * per_p).sum())
         if g3 is None:
             return sim, dan
         # d/d(u, v, sigma_p, d_p) of E_sim, accumulated per model Gaussian.
+        # The pairs come sorted by model Gaussian (row-major order of the mask): the four
+        # per-Gaussian sums are one segmented sum over the columns of W.
         wD = delta * D * inv_norm
-        spp = sp[pi]
-        g_u = _accumulate(pi, -wD * du * inv_s2, m)
-        g_v = _accumulate(pi, -wD * dv * inv_s2, m)
-        g_sp = _accumulate(pi, wD * (2.0 / spp - 2.0 * spp * inv_s2 + r2 * spp * inv_s2 * inv_s2), m)
-        g_dp = _accumulate(pi, D * (-np.sign(dd) / (2.0 * shp)), m) * inv_norm
+        a = wD * inv_s2
+        spp = sp.take(pi)
+        W = np.empty((pi.size, 4))
+        np.multiply(a, du, out=W[:, 0])
+        np.multiply(a, dv, out=W[:, 1])
+        # wD (2 / sp - 2 sp / s2 + r2 sp / s2^2)
+        np.add(2.0 * wD / spp, spp * (a * (r2 * inv_s2 - 2.0)), out=W[:, 2])
+        np.multiply(D, np.sign(dd) / two_shp, out=W[:, 3])
+        per_row = mask.sum(axis=1)
+        acc = np.zeros((m, 4))
+        if pi.size:
+            nz = per_row > 0
+            acc[nz] = np.add.reduceat(W, (np.cumsum(per_row) - per_row)[nz], axis=0)
+        g_u = -acc[:, 0]
+        g_v = -acc[:, 1]
+        g_sp = acc[:, 2]
+        g_dp = acc[:, 3] * -inv_norm
         g_z = np.zeros(m)  # explicit z-dependence of the dangle distances
         if rows.size and w_dan > 0:
-            wn = (w_dan * wdang[rows] / data.n)[:, None]
+            wn = (w_dan * wdang_U[sel] / data.n)[:, None]
             pe = wn * phi * er
             inv_s2r = 1.0 / s2r
             spr = sp[rows][:, None]
-            du_r, dv_r = du_d[rows], dv_d[rows]
+            du_r, dv_r = du_U[sel], dv_U[sel]
             # d(1 - e)/du = e du / s2 ; d(1 - e)/dsp = -e r2 sp / s2^2
             g_u[rows] -= (pe * du_r * inv_s2r).sum(1)
             g_v[rows] -= (pe * dv_r * inv_s2r).sum(1)
-            g_sp[rows] += (pe * r2_d[rows] * spr * inv_s2r * inv_s2r).sum(1)
+            g_sp[rows] += (pe * r2_r * spr * inv_s2r * inv_s2r).sum(1)
             # Derivatives of the distance: lat = max(r - half, 0) z / f, behind = max(dq - dp, 0).
-            lat_r = lat_px[rows] * scale[rows]
-            beh_r, r_r = behind[rows], np.maximum(r_d[rows], 1e-9)
+            lat_px_r, scale_r = lat_U[sel], scale_U[sel]
+            lat_r = lat_px_r * scale_r
+            beh_r, r_r = behind_U[sel], np.maximum(r_U[sel], 1e-9)
             inv_dist = 1.0 / np.maximum(dist_r, 1e-9)
-            on_lat = lat_px[rows] > 0.0
-            k_u = np.where(on_lat, lat_r * scale[rows] / r_r, 0.0) * inv_dist  # d dist / du per du
-            k_z = np.where(on_lat, lat_r * lat_px[rows] / self._f, 0.0) * inv_dist
+            on_lat = lat_px_r > 0.0
+            k_u = np.where(on_lat, lat_r * scale_r / r_r, 0.0) * inv_dist  # d dist / du per du
+            k_z = np.where(on_lat, lat_r * lat_px_r / self._f, 0.0) * inv_dist
             k_dp = -beh_r * inv_dist  # d dist / d dp
             ramp = (dist_r > TAU1_MM) & (dist_r < TAU2_MM)
             c_phi = wn * np.where(ramp, 1.0 / (TAU2_MM - TAU1_MM), 0.0) * (1.0 - er)
             # Through the dangling weight: d dmin / d(.) at the nearest data Gaussian.
-            on_ramp = (dmin[rows] > TAU1_MM) & (dmin[rows] < 2.0 * TAU1_MM)
+            dmin_r = dmin_U[sel]
+            on_ramp = (dmin_r > TAU1_MM) & (dmin_r < 2.0 * TAU1_MM)
             c_min = np.zeros_like(c_phi)
-            c_min[np.arange(rows.size), nearest[rows]] = w_dan * on_ramp * per_p / TAU1_MM
+            c_min[np.arange(rows.size), nearest_U[sel]] = w_dan * on_ramp * per_p / TAU1_MM
             c = c_phi + c_min
             g_u[rows] -= (c * k_u * du_r).sum(1)
             g_v[rows] -= (c * k_u * dv_r).sum(1)
@@ -389,13 +436,17 @@ class Objective:
     ) -> float:
         """``E_col`` (eq. 6); adds ``-w_col dE_col/dP`` into ``g3``."""
         c = self._const
-        diff = P[c.pair_i] - P[c.pair_j]
+        diff = P.take(c.pair_i, axis=0) - P.take(c.pair_j, axis=0)  # (faster than P[idx])
         r2 = (diff * diff).sum(1)
         D = c.pair_amp * np.exp(-0.5 * r2 / c.pair_s2)
         col = float(D.sum() / c.norm_h)
         if g3 is not None and w_col > 0:
             g = (-(D / c.pair_s2)[:, None] * diff) / c.norm_h  # dE_col/dP_i (pairs, 3)
-            g3 -= w_col * (c.incidence @ g)
+            # incidence @ g: + g at each pair's i, - g at its j.
+            g_all = np.bincount(
+                c.scatter, weights=np.concatenate([g.ravel(), -g.ravel()]), minlength=3 * P.shape[0]
+            )
+            g3 -= w_col * g_all.reshape(-1, 3)
         return col
 
     def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
@@ -410,7 +461,8 @@ class Objective:
     def _order(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         """``E_ord`` and its gradient, shape (26,): neighbouring fingers may not cross."""
         abd = theta[6 + 4 + 1 :: 4]  # MCP abduction of index .. little, shape (4,)
-        gap = np.diff(self._const.fan + abd)  # (3,)
+        a = self._const.fan + abd
+        gap = a[1:] - a[:-1]  # (3,), as np.diff
         short = np.minimum(gap - ORDER_MIN_GAP_RAD, 0.0)
         g = np.zeros(N_PARAMS)
         if not short.any():

@@ -33,7 +33,8 @@ def check_pose(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     arr = np.asarray(theta, dtype=np.float64)
     if arr.shape != (N_PARAMS,):
         raise InputError(f"pose must have shape ({N_PARAMS},), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    # A finite sum proves every entry finite (one reduction instead of two).
+    if not math.isfinite(arr.sum()) and not np.all(np.isfinite(arr)):
         raise InputError("pose contains NaN or Inf")
     return arr
 
@@ -65,17 +66,32 @@ def global_rotation(theta: NDArray[np.float64], derivatives: bool = False):
     cx, sx = math.cos(theta[3]), math.sin(theta[3])
     cy, sy = math.cos(theta[4]), math.sin(theta[4])
     cz, sz = math.cos(theta[5]), math.sin(theta[5])
-    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
-    Ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
-    Rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+    if not derivatives:
+        Rx, Ry, Rz = np.array(
+            (
+                ((1.0, 0.0, 0.0), (0.0, cx, -sx), (0.0, sx, cx)),
+                ((cy, 0.0, sy), (0.0, 1.0, 0.0), (-sy, 0.0, cy)),
+                ((cz, -sz, 0.0), (sz, cz, 0.0), (0.0, 0.0, 1.0)),
+            )
+        )
+        return (Rz @ Rx) @ Ry
+    # One array for all six factors: building small arrays dominates the cost.
+    Rx, Ry, Rz, dRx, dRy, dRz = np.array(
+        (
+            ((1.0, 0.0, 0.0), (0.0, cx, -sx), (0.0, sx, cx)),
+            ((cy, 0.0, sy), (0.0, 1.0, 0.0), (-sy, 0.0, cy)),
+            ((cz, -sz, 0.0), (sz, cz, 0.0), (0.0, 0.0, 1.0)),
+            ((0.0, 0.0, 0.0), (0.0, -sx, -cx), (0.0, cx, -sx)),
+            ((-sy, 0.0, cy), (0.0, 0.0, 0.0), (-cy, 0.0, -sy)),
+            ((-sz, -cz, 0.0), (cz, -sz, 0.0), (0.0, 0.0, 0.0)),
+        )
+    )
     RzRx = Rz @ Rx
     R = RzRx @ Ry
-    if not derivatives:
-        return R
-    dRx = np.array([[0.0, 0.0, 0.0], [0.0, -sx, -cx], [0.0, cx, -sx]])
-    dRy = np.array([[-sy, 0.0, cy], [0.0, 0.0, 0.0], [-cy, 0.0, -sy]])
-    dRz = np.array([[-sz, -cz, 0.0], [cz, -sz, 0.0], [0.0, 0.0, 0.0]])
-    dR = np.stack([Rz @ dRx @ Ry, RzRx @ dRy, dRz @ Rx @ Ry])
+    dR = np.empty((3, 3, 3))
+    dR[0] = Rz @ dRx @ Ry
+    dR[1] = RzRx @ dRy
+    dR[2] = dRz @ Rx @ Ry
     return R, dR
 
 
@@ -122,8 +138,92 @@ def chain_frames(model: HandModel, theta: NDArray[np.float64]) -> ChainFrames:
     return ChainFrames(origins=o, rotations=rots, abd_axes=bz)
 
 
+_MIRROR = {True: np.diag([1.0, 1.0, 1.0]), False: np.diag([-1.0, 1.0, 1.0])}
+for _m in _MIRROR.values():
+    _m.setflags(write=False)
+
+
 def _mirror(model: HandModel) -> NDArray[np.float64]:
-    return np.diag([1.0 if model.right else -1.0, 1.0, 1.0])
+    return _MIRROR[bool(model.right)]
+
+
+@dataclass(frozen=True, eq=False)
+class _PointIndex:
+    """Index arrays of a set of attached points (depend on their chains and segments only)."""
+
+    finger: NDArray[np.bool_]  # (k,) on a finger chain (else palm)
+    finger_col: NDArray[np.bool_]  # (k, 1)
+    c: NDArray[np.int64]  # (k,) chain, palm -> 0
+    rot: NDArray[np.int64]  # (k,) index into rotations.reshape(15, 3, 3)
+    org: NDArray[np.int64]  # (k,) index into origins.reshape(20, 3)
+    pivot: NDArray[np.int64]  # (k, 4) joint origins of the four joint columns
+    active: NDArray[np.bool_]  # (k, 4, 1) joint moves the point
+    j_index: NDArray[np.int64]  # (k, 4, 3) flat index of the joint columns in J (k, 3, 26)
+    j_template: NDArray[np.float64] | None  # (k, 3, 26) J with the translation columns set
+
+
+#: Point sets up to this size keep a ready Jacobian template in the cache.
+_TEMPLATE_MAX_POINTS = 256
+
+
+def _j_template(k: int) -> NDArray[np.float64]:
+    """J of k points with only the translation columns (identity) set, shape (k, 3, 26)."""
+    tmpl = np.zeros((k, 3, N_PARAMS))
+    tmpl[:, 0, 0] = tmpl[:, 1, 1] = tmpl[:, 2, 2] = 1.0
+    return tmpl
+
+
+_INDEX_CACHE: dict[tuple[int, int], tuple[NDArray, NDArray, NDArray, NDArray, _PointIndex]] = {}
+
+
+def _point_index(chain: NDArray[np.int64], segment: NDArray[np.int64]) -> _PointIndex:
+    """Cached :class:`_PointIndex` of points.
+
+    Keyed by the identity of the ``chain`` and ``segment`` arrays (a model's arrays are
+    reused every call; the cache holds them, so their ids cannot be recycled), confirmed by
+    their contents (a cheap comparison against a private copy).
+    """
+    hit = _INDEX_CACHE.get((id(chain), id(segment)))
+    if (
+        hit is not None
+        and hit[0] is chain
+        and hit[1] is segment
+        and hit[2].shape == chain.shape
+        and hit[3].shape == segment.shape
+        and bool((hit[2] == chain).all())
+        and bool((hit[3] == segment).all())
+    ):
+        return hit[4]
+    k = chain.shape[0]
+    finger = chain >= 0
+    c = np.where(finger, chain, 0).astype(np.int64)
+    s = np.where(finger, segment, 0).astype(np.int64)
+    active = np.stack([finger, finger, finger & (s >= 1), finger & (s >= 2)], axis=1)
+    cols = 6 + 4 * c[:, None] + np.arange(4)[None, :]  # (k, 4)
+    j_index = (
+        np.arange(k)[:, None, None] * (3 * N_PARAMS)
+        + np.arange(3)[None, None, :] * N_PARAMS
+        + cols[:, :, None]
+    )
+    tmpl = _j_template(k) if k <= _TEMPLATE_MAX_POINTS else None
+    idx = _PointIndex(
+        finger=finger,
+        finger_col=finger[:, None],
+        c=c,
+        rot=3 * c + s,
+        org=4 * c + s,
+        pivot=4 * c[:, None] + np.array([0, 0, 1, 2])[None, :],
+        active=active[:, :, None],
+        j_index=j_index,
+        j_template=tmpl,
+    )
+    for arr in vars(idx).values():
+        if arr is not None:
+            arr.setflags(write=False)
+    if len(_INDEX_CACHE) >= 8:
+        _INDEX_CACHE.clear()
+    _INDEX_CACHE[(id(chain), id(segment))] = (chain, segment, chain.copy(), segment.copy(), idx)
+    return idx
 
 
 def attached_points(
@@ -158,15 +258,12 @@ def attached_points(
     """
     theta = check_pose(theta)
     fr = chain_frames(model, theta)
-    chain = np.asarray(chain)
-    segment = np.asarray(segment)
+    ix = _point_index(np.asarray(chain), np.asarray(segment))
     offsets = np.asarray(offsets, dtype=np.float64)
-    k = chain.shape[0]
-    finger = chain >= 0
-    c = np.where(finger, chain, 0)
-    s = np.where(finger, segment, 0)
-    local = np.einsum("kij,kj->ki", fr.rotations[c, s], offsets) + fr.origins[c, s]
-    p_hand = np.where(finger[:, None], local, offsets)
+    rot15 = fr.rotations.reshape(15, 3, 3)
+    org20 = fr.origins.reshape(20, 3)
+    local = np.einsum("kij,kj->ki", rot15[ix.rot], offsets) + org20[ix.org]
+    p_hand = np.where(ix.finger_col, local, offsets)
     M = _mirror(model)
     if not jacobian:
         R = global_rotation(theta)
@@ -174,20 +271,20 @@ def attached_points(
     R, dR = global_rotation(theta, derivatives=True)
     G = R @ M
     pts = p_hand @ G.T + theta[:3]
-    J = np.zeros((k, 3, N_PARAMS))
-    J[:, 0, 0] = J[:, 1, 1] = J[:, 2, 2] = 1.0
+    J = ix.j_template.copy() if ix.j_template is not None else _j_template(ix.c.shape[0])
     pm = p_hand @ M.T
     for a in range(3):
         J[:, :, 3 + a] = pm @ dR[a].T
     # Joint columns, computed in the hand frame then rotated by G (which may
-    # be a reflection, so cross products are taken before it).
-    x_axis = fr.rotations[c, 0, :, 0]  # all flexion axes of a chain coincide
-    axes = np.stack([x_axis, fr.abd_axes[c], x_axis, x_axis], axis=1)  # (k, 4, 3)
-    pivots = fr.origins[c][:, [0, 0, 1, 2], :]  # (k, 4, 3)
-    active = np.stack([finger, finger, finger & (s >= 1), finger & (s >= 2)], axis=1)
-    dh = _cross(axes, p_hand[:, None, :] - pivots) * active[:, :, None]
-    cols = 6 + 4 * c[:, None] + np.arange(4)[None, :]  # (k, 4)
-    J.transpose(0, 2, 1)[np.arange(k)[:, None], cols] = dh @ G.T
+    # be a reflection, so cross products are taken before it).  All flexion
+    # axes of a chain coincide (the first segment's x axis).
+    chain_axes = np.empty((5, 4, 3))
+    chain_axes[:, 0] = chain_axes[:, 2] = chain_axes[:, 3] = fr.rotations[:, 0, :, 0]
+    chain_axes[:, 1] = fr.abd_axes
+    axes = chain_axes[ix.c]  # (k, 4, 3)
+    pivots = org20[ix.pivot]  # (k, 4, 3)
+    dh = _cross(axes, p_hand[:, None, :] - pivots) * ix.active
+    J.reshape(-1)[ix.j_index] = dh @ G.T
     return pts, J
 
 

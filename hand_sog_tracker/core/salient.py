@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.depth_sog import Preprocessed
+from hand_sog_tracker.core.depth_sog import Preprocessed, _in_window
 
 __all__ = [
     "Detections",
@@ -81,9 +81,12 @@ class Detections:
         return Detections(np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
 
 
+_RING_ANGLES = 2.0 * np.pi * np.arange(RING_SAMPLES) / RING_SAMPLES
+_RING_UNIT = np.stack([np.cos(_RING_ANGLES), np.sin(_RING_ANGLES)], 1)  # (RING_SAMPLES, 2)
+
+
 def _ring_offsets(radius_px: float) -> NDArray[np.int64]:
-    a = 2.0 * np.pi * np.arange(RING_SAMPLES) / RING_SAMPLES
-    return np.round(np.stack([np.cos(a), np.sin(a)], 1) * radius_px).astype(np.int64)
+    return np.round(_RING_UNIT * radius_px).astype(np.int64)
 
 
 def detect_fingertips(
@@ -122,64 +125,76 @@ def detect_fingertips(
     if u1 - u0 < 8 or v1 - v0 < 8:
         return Detections.empty()
     near, far = window_mm
-    d = depth[v0:v1, u0:u1]
-    d = np.where((d > near) & (d < far), d, np.float32(0.0))
+    d = _in_window(depth[v0:v1, u0:u1], near, far)
     valid = d > 0
-    if valid.sum() < 20:
+    vals = d[valid]
+    if vals.size < 20:
         return Detections.empty()
     intr = pre.intrinsics
     f = float(np.sqrt(intr.fx * intr.fy))
-    z_ref = float(np.median(d[valid]))
+    z_ref = float(np.median(vals, overwrite_input=True))
     r_px = max(RING_RADIUS_MM * f / z_ref, 3.0)
     offsets = _ring_offsets(r_px)
     pad = int(np.abs(offsets).max()) + 1
-    # The ROI padded by the ring: outside the image is "unknown" (-1), invalid is 0.
+    # The ROI padded by the ring: outside the image is "unknown" (-1), invalid is 0.  The
+    # ROI itself is ``d``; only the strips around it are windowed here.
     hh, ww = v1 - v0, u1 - u0
     big = np.full((hh + 2 * pad, ww + 2 * pad), -1.0, np.float32)
     bu0, bv0 = max(u0 - pad, 0), max(v0 - pad, 0)
     bu1, bv1 = min(u1 + pad, w), min(v1 + pad, h)
-    src = depth[bv0:bv1, bu0:bu1]
-    big[bv0 - v0 + pad : bv1 - v0 + pad, bu0 - u0 + pad : bu1 - u0 + pad] = np.where(
-        (src > near) & (src < far), src, np.float32(0.0)
-    )
+    big[pad : pad + hh, pad : pad + ww] = d
+    for r0, r1, c0, c1 in ((bv0, v0, bu0, bu1), (v1, bv1, bu0, bu1), (v0, v1, bu0, u0), (v0, v1, u1, bu1)):
+        if r1 > r0 and c1 > c0:
+            src = depth[r0:r1, c0:c1]
+            big[r0 - v0 + pad : r1 - v0 + pad, c0 - u0 + pad : c1 - u0 + pad] = np.where(
+                (src > near) & (src < far), src, np.float32(0.0)
+            )
     # Candidates: valid pixels on a 2-pixel grid (a tip region is several pixels wide).
-    vv, uu = np.nonzero(valid[::2, ::2])
+    grid_valid = valid[::2, ::2]
+    vv, uu = np.divmod(np.flatnonzero(grid_valid), grid_valid.shape[1])
     vv, uu = vv * 2, uu * 2
     stride = big.shape[1]
     flat = big.ravel()
     centre = (vv + pad) * stride + (uu + pad)
     dc = flat[centre]
-    same = np.empty((RING_SAMPLES, centre.size), bool)
-    blocked = np.zeros(centre.size, bool)
-    behind = np.zeros(centre.size, np.int32)
-    for k, (du, dv) in enumerate(offsets):
-        s = flat[centre + dv * stride + du]
-        diff = s - dc
-        same[k] = (s > 0) & (np.abs(diff) < SAME_SURFACE_MM)
-        blocked |= (s < 0) | ((s > 0) & (diff < -SAME_SURFACE_MM))
-        behind += (s == 0) | (diff > END_ON_MM)
+    # All ring samples of all candidates at once, shape (RING_SAMPLES, candidates).
+    s = flat[centre[None, :] + (offsets[:, 1] * stride + offsets[:, 0])[:, None]]
+    diff = s - dc
+    on_surface = s > 0
+    same = on_surface & (np.abs(diff) < SAME_SURFACE_MM)
+    blocked = ((s < 0) | (on_surface & (diff < -SAME_SURFACE_MM))).any(axis=0)
+    behind = ((s == 0) | (diff > END_ON_MM)).sum(axis=0)
     n_same = same.sum(0)
-    transitions = (same != np.roll(same, 1, axis=0)).sum(0)
+    # Changes between neighbouring ring samples, the ring closed (last to first).
+    transitions = (same[1:] != same[:-1]).sum(0) + (same[0] != same[-1])
     side_tip = (n_same >= 1) & (n_same <= RING_SAMPLES // 4) & (transitions == 2)
     end_on = (n_same == 0) & (behind >= RING_SAMPLES - 2)
     keep = ~blocked & (side_tip | end_on)
     if not keep.any():
         return Detections.empty()
     grid = np.zeros(((hh + 1) // 2, (ww + 1) // 2), np.uint8)
-    grid[vv[keep] // 2, uu[keep] // 2] = 1
-    n_lab, labels, stats, cents = cv2.connectedComponentsWithStats(grid, connectivity=8)
+    gv, gu = vv[keep] // 2, uu[keep] // 2
+    grid[gv, gu] = 1
+    # Labels only (the statistics of connectedComponentsWithStats cost several times more);
+    # areas and centroids from the candidate cells, each cell once: integer sums, exact.
+    n_lab, labels = cv2.connectedComponents(grid, connectivity=8)
+    lab = labels[gv, gu] - 1
+    n_reg = n_lab - 1
+    cnt = np.bincount(lab, minlength=n_reg)
     expected = np.pi * (0.5 * r_px) ** 2 / 4.0  # in grid cells
-    area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
+    area = cnt.astype(np.float64)
     big = np.flatnonzero(area >= MIN_REGION_SHARE * expected)
     if big.size == 0:
         return Detections.empty()
     # Per region: mean depth and share of end-on cells, from the candidate cells' labels.
-    lab = labels[vv[keep] // 2, uu[keep] // 2] - 1
-    n_reg = n_lab - 1
     z_sum = np.bincount(lab, weights=dc[keep], minlength=n_reg)
     end_sum = np.bincount(lab, weights=end_on[keep].astype(np.float64), minlength=n_reg)
-    cnt = np.maximum(np.bincount(lab, minlength=n_reg), 1)
-    uv_all = 2.0 * cents[1:] + np.array([u0, v0], dtype=np.float64)
+    cents = np.stack(
+        [np.bincount(lab, weights=gu.astype(np.float64), minlength=n_reg),
+         np.bincount(lab, weights=gv.astype(np.float64), minlength=n_reg)], axis=1,
+    ) / area[:, None]
+    cnt = np.maximum(cnt, 1)
+    uv_all = 2.0 * cents + np.array([u0, v0], dtype=np.float64)
     z_all = z_sum / cnt + TIP_DEPTH_OFFSET_MM
     uvs = uv_all[big]
     pts = intr.backproject(uvs, z_all[big])
@@ -187,6 +202,21 @@ def detect_fingertips(
     ends = end_sum[big] / cnt[big] > 0.5
     order = np.argsort(conf)[::-1][:max_detections]
     return Detections(points=pts[order], uv=uvs[order], confidence=conf[order], end_on=ends[order])
+
+
+_SUBSETS: dict[int, tuple[NDArray[np.int64], NDArray[np.int64]]] = {}
+
+
+def _subset_tables(S: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """``bits[D, s]`` (detection ``s`` in subset ``D``) and ``prev[D, s] = D - {s}``, (2^S, S)."""
+    hit = _SUBSETS.get(S)
+    if hit is None:
+        masks = np.arange(1 << S)
+        bits = (masks[:, None] >> np.arange(S)[None, :]) & 1
+        prev = masks[:, None] & ~(1 << np.arange(S))[None, :]
+        hit = (bits, prev)
+        _SUBSETS[S] = hit
+    return hit
 
 
 def assign_detections(
@@ -222,23 +252,21 @@ def assign_detections(
     if S > 10:
         raise ValueError(f"at most 10 detections can be assigned, got {S}")
     cost = np.linalg.norm(tips_mm[:, None, :] - det.points[None, :, :], axis=-1)  # (T, S)
-    masks = np.arange(1 << S)
-    bits = (masks[:, None] >> np.arange(S)[None, :]) & 1  # (2^S, S)
-    best = np.full((T + 1, masks.size), np.inf)
-    choice = np.full((T + 1, masks.size), -1, dtype=np.int64)
+    bits, prev = _subset_tables(S)
+    n_masks = 1 << S
+    best = np.full((T + 1, n_masks), np.inf)
+    choice = np.full((T + 1, n_masks), -1, dtype=np.int64)
     best[0, 0] = 0.0
+    cand = np.empty((n_masks, S + 1))
     for t in range(T):
-        # Fingertip t without a detection ...
-        best[t + 1] = best[t] + lam_mm
-        # ... or with detection s, unused so far.
-        for s in range(S):
-            free = bits[:, s] == 0
-            src = masks[free]
-            cand = best[t, src] + cost[t, s]
-            dst = src | (1 << s)
-            better = cand < best[t + 1, dst]
-            best[t + 1, dst[better]] = cand[better]
-            choice[t + 1, dst[better]] = s
+        # Set D of used detections after fingertip t: fingertip t without a detection
+        # (column 0), or with detection s of D (column s + 1) after the set D - {s}.  The
+        # first minimum wins, as "none" and then s = 0, 1, ... would in a sequential update.
+        cand[:, 0] = best[t] + lam_mm
+        cand[:, 1:] = np.where(bits, best[t][prev] + cost[t], np.inf)
+        pick = cand.argmin(axis=1)
+        best[t + 1] = cand[np.arange(n_masks), pick]
+        choice[t + 1] = pick - 1
     # Detections left unused are false positives.
     unused = (1 - bits) @ (lam_mm * det.confidence)
     mask = int(np.argmin(best[T] + unused))

@@ -45,26 +45,47 @@ SILHOUETTE_SCALE_MM: Final[float] = 10.0
 
 @dataclass(frozen=True, eq=False)
 class Silhouette:
-    """Distance (px) of every pixel to the hand's pixels, shape (h, w), float64; 0 on the hand.
+    """Distance (px) of every pixel of a window of the image to the hand's pixels; 0 on the hand.
 
     Attributes
     ----------
-    distance : array, shape (h, w)
+    distance : array, shape (h, w), float32
+        Distances in the window (pixels of the processing image).
+    origin : (u0, v0)
+        Image pixel of the window's first element.
     intrinsics : Intrinsics
         Of the processing image the distances belong to.
     """
 
-    distance: NDArray[np.float64]
+    distance: NDArray[np.float32]
+    origin: tuple[int, int]
     intrinsics: Intrinsics
 
 
-def silhouette(pre: Preprocessed, window_mm: tuple[float, float]) -> Silhouette:
-    """The silhouette of the depth inside ``window_mm`` (near, far) and its distance map."""
+#: The distance map covers the region of interest plus this margin (px).
+ROI_MARGIN_PX: Final[int] = 16
+
+
+def silhouette(
+    pre: Preprocessed, window_mm: tuple[float, float], roi: tuple[int, int, int, int] | None = None
+) -> Silhouette:
+    """The silhouette of the depth inside ``window_mm`` (near, far) and its distance map.
+
+    With ``roi`` (u0, v0, u1, v1, end-exclusive) only that box plus :data:`ROI_MARGIN_PX` is
+    mapped (a model Gaussian projecting beyond it is clamped to its edge).
+    """
     d = pre.depth_mm
+    h, w = d.shape
+    u0, v0, u1, v1 = (0, 0, w, h) if roi is None else roi
+    u0, v0 = max(u0 - ROI_MARGIN_PX, 0), max(v0 - ROI_MARGIN_PX, 0)
+    u1, v1 = min(u1 + ROI_MARGIN_PX, w), min(v1 + ROI_MARGIN_PX, h)
+    if u1 - u0 < 2 or v1 - v0 < 2:
+        u0, v0, u1, v1 = 0, 0, w, h
+    crop = d[v0:v1, u0:u1]
     near, far = window_mm
-    background = ((d <= near) | (d >= far)).astype(np.uint8)
+    background = ((crop <= near) | (crop >= far)).astype(np.uint8)
     dist = cv2.distanceTransform(background, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return Silhouette(distance=dist.astype(np.float64), intrinsics=pre.intrinsics)
+    return Silhouette(distance=dist, origin=(u0, v0), intrinsics=pre.intrinsics)
 
 
 def silhouette_term(
@@ -75,16 +96,18 @@ def silhouette_term(
     dist = sil.distance
     h, w = dist.shape
     x, y, z = P[:, 0], P[:, 1], np.maximum(P[:, 2], 1.0)
-    u = intr.fx * x / z + intr.cx
-    v = intr.fy * y / z + intr.cy
+    u = intr.fx * x / z + (intr.cx - sil.origin[0])  # pixels of the mapped window
+    v = intr.fy * y / z + (intr.cy - sil.origin[1])
     # Bilinear interpolation between pixel centres (clamped to the image).
     uc = np.clip(u, 0.0, w - 1.000001)
     vc = np.clip(v, 0.0, h - 1.000001)
     u0 = np.floor(uc).astype(np.int64)
     v0 = np.floor(vc).astype(np.int64)
     a, b = uc - u0, vc - v0
-    d00, d01 = dist[v0, u0], dist[v0, u0 + 1]
-    d10, d11 = dist[v0 + 1, u0], dist[v0 + 1, u0 + 1]
+    d00 = dist[v0, u0].astype(np.float64)
+    d01 = dist[v0, u0 + 1].astype(np.float64)
+    d10 = dist[v0 + 1, u0].astype(np.float64)
+    d11 = dist[v0 + 1, u0 + 1].astype(np.float64)
     D = (1 - b) * ((1 - a) * d00 + a * d01) + b * ((1 - a) * d10 + a * d11)
     over = np.maximum(D - SILHOUETTE_MARGIN_PX, 0.0)
     f = float(np.sqrt(intr.fx * intr.fy))

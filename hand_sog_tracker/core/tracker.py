@@ -226,7 +226,7 @@ class Tracker:
         silhouette of the depth in the same depth window (None when ``w_sil`` is 0).
         """
         roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
-        sil = silhouette(pre, window) if self._config.w_sil > 0 else None
+        sil = silhouette(pre, window, roi) if self._config.w_sil > 0 else None
         det = Detections.empty()
         if detect:
             det = detect_fingertips(pre, roi, window)

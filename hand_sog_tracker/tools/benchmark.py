@@ -4,6 +4,18 @@ Renders a deterministic synthetic sequence (not timed), then tracks it and
 prints, per input resolution, the median and p95 milliseconds of each stage,
 the frame rate and the peak memory.  BLAS/OpenMP/OpenCV are limited to one
 thread before NumPy is imported, so the numbers are single-core numbers.
+
+The tracker's own timings give preprocessing, the data stage (quadtree, fingertip detector
+and silhouette together) and the total; the detector, the quadtree, the silhouette and the
+detection-to-fingertip assignment are then timed alone on the same frames, at the start
+pose the tracker used
+(the last two tracked poses extrapolated), and the model update and the objective alone
+on the last frame.
+
+``--compare REF`` runs this tree's benchmark and the one of another source tree ``REF``
+(e.g. a checkout of the previous commit) as separate processes, alternating, ``--rounds``
+times each, and prints both per-stage medians and their ratio: absolute times on a shared
+machine drift by tens of percent, the ratio of interleaved runs much less.
 """
 
 from __future__ import annotations
@@ -16,8 +28,11 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUME
 import argparse  # noqa: E402
 import json  # noqa: E402
 import resource  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 from typing import Sequence  # noqa: E402
 
 import cv2  # noqa: E402
@@ -25,13 +40,19 @@ import numpy as np  # noqa: E402
 
 from hand_sog_tracker.core.depth_sog import preprocess, quadtree_sog  # noqa: E402
 from hand_sog_tracker.core.energy import Objective  # noqa: E402
-from hand_sog_tracker.core.kinematics import gaussian_centres  # noqa: E402
-from hand_sog_tracker.core.tracker import Tracker, hand_roi  # noqa: E402
+from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres  # noqa: E402
+from hand_sog_tracker.core.salient import assign_detections, detect_fingertips  # noqa: E402
+from hand_sog_tracker.core.tracker import ALPHA, ASSIGN_LAMBDA_MM, Tracker, hand_roi  # noqa: E402
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus  # noqa: E402
-from hand_sog_tracker.synth.motions import MOTIONS  # noqa: E402
+
+try:  # the silhouette term (absent from older trees)
+    from hand_sog_tracker.core.silhouette import silhouette
+except ImportError:  # pragma: no cover
+    silhouette = None
+from hand_sog_tracker.synth.motions import ALL_MOTIONS  # noqa: E402
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence  # noqa: E402
 
-__all__ = ["main", "run_benchmark"]
+__all__ = ["main", "run_benchmark", "run_compare"]
 
 RESOLUTIONS = {"320x240": (320, 240), "640x480": (640, 480)}
 
@@ -56,8 +77,10 @@ def run_benchmark(
     Returns
     -------
     dict
-        ``stages_ms`` (preprocess, quadtree, model_update, energy_gradient,
-        total: each median/p95), ``iterations``, ``fps``, ``peak_rss_mb``,
+        ``stages_ms`` (each median/p95: preprocess; quadtree = the tracker's data stage:
+        quadtree, detector and silhouette together; detector, quadtree_only, silhouette and
+        assignment timed alone; model_update, energy_gradient, total), ``iterations``,
+        ``fps``, ``peak_rss_mb``,
         ``rss_growth_mb`` (peak RSS after the last pass minus after the first).
     """
     intr = default_intrinsics(width, height)
@@ -65,17 +88,23 @@ def run_benchmark(
     depth_frames = [f.depth_mm for f in seq]
     config = TrackerConfig()
     tracker = Tracker(config)
-    stages = ("preprocess", "quadtree", "model_update", "energy_gradient", "total")
+    stages = (
+        "preprocess", "quadtree", "detector", "quadtree_only", "silhouette", "assignment",
+        "model_update", "energy_gradient", "total",
+    )
     stage: dict[str, list[float]] = {k: [] for k in stages}
     rss_first = None
     n_tracked = 0
     wall = 0.0
+    poses: list = []
     for rep in range(repeat):
         tracker.reset()
+        poses = []
         for k, depth in enumerate(depth_frames):
             t0 = time.perf_counter()
             res = tracker.process(depth, intr)
             dt = time.perf_counter() - t0
+            poses.append(res.pose)
             if k == 0:
                 continue  # initialisation is not per-frame work
             wall += dt
@@ -85,6 +114,29 @@ def run_benchmark(
             n_tracked += res.status is TrackerStatus.TRACKING
         if rep == 0:
             rss_first = _rss_mb()
+    # The data stage's parts alone, on the frames of the last pass, at the start pose the
+    # tracker used there (the two previous poses extrapolated, as in Tracker._track).
+    for k in range(2, len(depth_frames)):
+        p1, p2 = poses[k - 1], poses[k - 2]
+        if p1 is None or p2 is None:
+            continue
+        x0 = p1 + ALPHA * (p1 - p2)
+        pre = preprocess(depth_frames[k], intr, config)
+        t0 = time.perf_counter()
+        roi, window = hand_roi(tracker.model, x0, pre.intrinsics, config.roi_radius_mm)
+        det = detect_fingertips(pre, roi, window)
+        t1 = time.perf_counter()
+        quadtree_sog(pre, config.quadtree_threshold_mm, roi, window, config.min_quad_px)
+        t2 = time.perf_counter()
+        assign_detections(fingertips(tracker.model, x0), det, ASSIGN_LAMBDA_MM)
+        t3 = time.perf_counter()
+        stage["detector"].append((t1 - t0) * 1e3)
+        stage["quadtree_only"].append((t2 - t1) * 1e3)
+        stage["assignment"].append((t3 - t2) * 1e3)
+        if silhouette is not None and getattr(config, "w_sil", 0.0) > 0:
+            t4 = time.perf_counter()
+            silhouette(pre, window)
+            stage["silhouette"].append((time.perf_counter() - t4) * 1e3)
     # Per-call costs of the two inner stages, measured on the last tracked pose.
     pose = tracker.last_pose
     if pose is not None:
@@ -114,23 +166,91 @@ def run_benchmark(
     }
 
 
+STAGE_LABELS = {
+    "preprocess": "preprocessing (+decimation)",
+    "quadtree": "data: quadtree, detector, ...",
+    "quadtree_only": "  quadtree alone",
+    "detector": "  detector alone",
+    "silhouette": "  silhouette alone",
+    "assignment": "assignment (one call)",
+    "model_update": "model update (FK + J)",
+    "energy_gradient": "energy+gradient / iteration",
+    "total": "total per frame",
+}
+
+
 def _print_table(r: dict[str, object]) -> None:
     st = r["stages_ms"]
     assert isinstance(st, dict)
     print(f"\n{r['motion']} at {r['resolution']}: {r['frames_timed']} frames timed, "
           f"{r['frames_tracking']} tracking, {r['iterations']} iterations/frame, 1 thread")
-    print(f"  {'stage':<28}{'median ms':>10}{'p95 ms':>10}")
-    labels = {
-        "preprocess": "preprocessing (+decimation)",
-        "quadtree": "quadtree",
-        "model_update": "model update (FK + J)",
-        "energy_gradient": "energy+gradient / iteration",
-        "total": "total per frame",
-    }
-    for key, label in labels.items():
-        print(f"  {label:<28}{st[key]['median']:>10.2f}{st[key]['p95']:>10.2f}")
+    print(f"  {'stage':<30}{'median ms':>10}{'p95 ms':>10}")
+    for key, label in STAGE_LABELS.items():
+        if key in st and not np.isnan(st[key]["median"]):
+            print(f"  {label:<30}{st[key]['median']:>10.2f}{st[key]['p95']:>10.2f}")
     print(f"  fps {r['fps']:.1f}   peak RSS {r['peak_rss_mb']:.1f} MiB   "
           f"RSS growth after first pass {r['rss_growth_mb']:.2f} MiB")
+
+
+def _tree_root() -> Path:
+    """The directory that holds this ``hand_sog_tracker`` package."""
+    import hand_sog_tracker
+
+    return Path(hand_sog_tracker.__file__).resolve().parents[1]
+
+
+def _run_child(root: Path, args: list[str]) -> list[dict[str, object]]:
+    """Run the benchmark of the source tree ``root`` in a fresh process; its JSON results."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "bench.json"
+        env = dict(os.environ)
+        env["PYTHONPATH"] = str(root) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        proc = subprocess.run(
+            [sys.executable, "-m", "hand_sog_tracker.tools.benchmark", *args, "--json", str(out)],
+            cwd=root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )
+        if proc.returncode != 0 or not out.exists():
+            raise RuntimeError(f"benchmark of {root} failed: {proc.stderr.strip()[-2000:]}")
+        with open(out, encoding="utf-8") as fh:
+            return json.load(fh)
+
+
+def run_compare(
+    ref: Path, args: list[str], rounds: int, this: Path | None = None
+) -> dict[str, dict[str, dict[str, list[float]]]]:
+    """Benchmark ``this`` tree (default: the running one) and ``ref``, alternating.
+
+    Returns ``{resolution: {"this"|"ref": {stage: [median ms of each round]}}}``.
+    """
+    this = this or _tree_root()
+    runs: dict[str, dict[str, dict[str, list[float]]]] = {}
+    for k in range(rounds):
+        order = (("this", this), ("ref", ref)) if k % 2 == 0 else (("ref", ref), ("this", this))
+        for name, root in order:
+            print(f"round {k + 1}/{rounds}: {name} ({root})", file=sys.stderr, flush=True)
+            for r in _run_child(root, args):
+                per = runs.setdefault(str(r["resolution"]), {"this": {}, "ref": {}})[name]
+                stages = r["stages_ms"]
+                assert isinstance(stages, dict)
+                for stage, st in stages.items():
+                    per.setdefault(stage, []).append(float(st["median"]))
+    return runs
+
+
+def _print_compare(runs: dict[str, dict[str, dict[str, list[float]]]], ref: Path, rounds: int) -> None:
+    print(f"\nthis tree {_tree_root()} against {ref}: median over {rounds} interleaved runs "
+          "of each run's median ms")
+    for res, both in runs.items():
+        print(f"\n{res}")
+        print(f"  {'stage':<30}{'this ms':>10}{'ref ms':>10}{'this/ref':>10}")
+        keys = [k for k in STAGE_LABELS if k in both["this"] or k in both["ref"]]
+        keys += [k for k in both["this"] if k not in keys]
+        for key in keys:
+            a = float(np.median(both["this"][key])) if key in both["this"] else float("nan")
+            b = float(np.median(both["ref"][key])) if key in both["ref"] else float("nan")
+            ratio = a / b if b > 0 else float("nan")
+            label = STAGE_LABELS.get(key, key)
+            print(f"  {label:<30}{a:>10.2f}{b:>10.2f}{ratio:>10.3f}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -140,16 +260,42 @@ def main(argv: Sequence[str] | None = None) -> int:
         description="Time the hand tracker per stage on a deterministic synthetic sequence "
         "(single-threaded: BLAS/OpenMP/OpenCV limited to 1 thread).",
     )
-    parser.add_argument("--motion", default="fingerwave", choices=MOTIONS, help="synthetic motion (default fingerwave)")
+    parser.add_argument("--motion", default="fingerwave", choices=ALL_MOTIONS,
+                        help="synthetic motion (default fingerwave; fistopen is a hard case)")
     parser.add_argument("--frames", type=int, default=120, help="frames in the sequence (default 120)")
     parser.add_argument("--repeat", type=int, default=1,
                         help="passes over the sequence; e.g. --frames 200 --repeat 50 for a 10,000-frame memory check")
     parser.add_argument("--resolution", action="append", choices=sorted(RESOLUTIONS),
                         help="input resolution(s) (default both)")
     parser.add_argument("--json", metavar="OUT", help="also write the results as JSON")
+    parser.add_argument("--compare", metavar="REF_DIR",
+                        help="also benchmark the source tree REF_DIR (the directory holding its "
+                        "hand_sog_tracker package), in separate processes alternating with this "
+                        "tree, and print both and the ratio")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="with --compare: runs of each tree (default 3)")
     args = parser.parse_args(argv)
     if args.frames < 2 or args.repeat < 1:
         parser.error("--frames must be >= 2 and --repeat >= 1")
+    if args.compare is not None:
+        ref = Path(args.compare).resolve()
+        if not (ref / "hand_sog_tracker" / "__init__.py").is_file():
+            parser.error(f"--compare: {ref} holds no hand_sog_tracker package")
+        if args.rounds < 1:
+            parser.error("--rounds must be >= 1")
+        child = ["--motion", args.motion, "--frames", str(args.frames), "--repeat", str(args.repeat)]
+        for name in args.resolution or []:
+            child += ["--resolution", name]
+        try:
+            runs = run_compare(ref, child, args.rounds)
+        except RuntimeError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        _print_compare(runs, ref, args.rounds)
+        if args.json:
+            with open(args.json, "w", encoding="utf-8") as fh:
+                json.dump({"this": str(_tree_root()), "ref": str(ref), "runs": runs}, fh, indent=2)
+        return 0
     cv2.setNumThreads(1)
     results = []
     for name in args.resolution or list(RESOLUTIONS):

@@ -1,0 +1,43 @@
+"""``benchmark``: the stage table and ``--compare`` against another source tree."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hand_sog_tracker.tools import benchmark
+
+TREE = Path(benchmark.__file__).resolve().parents[2]
+
+
+def test_stages_include_detector_quadtree_and_assignment() -> None:
+    r = benchmark.run_benchmark("fingerwave", 4, 320, 240, 1)
+    st = r["stages_ms"]
+    assert r["frames_timed"] == 3
+    for key in ("preprocess", "quadtree", "detector", "quadtree_only", "assignment",
+                "model_update", "energy_gradient", "total"):
+        assert np.isfinite(st[key]["median"]) and st[key]["median"] > 0, key
+    # The parts timed alone are each below the frame's total.
+    assert st["detector"]["median"] < st["total"]["median"]
+    assert st["quadtree_only"]["median"] < st["total"]["median"]
+
+
+def test_compare_runs_both_trees_and_prints_the_ratio(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    out = tmp_path / "cmp.json"
+    code = benchmark.main(["--compare", str(TREE), "--rounds", "1", "--frames", "3",
+                           "--resolution", "320x240", "--json", str(out)])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "this/ref" in text and "total per frame" in text
+    row = next(line for line in text.splitlines() if "total per frame" in line).split()
+    this_ms, ref_ms, ratio = (float(x) for x in row[-3:])
+    assert this_ms > 0 and ref_ms > 0 and ratio == pytest.approx(this_ms / ref_ms, abs=2e-3)
+    assert out.exists()
+
+
+def test_compare_rejects_a_directory_without_the_package(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit) as exc:
+        benchmark.main(["--compare", str(tmp_path)])
+    assert exc.value.code == 2
