@@ -51,9 +51,21 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from hand_sog_tracker.core.articulations import OPEN
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess, quadtree_sog
 from hand_sog_tracker.core.energy import Objective
-from hand_sog_tracker.core.hand_model import N_PARAMS, HandModel, HandShape
+from hand_sog_tracker.core.hand_model import (
+    FINGER_ABD,
+    FIRST_JOINT,
+    FLEX1,
+    FLEX2,
+    FLEX3,
+    JOINTS,
+    N_PARAMS,
+    HandModel,
+    HandShape,
+    chain_slice,
+)
 from hand_sog_tracker.core.kinematics import attached_points, gaussian_centres, global_rotation
 from hand_sog_tracker.core.optimizer import maximise
 from hand_sog_tracker.core.tracker import Tracker, coverage, hand_roi
@@ -99,10 +111,8 @@ _SCORE_MARGIN_PX = 12
 _REFIT_ITERATIONS = 15
 #: A fit frame whose fingers are flexed more than this (mean MCP + PIP flexion, rad) is not open.
 _MAX_OPEN_FLEX = 0.6
-_FINGER_FLEX = np.array([6 + 4 * c + k for c in range(1, 5) for k in (0, 2, 3)])
-_RIGID = np.arange(N_PARAMS) < 6
-#: Joint angles of an open hand (rad) the fit frames are set to.
-_OPEN_JOINTS = np.array([0.1, 0.0, 0.1, 0.1] + [0.05, 0.0, 0.05, 0.05] * 4)
+_FINGER_FLEX = np.array([chain_slice(c).start + k for c in range(1, 5) for k in (FLEX1, FLEX2, FLEX3)])
+_RIGID = np.arange(N_PARAMS) < FIRST_JOINT
 
 
 def _candidate(shape: HandShape, name: str, offset: float) -> HandShape | None:
@@ -490,7 +500,7 @@ def select_frames(
     """
     valid = [i for i, p in enumerate(poses) if p is not None]
     flex = {i: float(np.asarray(poses[i])[_FINGER_FLEX].reshape(4, 3)[:, :2].mean()) for i in valid}
-    spread = {i: float(np.abs(np.asarray(poses[i])[[6 + 4 * c + 1 for c in range(1, 5)]]).sum()) for i in valid}
+    spread = {i: float(np.abs(np.asarray(poses[i])[FINGER_ABD]).sum()) for i in valid}
     open_ = sorted((i for i in valid if flex[i] <= _MAX_OPEN_FLEX), key=lambda i: (spread[i], -i))
     fit: list[int] = []
     for gap in (2, 1):
@@ -634,7 +644,7 @@ def calibrate(
             continue
         # The user holds an open hand: the joints are set open (a wrongly sized model bends
         # and spreads the fingers to make up for it: abduction trades off against width).
-        th[6:] = _OPEN_JOINTS
+        th[JOINTS] = OPEN
         fr.pose = _refine(mirrored, th, fr.data, config, _REFIT_ITERATIONS, _RIGID)
         fits.append(fr)
         used.append(i)

@@ -28,8 +28,8 @@ __all__ = [
     "self_overlap_2d",
 ]
 
-MAX_QUAD_PX = 16  #: largest quad side at the processing resolution
-MIN_QUAD_PX = 4  #: default smallest quad side
+MAX_QUAD_PX = 16  #: largest quad side (px) at the processing resolution (chosen here)
+MIN_QUAD_PX = 4  #: default smallest quad side (px; chosen here)
 
 
 def _raise_malloc_thresholds(nbytes: int = 16 << 20) -> None:

@@ -52,7 +52,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
-from hand_sog_tracker.core.hand_model import N_PARAMS, HandModel, rest_pose
+from hand_sog_tracker.core.hand_model import FINGER_ABD, JOINTS, N_PARAMS, HandModel, rest_pose
 from hand_sog_tracker.core.kinematics import gaussian_centres
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette_term
 from hand_sog_tracker.core.types import TrackerConfig
@@ -69,15 +69,21 @@ __all__ = [
     "SALIENT_SCALE_MM",
 ]
 
+#: Near threshold ``tau_1`` of the dangling term (mm): a model Gaussian this close to data is
+#: not dangling (paper 000 sec. 5.2 names tau_1, tau_2 without values: chosen here).
 TAU1_MM = 15.0
+#: Far threshold ``tau_2`` of the dangling term (mm): the penalty ramp ends here (chosen here).
 TAU2_MM = 60.0
+#: Translation unit of the smoothness term (mm per rad-equivalent; chosen here, paper 000
+#: eq. 9 mixes mm and rad unweighted).
 SMOOTH_TRANSLATION_MM = 50.0
-#: Smallest allowed difference of neighbouring fingers' palm-plane directions (rad); at rest
+#: Smallest allowed difference of neighbouring fingers' palm-plane directions (rad, chosen here); at rest
 #: they fan out by 0.07-0.09 rad; a finger on its neighbour's data needs about -0.25.
 ORDER_MIN_GAP_RAD = -0.05
-#: Width of the flat bottom of the salient-point cost (mm).
+#: Width of the flat bottom of the salient-point cost (mm; chosen here, seed 001 ignores pairs
+#: under 10 mm).
 SALIENT_SOFT_MM = 8.0
-#: The salient cost is measured in units of this distance (mm).
+#: The salient cost is measured in units of this distance (mm; chosen here).
 SALIENT_SCALE_MM = 100.0
 _TWO_PI = 2.0 * np.pi
 _INV_SQRT2 = 1.0 / np.sqrt(2.0)
@@ -451,16 +457,16 @@ class Objective:
 
     def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         """``E_lim`` (eq. 8) and its gradient, shape (26,)."""
-        q = theta[6:]
+        q = theta[JOINTS]
         lo = np.minimum(q - self.model.limits_low, 0.0)
         hi = np.maximum(q - self.model.limits_high, 0.0)
         g = np.zeros(N_PARAMS)
-        g[6:] = 2.0 * (lo + hi)
+        g[JOINTS] = 2.0 * (lo + hi)
         return float((lo * lo).sum() + (hi * hi).sum()), g
 
     def _order(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         """``E_ord`` and its gradient, shape (26,): neighbouring fingers may not cross."""
-        abd = theta[6 + 4 + 1 :: 4]  # MCP abduction of index .. little, shape (4,)
+        abd = theta[FINGER_ABD]  # MCP abduction of index .. little, shape (4,)
         a = self._const.fan + abd
         gap = a[1:] - a[:-1]  # (3,), as np.diff
         short = np.minimum(gap - ORDER_MIN_GAP_RAD, 0.0)
@@ -471,7 +477,7 @@ class Objective:
         g_abd = np.zeros(4)
         g_abd[1:] += 2.0 * short
         g_abd[:-1] -= 2.0 * short
-        g[6 + 4 + 1 :: 4] = g_abd
+        g[FINGER_ABD] = g_abd
         return float((short * short).sum()), g
 
     def _salient(

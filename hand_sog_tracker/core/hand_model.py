@@ -23,6 +23,7 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
+from hand_sog_tracker.core.rotations import rot_x, rot_y, rot_z  # re-exported
 from hand_sog_tracker.errors import InputError
 
 __all__ = [
@@ -31,6 +32,16 @@ __all__ = [
     "PARAM_NAMES",
     "N_PARAMS",
     "N_JOINTS",
+    "FLEX1",
+    "ABD",
+    "FLEX2",
+    "FLEX3",
+    "CHAIN_JOINTS",
+    "FIRST_JOINT",
+    "JOINTS",
+    "FINGER_ABD",
+    "chain_slice",
+    "chain_joint_slice",
     "HandShape",
     "HandModel",
     "default_hand_model",
@@ -55,24 +66,29 @@ N_JOINTS: Final[int] = 20
 
 # Offsets inside one finger's 4-block of the pose vector.
 FLEX1, ABD, FLEX2, FLEX3 = 0, 1, 2, 3
+#: Joint angles per chain (``flex1 abd flex2 flex3``).
+CHAIN_JOINTS: Final[int] = 4
+#: Pose-vector index of the first joint angle (before it: ``tx ty tz rx ry rz``).
+FIRST_JOINT: Final[int] = 6
+#: The 20 joint angles inside the pose vector (26,).
+JOINTS: Final[slice] = slice(FIRST_JOINT, None)
+#: MCP abductions of index .. little inside the pose vector (a strided slice, 4 values).
+FINGER_ABD: Final[slice] = slice(FIRST_JOINT + CHAIN_JOINTS + ABD, None, CHAIN_JOINTS)
+
+_CHAIN_SLICES: Final = tuple(
+    slice(FIRST_JOINT + CHAIN_JOINTS * c, FIRST_JOINT + CHAIN_JOINTS * (c + 1)) for c in range(5)
+)
+_CHAIN_JOINT_SLICES: Final = tuple(slice(CHAIN_JOINTS * c, CHAIN_JOINTS * (c + 1)) for c in range(5))
 
 
-def rot_x(a: float) -> NDArray[np.float64]:
-    """Rotation matrix (3, 3) about x by ``a`` radians."""
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+def chain_slice(c: int) -> slice:
+    """Slice of chain ``c``'s (0 thumb .. 4 little) four angles in the pose vector (26,)."""
+    return _CHAIN_SLICES[c]
 
 
-def rot_y(a: float) -> NDArray[np.float64]:
-    """Rotation matrix (3, 3) about y by ``a`` radians."""
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def rot_z(a: float) -> NDArray[np.float64]:
-    """Rotation matrix (3, 3) about z by ``a`` radians."""
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+def chain_joint_slice(c: int) -> slice:
+    """Slice of chain ``c``'s four angles in a joint vector (20,) (``theta[JOINTS]``, limits)."""
+    return _CHAIN_JOINT_SLICES[c]
 
 
 @dataclass(frozen=True)
@@ -306,5 +322,5 @@ def rest_pose(translation_mm: tuple[float, float, float] = (0.0, 0.0, 400.0)) ->
     theta = np.zeros(N_PARAMS)
     theta[:3] = translation_mm
     theta[3] = np.pi  # Rx(pi): hand y -> camera -y (up), palm normal -> camera -z.
-    theta[6 + FLEX1] = 0.1
+    theta[FIRST_JOINT + FLEX1] = 0.1
     return theta

@@ -18,18 +18,24 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from hand_sog_tracker.core.articulations import CLOSED, HALF_CLOSED, OPEN
 from hand_sog_tracker.core.depth_sog import Preprocessed
-from hand_sog_tracker.core.hand_model import N_PARAMS, HandModel
+from hand_sog_tracker.core.hand_model import JOINTS, N_PARAMS, HandModel
+from hand_sog_tracker.core.rotations import euler_from_matrix, rot_y  # euler_from_matrix re-exported
 from hand_sog_tracker.core.types import TrackerConfig
 
 __all__ = ["HandBlob", "find_hand", "initial_hypotheses", "euler_from_matrix"]
 
+# Constants of the hand finder (not in the papers: paper 000 describes no initialisation, seed
+# 001 starts from a manual pose); all chosen here, the reason beside each.
 #: Smallest blob accepted as a hand: area in mm^2 at its depth (a palm is ~ 6000).
 MIN_BLOB_AREA_MM2 = 2500.0
 #: A blob reaching this far beyond its thickest point (and 1.4x farther than
-#: on the other side) is taken to hold a forearm on that side.
+#: on the other side) is taken to hold a forearm on that side (mm; a hand reaches about 135
+#: mm from its palm centre to the fingertips).
 FOREARM_MIN_EXTENT_MM = 150.0
-#: Depth extent (mm) of a hand (plus wrist) behind its nearest point.
+#: Depth extent (mm) of a hand (plus wrist) behind its nearest point: what lies farther behind
+#: is cut off as arm or body (commit ea81b12).
 HAND_DEPTH_BAND_MM = 250.0
 
 
@@ -144,27 +150,6 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     return HandBlob(palm=palm, directions=[_in_plane(main, a) for a in angles])
 
 
-def euler_from_matrix(R: NDArray[np.float64], rx_ref: float = np.pi) -> tuple[float, float, float]:
-    """Angles ``(rx, ry, rz)`` with ``R = Rz(rz) @ Rx(rx) @ Ry(ry)``.
-
-    Of the two solutions the one whose ``rx`` is nearer ``rx_ref`` is returned.
-    """
-    sx = float(np.clip(R[2, 1], -1.0, 1.0))
-    cx_abs = float(np.hypot(R[2, 0], R[2, 2]))
-    cands = []
-    for cx in (cx_abs, -cx_abs):
-        rx = float(np.arctan2(sx, cx))
-        if abs(cx) < 1e-9:
-            ry, rz = 0.0, float(np.arctan2(R[1, 0], R[0, 0]))
-        else:
-            ry = float(np.arctan2(-R[2, 0] / cx, R[2, 2] / cx))
-            rz = float(np.arctan2(-R[0, 1] / cx, R[1, 1] / cx))
-        d = np.angle(np.exp(1j * (rx - rx_ref)))
-        cands.append((abs(d), rx_ref + d, ry, rz))
-    _, rx, ry, rz = min(cands)
-    return rx, ry, rz
-
-
 def _frame(y_dir: NDArray[np.float64], palm_to_camera: bool, roll: float) -> NDArray[np.float64]:
     """Hand-frame axes in camera coordinates (columns x, y, z)."""
     y = y_dir / np.linalg.norm(y_dir)
@@ -176,16 +161,7 @@ def _frame(y_dir: NDArray[np.float64], palm_to_camera: bool, roll: float) -> NDA
     x = np.cross(y, z)
     R = np.stack([x, y, z], axis=1)
     # Roll about the finger axis.
-    c, s = np.cos(roll), np.sin(roll)
-    Ry = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-    return R @ Ry
-
-
-_CLOSED = np.array(
-    [0.5, 0.3, 0.6, 0.6] + [1.3, 0.0, 1.5, 0.9] * 4
-)
-_HALF = np.array([0.2, 0.2, 0.3, 0.3] + [0.6, 0.0, 0.7, 0.4] * 4)
-_OPEN = np.array([0.1, 0.0, 0.1, 0.1] + [0.05, 0.0, 0.05, 0.05] * 4)
+    return R @ rot_y(roll)
 
 
 def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray[np.float64]]:
@@ -197,10 +173,10 @@ def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray
     palm_local = np.array([0.0, 0.55 * float(model.bases[2, 1]), 0.0])
     combos = []
     for i, d in enumerate(blob.directions):
-        combos.append((d, True, _OPEN))
-        combos.append((d, False, _OPEN))
+        combos.append((d, True, OPEN))
+        combos.append((d, False, OPEN))
         if i == 0:
-            for joints in (_CLOSED, _HALF):
+            for joints in (CLOSED, HALF_CLOSED):
                 combos.append((d, True, joints))
                 combos.append((d, False, joints))
     out = []
@@ -212,6 +188,6 @@ def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray
         theta = np.zeros(N_PARAMS)
         theta[:3] = blob.palm - R @ palm_local
         theta[3:6] = rx, ry, rz
-        theta[6:] = joints
+        theta[JOINTS] = joints
         out.append(theta)
     return out[:n]

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.hand_model import N_PARAMS, HandModel
+from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, FIRST_JOINT, JOINTS, N_PARAMS, HandModel
 from hand_sog_tracker.errors import InputError
 
 __all__ = [
@@ -25,6 +25,7 @@ __all__ = [
     "gaussian_centres",
     "fingertips",
     "skeleton_points",
+    "SKELETON_CHAINS",
 ]
 
 
@@ -50,6 +51,9 @@ def _cross(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64
 
 def global_rotation(theta: NDArray[np.float64], derivatives: bool = False):
     """Global rotation ``R = Rz(rz) @ Rx(rx) @ Ry(ry)`` of a pose.
+
+    The per-frame form of :func:`hand_sog_tracker.core.rotations.matrices_from_euler`
+    (scalar ``math`` calls, one array build: it runs for every objective evaluation).
 
     Parameters
     ----------
@@ -120,7 +124,7 @@ def chain_frames(model: HandModel, theta: NDArray[np.float64]) -> ChainFrames:
     Within a chain all flexion axes coincide (the first segment's x axis), so
     segment ``s`` is ``B @ Rx(f1 + ... + f_{s+1})`` with ``B = R0 @ Rz(abd)``.
     """
-    q = theta[6:].reshape(5, 4)
+    q = theta[JOINTS].reshape(5, CHAIN_JOINTS)
     r0 = model.rest_rotations
     ca, sa = np.cos(q[:, 1])[:, None], np.sin(q[:, 1])[:, None]
     bx = ca * r0[:, :, 0] + sa * r0[:, :, 1]  # (5, 3)
@@ -199,7 +203,7 @@ def _point_index(chain: NDArray[np.int64], segment: NDArray[np.int64]) -> _Point
     c = np.where(finger, chain, 0).astype(np.int64)
     s = np.where(finger, segment, 0).astype(np.int64)
     active = np.stack([finger, finger, finger & (s >= 1), finger & (s >= 2)], axis=1)
-    cols = 6 + 4 * c[:, None] + np.arange(4)[None, :]  # (k, 4)
+    cols = FIRST_JOINT + CHAIN_JOINTS * c[:, None] + np.arange(CHAIN_JOINTS)[None, :]  # (k, 4)
     j_index = (
         np.arange(k)[:, None, None] * (3 * N_PARAMS)
         + np.arange(3)[None, None, :] * N_PARAMS
@@ -298,6 +302,13 @@ def gaussian_centres(model: HandModel, theta: NDArray[np.float64], jacobian: boo
 def fingertips(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:
     """Fingertip positions, shape (5, 3), mm, camera frame (thumb .. little)."""
     return gaussian_centres(model, theta)[model.tip_index]
+
+
+#: Indices into :func:`skeleton_points` of the wrist and each chain's four points
+#: (first joint .. segment end), thumb .. little: ``SKELETON_CHAINS[c]`` is a (5,) tuple.
+SKELETON_CHAINS: tuple[tuple[int, ...], ...] = tuple(
+    (0,) + tuple(1 + CHAIN_JOINTS * c + k for k in range(4)) for c in range(5)
+)
 
 
 def skeleton_points(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -16,7 +16,7 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.hand_model import N_PARAMS
+from hand_sog_tracker.core.hand_model import FIRST_JOINT, JOINTS, N_PARAMS
 
 __all__ = ["OptimizeResult", "StepSizes", "maximise"]
 
@@ -38,7 +38,7 @@ class StepSizes:
     def expand(self, which: tuple[float, float, float]) -> NDArray[np.float64]:
         """Per-parameter vector, shape (26,), from a (translation, rotation, joint) triple."""
         out = np.empty(N_PARAMS)
-        out[:3], out[3:6], out[6:] = which
+        out[:3], out[3:FIRST_JOINT], out[JOINTS] = which
         return out
 
 

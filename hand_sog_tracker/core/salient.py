@@ -21,6 +21,9 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import Preprocessed, _in_window
 
+# The detector is this package's own (seed 001 trains one): every constant below is chosen
+# here from the default hand's sizes, the reason beside it.
+
 __all__ = [
     "Detections",
     "RING_RADIUS_MM",

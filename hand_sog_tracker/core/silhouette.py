@@ -37,6 +37,7 @@ __all__ = [
     "silhouette_term",
 ]
 
+# The term is not in the papers: both constants are chosen here.
 #: Distances up to this (px) cost nothing: pixel quantisation and a ragged depth edge.
 SILHOUETTE_MARGIN_PX: Final[float] = 1.0
 #: The term measures distances in units of this (mm).
@@ -62,7 +63,8 @@ class Silhouette:
     intrinsics: Intrinsics
 
 
-#: The distance map covers the region of interest plus this margin (px).
+#: The distance map covers the region of interest plus this margin (px; chosen here, no
+#: effect on the term inside the margin).
 ROI_MARGIN_PX: Final[int] = 16
 
 

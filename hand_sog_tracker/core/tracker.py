@@ -18,9 +18,16 @@ from dataclasses import replace as replace_config
 import numpy as np
 from numpy.typing import NDArray
 
+from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess, quadtree_sog
 from hand_sog_tracker.core.energy import SALIENT_SCALE_MM, Objective, TipTargets
-from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
+from hand_sog_tracker.core.hand_model import (
+    CHAIN_JOINTS,
+    JOINTS,
+    HandModel,
+    chain_slice,
+    default_hand_model,
+)
 from hand_sog_tracker.core.initialise import find_hand, initial_hypotheses
 from hand_sog_tracker.core.kinematics import (
     fingertips,
@@ -40,29 +47,42 @@ from hand_sog_tracker.core.types import (
 
 __all__ = ["Tracker", "coverage", "hand_roi"]
 
-#: Velocity extrapolation factor of the start pose (paper: alpha = 0.5).
+# Tuning constants.  Each says what it is, its unit and where its value comes from: "paper 000"
+# (the tracker's paper), "seed 001/004" (the salient-point and restart papers) or "chosen
+# here" (set while developing this package against the synthetic bag sets; commit noted
+# where the value was last changed).  They are module constants, not TrackerConfig fields
+# (which become ROS parameters), because none is meant to be tuned per camera or user.
+
+#: Velocity extrapolation factor of the start pose (unitless; paper 000 sec. 5.3: alpha = 0.5).
 ALPHA = 0.5
-#: Iterations per hypothesis while initialising, and for the best one after.
+#: Iterations per hypothesis while initialising, and for the best ones after (chosen here,
+#: commit 9681579; for comparison seed 001 gives its first frame 50 iterations).
 INIT_ITERATIONS = (8, 30)
-#: Best-scoring hypotheses refined fully while initialising.
+#: Best-scoring hypotheses refined fully while initialising (count; chosen here, commit 9681579).
 INIT_FINALISTS = 2
-#: A fingertip this far from all data (mm) triggers a restart of its finger.
+#: A fingertip this far from all data (mm) triggers a restart of its finger (seed 004's
+#: restarts; the distance is chosen here).
 RESTART_TIP_MM = 25.0
+#: Iterations each restart candidate gets (count; chosen here, raised to 12 in commit f16019d).
 RESTART_ITERATIONS = 12
-_EXTENDED = np.array([0.1, 0.0, 0.1, 0.1])
-_CURLED = np.array([1.3, 0.0, 1.5, 0.9])
-#: Data farther than this beyond the wrist plane are treated as forearm (mm).
+#: Data farther than this beyond the wrist plane are treated as forearm (mm; chosen here: 0,
+#: the model has no forearm).
 WRIST_MARGIN_MM = 0.0
-#: Cost (mm) of a fingertip without a detection in the assignment (seed 001's lambda); a
-#: detection costs this times its confidence when declared a false positive.
+#: Cost (mm) of a fingertip without a detection in the assignment (the role of seed 001's
+#: lambda, eq. 11; its value 1.2 is in another unit, 30 mm is chosen here); a detection costs
+#: this times its confidence when declared a false positive.
 ASSIGN_LAMBDA_MM = 30.0
 #: A confident detection this far (mm) from its nearest fingertip is a finger the model
-#: has not found: the neighbouring fingers are restarted onto it.
+#: has not found: the neighbouring fingers are restarted onto it (chosen here; about the
+#: spacing of neighbouring MCP joints in the default hand, 18-20 mm).
 UNEXPLAINED_DETECTION_MM = 20.0
+#: Smallest detection confidence (in [0, 1]) that counts as unexplained (chosen here).
 UNEXPLAINED_CONFIDENCE = 0.5
-#: Whether detections of fingers seen end-on (knuckles of a fist look the same) pull fingertips.
+#: Whether detections of fingers seen end-on (knuckles of a fist look the same) pull
+#: fingertips (chosen here: off; they only seed the curled restart candidates).
 SALIENT_END_ON = False
-#: Without an unexplained detection, finger-shifted restarts are tried every this many frames.
+#: Without an unexplained detection, finger-shifted restarts (seed 004) are tried every this
+#: many frames (count; chosen here, commit 0e963cc).
 SHIFT_EVERY = 6
 
 
@@ -323,11 +343,11 @@ class Tracker:
         c = int(np.argmax(far))
         if far[c] < RESTART_TIP_MM:
             return res
-        sl = slice(6 + 4 * c, 10 + 4 * c)
-        candidates = [_EXTENDED, _CURLED]
+        sl = chain_slice(c)
+        candidates = [FINGER_EXTENDED, FINGER_CURLED]
         if c > 0:
             others = [k for k in range(1, 5) if k != c]
-            candidates.append(np.mean([res.x[6 + 4 * k : 10 + 4 * k] for k in others], axis=0))
+            candidates.append(np.mean([res.x[chain_slice(k)] for k in others], axis=0))
         best = res
         for joints in candidates:
             x0 = res.x.copy()
@@ -368,14 +388,14 @@ class Tracker:
             return res
         plain = self._plain(obj)
         best, best_val = res, self._score(plain, res.x, det)
-        q = res.x[6:].reshape(5, 4)
+        q = res.x[JOINTS].reshape(5, CHAIN_JOINTS)
         for side in sides:
             # Each finger takes its neighbour's flexions, with the abductions neutral: the
             # neighbour's abduction is what carried it over onto this finger's data.
             shifted = q[np.clip(np.arange(1, 5) + side, 1, 4)].copy()
             shifted[:, 1] = 0.0
             x0 = res.x.copy()
-            x0[10:] = shifted.ravel()
+            x0[chain_slice(1).start :] = shifted.ravel()
             cand = self._maximise(plain, x0, iterations=RESTART_ITERATIONS)
             val = self._score(plain, cand.x, det)
             if val > best_val:
@@ -444,7 +464,7 @@ class Tracker:
             if det.end_on[s] and c > 0:
                 # A finger seen end-on is curled toward the camera: also try it curled.
                 curled = res.x.copy()
-                curled[6 + 4 * c : 10 + 4 * c] = _CURLED
+                curled[chain_slice(c)] = FINGER_CURLED
                 starts.append(curled)
             for x0 in starts:
                 cand = self._maximise(plain, x0, iterations=RESTART_ITERATIONS)
@@ -521,13 +541,17 @@ class Tracker:
                 n_image_gaussians=n,
                 timings_ms=dict(timings),
             )
+        # Forward kinematics once: fingertips are the tip Gaussians' centres.
+        centres = gaussian_centres(self._model, theta)
         return TrackResult(
             status=self._status,
             pose=theta.copy(),
-            fingertips_mm=fingertips(self._model, theta),
+            fingertips_mm=centres[self._model.tip_index],
             skeleton_mm=skeleton_points(self._model, theta),
             confidence=float(conf),
             energy=float(energy),
             n_image_gaussians=n,
             timings_ms=dict(timings),
+            gaussians_mm=centres,
+            gaussian_radii_mm=self._model.g_sigmas.copy(),
         )

@@ -140,6 +140,11 @@ class TrackResult:
         Quadtree leaves used as data.
     timings_ms : dict
         Wall time per stage: ``preprocess``, ``quadtree``, ``optimise``, ``total``.
+    gaussians_mm : array, shape (m, 3) or None
+        Model Gaussian centres at ``pose``, camera optical frame, mm (``HandModel`` order;
+        ``fingertips_mm`` is its rows ``HandModel.tip_index``).
+    gaussian_radii_mm : array, shape (m,) or None
+        Their standard deviations (the skin radius), mm.
     """
 
     status: TrackerStatus
@@ -150,3 +155,5 @@ class TrackResult:
     energy: float
     n_image_gaussians: int
     timings_ms: dict[str, float] = field(default_factory=dict)
+    gaussians_mm: NDArray[np.float64] | None = None
+    gaussian_radii_mm: NDArray[np.float64] | None = None

@@ -33,14 +33,14 @@ published on ``hand/pose`` and its links lie where the tracker's left model puts
 
 from __future__ import annotations
 
-import math
 from typing import Final
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.hand_model import FINGERS, JOINT_NAMES, HandModel, default_hand_model
+from hand_sog_tracker.core.hand_model import FINGERS, JOINT_NAMES, HandModel, chain_joint_slice, default_hand_model
+from hand_sog_tracker.core.rotations import rpy_from_matrix as rotation_to_rpy  # re-exported
 
 __all__ = [
     "WRIST_LINK",
@@ -64,15 +64,6 @@ SEGMENT_LINKS: Final[tuple[tuple[str, str, str], ...]] = (
 TIP_LINKS: Final[tuple[str, ...]] = tuple(f"{f}_tip" for f in FINGERS)
 
 _MM: Final[float] = 1e-3
-
-
-def rotation_to_rpy(rot: NDArray[np.float64]) -> tuple[float, float, float]:
-    """URDF ``rpy`` (fixed-axis roll about x, pitch about y, yaw about z: ``R = Rz Ry Rx``)."""
-    r = np.asarray(rot, dtype=np.float64)
-    pitch = math.atan2(-r[2, 0], math.hypot(r[2, 1], r[2, 2]))
-    if math.hypot(r[2, 1], r[2, 2]) < 1e-9:  # gimbal lock: put everything in yaw
-        return 0.0, pitch, math.atan2(-r[0, 1], r[1, 1])
-    return math.atan2(r[2, 1], r[2, 2]), pitch, math.atan2(r[1, 0], r[0, 0])
 
 
 def _num(v: float) -> str:
@@ -184,8 +175,8 @@ def hand_urdf(model: HandModel | None = None, camera_frame: str | None = None, n
     along_y = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
     for c in range(5):
         first = "cmc" if c == 0 else "mcp"
-        names = JOINT_NAMES[4 * c : 4 * c + 4]  # flex1, abd, flex2, flex3
-        lows, highs = model.limits_low[4 * c : 4 * c + 4], model.limits_high[4 * c : 4 * c + 4]
+        names = JOINT_NAMES[chain_joint_slice(c)]  # flex1, abd, flex2, flex3
+        lows, highs = model.limits_low[chain_joint_slice(c)], model.limits_high[chain_joint_slice(c)]
         limits = [
             f'<limit lower="{_num(lo)}" upper="{_num(hi)}" effort="0" velocity="10"/>' for lo, hi in zip(lows, highs)
         ]

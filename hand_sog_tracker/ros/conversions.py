@@ -30,8 +30,9 @@ from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from hand_sog_tracker.core.hand_model import FINGERS, JOINT_NAMES, N_PARAMS
-from hand_sog_tracker.core.kinematics import global_rotation
+from hand_sog_tracker.core.hand_model import FINGERS, JOINT_NAMES, JOINTS, N_PARAMS
+from hand_sog_tracker.core.kinematics import SKELETON_CHAINS, global_rotation
+from hand_sog_tracker.core.rotations import quaternion_from_matrix
 from hand_sog_tracker.core.urdf import WRIST_JOINT_NAMES, WRIST_LINK
 from hand_sog_tracker.errors import InputError
 
@@ -50,6 +51,10 @@ from hand_sog_tracker.interface import (
     image_to_depth_mm,
     stamp_to_ns,
 )
+
+#: Kept under its old name: the quaternion of a rotation matrix (3, 3), ``(x, y, z, w)``
+#: (:func:`hand_sog_tracker.core.rotations.quaternion_from_matrix`).
+rotation_to_quaternion = quaternion_from_matrix
 
 __all__ = [
     "ImageLike",
@@ -76,31 +81,6 @@ __all__ = [
 ]
 
 
-def rotation_to_quaternion(rot: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Unit quaternion ``(x, y, z, w)`` of a rotation matrix, shape (3, 3), with ``w >= 0``.
-
-    Uses the numerically stable branch on the largest diagonal term (Shepperd).
-    """
-    m = np.asarray(rot, dtype=np.float64)
-    if m.shape != (3, 3):
-        raise InputError(f"rotation must have shape (3, 3), got {m.shape}")
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0.0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = np.array([(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s])
-    elif m[0, 0] >= m[1, 1] and m[0, 0] >= m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = np.array([0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s])
-    elif m[1, 1] >= m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = np.array([(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s])
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = np.array([(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s])
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
 def _check_pose(pose: NDArray[np.float64]) -> NDArray[np.float64]:
     p = np.asarray(pose, dtype=np.float64)
     if p.shape != (N_PARAMS,):
@@ -117,7 +97,7 @@ def joint_state_msg(header: Header, pose: NDArray[np.float64], wrist_joints: boo
     that ``R = Rz Rx Ry`` as in the pose vector).
     """
     p = _check_pose(pose)
-    names, values = list(JOINT_NAMES), p[6:].tolist()
+    names, values = list(JOINT_NAMES), p[JOINTS].tolist()
     if wrist_joints:
         names += list(WRIST_JOINT_NAMES)
         values += [float(p[0]) / 1000.0, float(p[1]) / 1000.0, float(p[2]) / 1000.0]
@@ -134,7 +114,7 @@ def pose_msg(header: Header, pose: NDArray[np.float64]) -> PoseStamped:
     (``R @ diag(-1, 1, 1)`` is not a rotation), so the same ``R`` is published.
     """
     p = _check_pose(pose)
-    q = rotation_to_quaternion(global_rotation(p))
+    q = quaternion_from_matrix(global_rotation(p))
     msg = PoseStamped(header=header)
     msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) / 1000.0 for v in p[:3])
     msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z, msg.pose.orientation.w = (
@@ -211,7 +191,7 @@ def hand_transforms(
     if tips.shape != (5, 3):
         raise InputError(f"fingertips must have shape (5, 3), got {tips.shape}")
     rot = global_rotation(p)
-    q = rotation_to_quaternion(rot)
+    q = quaternion_from_matrix(rot)
     wrist = TransformStamped()
     wrist.header.stamp = header.stamp
     wrist.header.frame_id = header.frame_id
@@ -235,9 +215,7 @@ def hand_transforms(
 #: Bones of the 21-point skeleton (:func:`kinematics.skeleton_points`): wrist to each
 #: chain's first joint, then along each chain to its tip.
 SKELETON_BONES: tuple[tuple[int, int], ...] = tuple(
-    pair
-    for c in range(5)
-    for pair in ((0, 1 + 4 * c), (1 + 4 * c, 2 + 4 * c), (2 + 4 * c, 3 + 4 * c), (3 + 4 * c, 4 + 4 * c))
+    pair for chain in SKELETON_CHAINS for pair in zip(chain[:-1], chain[1:])
 )
 
 #: Marker colours (RGBA) of thumb .. little.

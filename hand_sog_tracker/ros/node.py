@@ -587,6 +587,7 @@ class TrackerNode(Node):
                 near_mm=cfg.near_mm,
                 far_mm=cfg.far_mm,
                 label=f"{result.status.value} conf {result.confidence:.2f}",
+                result=result,
             )
             self._debug_pub.publish(bgr_to_image_msg(header, bgr))
 

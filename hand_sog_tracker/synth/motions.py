@@ -26,8 +26,19 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.hand_model import N_PARAMS, default_hand_model, rest_pose
+from hand_sog_tracker.core.articulations import CLAW_FINGER_DEG, FIST_FINGER_DEG, PINCH_INDEX_DEG
+from hand_sog_tracker.core.hand_model import (
+    ABD,
+    CHAIN_JOINTS,
+    JOINTS,
+    N_PARAMS,
+    chain_joint_slice,
+    chain_slice,
+    default_hand_model,
+    rest_pose,
+)
 from hand_sog_tracker.core.kinematics import attached_points, check_pose, fingertips
+from hand_sog_tracker.core.rotations import matrices_from_euler
 from hand_sog_tracker.errors import InputError
 
 __all__ = [
@@ -96,11 +107,11 @@ def _thumb_ik(
     clipped to the joint limits, from a few starting guesses; best result.
     """
     model = default_hand_model(True)
-    lo, hi = model.limits_low[:4], model.limits_high[:4]
+    lo, hi = model.limits_low[chain_joint_slice(0)], model.limits_high[chain_joint_slice(0)]
 
     def residual(x: NDArray[np.float64]) -> NDArray[np.float64]:
         th = theta.copy()
-        th[6:10] = x
+        th[chain_slice(0)] = x
         diff = fingertips(model, th)[0] - target
         n = float(np.linalg.norm(diff))
         return diff * (1.0 - distance / max(n, 1e-9))
@@ -127,14 +138,14 @@ def _thumb_ik(
 def _key_articulations_cached() -> dict[str, tuple[float, ...]]:
     model = default_hand_model(True)
     d = _DEG
-    open_q = rest_pose()[6:].copy()
+    open_q = rest_pose()[JOINTS].copy()
 
     fist = open_q.copy()
     for c in range(1, 5):
-        fist[4 * c : 4 * c + 4] = (80 * d, 0.0, 95 * d, 55 * d)
+        fist[chain_joint_slice(c)] = tuple(v * d for v in FIST_FINGER_DEG)
     # Thumb of the fist: over the dorsal side of the curled index middle phalanx.
     th = rest_pose()
-    th[6:] = fist
+    th[JOINTS] = fist
     on_index = attached_points(
         model, th, np.array([1, -1, -1]), np.array([1, 0, 0]),
         np.array([[0.0, 0.5 * model.lengths[1, 1], 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
@@ -142,31 +153,31 @@ def _key_articulations_cached() -> dict[str, tuple[float, ...]]:
     palmar = on_index[2] - on_index[1]  # unit hand-z (palmar normal) in the camera frame
     r_mid = float(np.mean(model.g_sigmas[(model.g_chain == 1) & (model.g_segment == 1)]))
     target = on_index[0] + palmar * (r_mid + float(model.tip_radii[0]))
-    fist[0:4] = _thumb_ik(th, target, 0.0)
+    fist[chain_joint_slice(0)] = _thumb_ik(th, target, 0.0)
 
     claw = open_q.copy()
     for c in range(1, 5):
-        claw[4 * c : 4 * c + 4] = (-10 * d, 0.0, 95 * d, 75 * d)
-    claw[0:4] = 0.5 * (open_q[0:4] + fist[0:4])
+        claw[chain_joint_slice(c)] = tuple(v * d for v in CLAW_FINGER_DEG)
+    claw[chain_joint_slice(0)] = 0.5 * (open_q[chain_joint_slice(0)] + fist[chain_joint_slice(0)])
 
     # Pinch: index curls toward the thumb; thumb tip touches the index tip.
     pinch = open_q.copy()
-    pinch[4:8] = (20 * d, -15 * d, 80 * d, 50 * d)
+    pinch[chain_joint_slice(1)] = tuple(v * d for v in PINCH_INDEX_DEG)
     for c, f in ((2, 0.25), (3, 0.3), (4, 0.35)):  # the other fingers relax a little
-        pinch[4 * c : 4 * c + 4] = (f * 80 * d, 0.0, f * 95 * d, f * 55 * d)
+        pinch[chain_joint_slice(c)] = tuple(f * v * d for v in FIST_FINGER_DEG)
     th = rest_pose()
-    th[6:] = pinch
+    th[JOINTS] = pinch
     index_tip = fingertips(model, th)[1]
-    pinch[0:4] = _thumb_ik(th, index_tip, float(model.tip_radii[0] + model.tip_radii[1]))
+    pinch[chain_joint_slice(0)] = _thumb_ik(th, index_tip, float(model.tip_radii[0] + model.tip_radii[1]))
 
     spread = open_q.copy()
-    spread[0:4] = (0.1, -35 * d, 0.0, 0.0)
+    spread[chain_joint_slice(0)] = (0.1, -35 * d, 0.0, 0.0)
     for c, abd in ((1, -20), (2, -3), (3, 15), (4, 24)):
-        spread[4 * c + 1] = abd * d
+        spread[chain_joint_slice(c).start + ABD] = abd * d
     close = open_q.copy()
-    close[0:4] = (0.1, 25 * d, 0.0, 0.0)
+    close[chain_joint_slice(0)] = (0.1, 25 * d, 0.0, 0.0)
     for c, abd in ((1, 4.5), (2, 0.0), (3, -4), (4, -8)):
-        close[4 * c + 1] = abd * d
+        close[chain_joint_slice(c).start + ABD] = abd * d
     out = {"open": open_q, "fist": fist, "claw": claw, "pinch": pinch, "spread": spread, "close": close}
     lo, hi = model.limits_low, model.limits_high
     return {k: tuple(np.clip(v, lo, hi)) for k, v in out.items()}
@@ -200,7 +211,7 @@ def _fingerwave(t: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.
     bent = k["open"] + 0.75 * (k["fist"] - k["open"])
     s = np.empty((t.size, 20))
     for c in range(5):  # little finger first, then ring ... thumb
-        s[:, 4 * c : 4 * c + 4] = _cosine_cycle(t, 1.3, phase_s=0.16 * (4 - c))[:, None]
+        s[:, chain_joint_slice(c)] = _cosine_cycle(t, 1.3, phase_s=0.16 * (4 - c))[:, None]
     return _lerp(k["open"], bent, s)
 
 
@@ -216,7 +227,7 @@ def _fingercount(t: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np
         up = _smoothstep((tc - step * c) / step)
         down = _smoothstep((tc - (5 * step + hold + step * (4 - c))) / step)
         e = np.where(t < fold_in, 1.0 - _smoothstep(t / fold_in), up - down)
-        ext[:, 4 * c : 4 * c + 4] = e[:, None]
+        ext[:, chain_joint_slice(c)] = e[:, None]
     return _lerp(k["fist"], k["open"], ext)
 
 
@@ -260,7 +271,7 @@ def _random_articulation(t: NDArray[np.float64], rng: np.random.Generator) -> ND
     s = np.repeat(level, 4, axis=1)
     q = _lerp(k["open"], k["fist"], s)
     abd = _smooth_random(t, rng, 5, 10 * _DEG, 0.2, 0.6)
-    q[:, 1::4] += abd
+    q[:, ABD::CHAIN_JOINTS] += abd
     return q
 
 
@@ -269,12 +280,12 @@ def _deep_fist_cached() -> tuple[float, ...]:
     """A full fist near the upper joint limits, thumb folded across the curled fingers."""
     model = default_hand_model(True)
     d = _DEG
-    q = rest_pose()[6:].copy()
+    q = rest_pose()[JOINTS].copy()
     for c, (mcp, pip, dip) in zip(range(1, 5), ((86, 102, 72), (88, 104, 75), (89, 104, 77), (90, 105, 78))):
-        q[4 * c : 4 * c + 4] = (mcp * d, 0.0, pip * d, dip * d)
+        q[chain_joint_slice(c)] = (mcp * d, 0.0, pip * d, dip * d)
     # Thumb: its tip over the dorsal side of the curled index and middle middle phalanges.
     th = rest_pose()
-    th[6:] = q
+    th[JOINTS] = q
     pts = attached_points(
         model, th, np.array([1, 2, -1, -1]), np.array([1, 1, 0, 0]),
         np.array([[0.0, 0.45 * model.lengths[1, 1], 0.0], [0.0, 0.3 * model.lengths[2, 1], 0.0],
@@ -283,7 +294,7 @@ def _deep_fist_cached() -> tuple[float, ...]:
     palmar = pts[3] - pts[2]
     r_mid = float(np.mean(model.g_sigmas[(model.g_chain == 1) & (model.g_segment == 1)]))
     target = 0.6 * pts[0] + 0.4 * pts[1] + palmar * (r_mid + float(model.tip_radii[0]))
-    q[0:4] = _thumb_ik(th, target, 0.0)
+    q[chain_joint_slice(0)] = _thumb_ik(th, target, 0.0)
     return tuple(np.clip(q, model.limits_low, model.limits_high))
 
 
@@ -294,7 +305,7 @@ def _fistopen(t: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.fl
     s = np.empty((t.size, 20))
     for c in range(5):  # index closes first, little last; the thumb follows the fingers
         lag = 0.1 if c == 0 else 0.04 * (c - 1)
-        s[:, 4 * c : 4 * c + 4] = _smoothstep(1.3 * _cosine_cycle(t, 1.2, phase_s=lag) - 0.15)[:, None]
+        s[:, chain_joint_slice(c)] = _smoothstep(1.3 * _cosine_cycle(t, 1.2, phase_s=lag) - 0.15)[:, None]
     return _lerp(k["open"], fist, s)
 
 
@@ -303,7 +314,7 @@ def _rotate_articulation(t: NDArray[np.float64], rng: np.random.Generator) -> ND
     k = key_articulations()
     level = np.clip(0.4 + _smooth_random(t, rng, 5, 0.15, 0.3, 0.8), 0.0, 0.8)
     q = _lerp(k["open"], k["fist"], np.repeat(level, 4, axis=1))
-    q[:, 1::4] += _smooth_random(t, rng, 5, 6 * _DEG, 0.2, 0.6)
+    q[:, ABD::CHAIN_JOINTS] += _smooth_random(t, rng, 5, 6 * _DEG, 0.2, 0.6)
     return q
 
 
@@ -320,23 +331,6 @@ _SCRIPTS: Final[dict[str, Callable[[NDArray[np.float64], np.random.Generator], N
 }
 
 
-def _euler_matrices(angles: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``R = Rz(rz) @ Rx(rx) @ Ry(ry)`` for angles (T, 3) ``rx, ry, rz`` -> (T, 3, 3)."""
-    rx, ry, rz = angles[:, 0], angles[:, 1], angles[:, 2]
-    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
-    T = angles.shape[0]
-    Rx = np.zeros((T, 3, 3))
-    Rx[:, 0, 0] = 1.0
-    Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = cx, -sx, sx, cx
-    Ry = np.zeros((T, 3, 3))
-    Ry[:, 1, 1] = 1.0
-    Ry[:, 0, 0], Ry[:, 0, 2], Ry[:, 2, 0], Ry[:, 2, 2] = cy, sy, -sy, cy
-    Rz = np.zeros((T, 3, 3))
-    Rz[:, 2, 2] = 1.0
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = cz, -sz, sz, cz
-    return Rz @ Rx @ Ry
-
-
 def _global_motion(
     start: NDArray[np.float64],
     t: NDArray[np.float64],
@@ -349,10 +343,10 @@ def _global_motion(
     mirror of a left hand does not move it).
     """
     c_hand = np.array(PALM_CENTRE_HAND_MM)
-    R0 = _euler_matrices(start[None, 3:6])[0]
+    R0 = matrices_from_euler(start[None, 3:6])[0]
     centre0 = start[:3] + R0 @ c_hand
     angles = start[3:6] + d_angles
-    R = _euler_matrices(angles)
+    R = matrices_from_euler(angles)
     trans = centre0 + d_centre - R @ c_hand
     return np.concatenate([trans, angles], axis=1)
 
@@ -405,7 +399,7 @@ def motion_poses(
     rng_art, rng_glob = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
     ramp = _smoothstep(t / RAMP_S)[:, None]
     target = _SCRIPTS[name](t, rng_art)
-    q0 = np.clip(start_pose[6:], lo, hi)
+    q0 = np.clip(start_pose[JOINTS], lo, hi)
     q = np.clip(q0 + ramp * (target - q0), lo, hi)
 
     if name == "random":
@@ -441,7 +435,7 @@ def motion_poses(
 
     poses = np.empty((t.size, N_PARAMS))
     poses[:, :6] = glob
-    poses[:, 6:] = q
+    poses[:, JOINTS] = q
     poses[0] = start_pose
-    poses[0, 6:] = q0
+    poses[0, JOINTS] = q0
     return poses
