@@ -8,7 +8,6 @@ import pytest
 from hand_sog_tracker.core.calibration import (
     GUARD_MARGIN,
     CalibrationRejected,
-    _draw_skin,
     calibrate,
     select_frames,
     shape_score,
@@ -17,6 +16,7 @@ from hand_sog_tracker.core.calibration import (
 from hand_sog_tracker.core.depth_sog import preprocess
 from hand_sog_tracker.core.hand_model import HandShape, default_hand_model
 from hand_sog_tracker.core.kinematics import gaussian_centres
+from hand_sog_tracker.core.skin import draw_skin
 from hand_sog_tracker.core.tracker import Tracker, hand_roi
 from hand_sog_tracker.core.types import TrackerConfig
 from hand_sog_tracker.errors import CalibrationError
@@ -138,7 +138,7 @@ def test_drawn_skin_is_as_wide_as_the_finger() -> None:
     theta = np.zeros(26)
     theta[:3] = (0.0, 60.0, 400.0)
     theta[3] = np.pi
-    depth = _draw_skin(model, theta, INTR, (0, 0, INTR.width, INTR.height))
+    depth = draw_skin(model, theta, INTR, (0, 0, INTR.width, INTR.height))
     tip = model.tip_index[2]  # middle finger's distal Gaussian
     centre = gaussian_centres(model, theta)[tip]
     col, row = (int(round(c)) for c in INTR.project(centre[None])[0])

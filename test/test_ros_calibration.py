@@ -15,7 +15,7 @@ from std_srvs.srv import Trigger
 from hand_sog_tracker.core.calibration import CalibrationRejected, Validation
 from hand_sog_tracker.core.hand_model import HandShape, default_hand_model, rest_pose
 from hand_sog_tracker.core.model_io import load_hand_shape, read_calibration_info
-from hand_sog_tracker.ros import node as node_module
+from hand_sog_tracker.ros import calibration_service
 from hand_sog_tracker.ros.conversions import stamp_to_ns
 from test_ros_node import T0_NS, Rig, hand_depth, image_msg
 
@@ -81,7 +81,7 @@ def test_a_refused_fit_changes_and_saves_nothing(ros_context, tmp_path: Path, mo
         assert len(kwargs["holdout"]) >= 1 and len(kwargs["poses"]) == len(frames)
         raise CalibrationRejected(HandShape(0.9, 0.9, 0.9, 0.9), Validation(3, 0.8412, 0.8321, 0.01))
 
-    monkeypatch.setattr(node_module, "calibrate", refuse)
+    monkeypatch.setattr(calibration_service, "calibrate", refuse)
     rig = Rig(ros_context, tmp_path)
     try:
         rig.send_info()

@@ -1,5 +1,9 @@
 """User-specific hand model: the four scale factors of paper 000, sec. 5.4, with a held-out guard.
 
+One job: fitting and guarding the hand's scale factors; kept together because the fit and the
+guard (:func:`validate`) share frame preparation and pose refits (the skin drawing and its
+score are in :mod:`.skin`).
+
 Fit.  The user holds an open hand toward the camera (any position and
 in-plane orientation).  Each fit frame gets its own pose: the tracked pose when
 the caller has one (the node passes the poses it tracked), else one found by a
@@ -44,10 +48,9 @@ at least :data:`GUARD_MARGIN`, else :class:`CalibrationRejected` is raised
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -66,8 +69,9 @@ from hand_sog_tracker.core.hand_model import (
     HandShape,
     chain_slice,
 )
-from hand_sog_tracker.core.kinematics import attached_points, gaussian_centres, global_rotation
+from hand_sog_tracker.core.kinematics import global_rotation
 from hand_sog_tracker.core.optimizer import maximise
+from hand_sog_tracker.core.skin import SCORE_TOLERANCE_MM, ScoreData, overlap_score, score_data, shape_score
 from hand_sog_tracker.core.tracker import Tracker, coverage, hand_roi
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 from hand_sog_tracker.errors import CalibrationError, HandSogError
@@ -106,7 +110,6 @@ _ROUNDS = ((0.25, 0.05), (0.06, 0.015))
 #: frontal view does not see the palm's thickness, and fitted alone it trades off against
 #: width through the palm's outline (errors of 15-20% and a narrower palm, measured).
 _FACTORS = (("size", "length", "width", "thickness"), ("size", "length", "width", "thickness", "sigma"))
-_TOLERANCE_MM = 12.0
 _SCORE_MARGIN_PX = 12
 _REFIT_ITERATIONS = 15
 #: A fit frame whose fingers are flexed more than this (mean MCP + PIP flexion, rad) is not open.
@@ -235,169 +238,6 @@ class CalibrationResult:
         return self.score_after
 
 
-def _skin(model: HandModel, theta: NDArray[np.float64]):
-    """Capsules of the model's skin: centres (k, 3) mm, radii (k,) mm, index pairs (a, b).
-
-    Consecutive Gaussians along each chain are joined, starting at the chain's
-    first joint (spheres alone leave gaps along a finger); neighbouring palm
-    Gaussians are joined too, so the palm is a filled plate.
-    """
-    ia, ib, extra_radius_of = _skin_topology(model)
-    m = model.n_gaussians
-    centres = gaussian_centres(model, theta)
-    bases = attached_points(model, theta, np.arange(5), np.zeros(5, np.int64), np.zeros((5, 3)))
-    radii = np.concatenate([model.g_sigmas, model.g_sigmas[extra_radius_of]])
-    assert radii.size == m + 5
-    return np.concatenate([centres, bases]), radii, ia, ib
-
-
-_TOPOLOGY_CACHE: dict[tuple[int, bool], tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]] = {}
-
-
-def _skin_topology(model: HandModel) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
-    """Index pairs of the skin capsules and, per chain base, the Gaussian whose radius it takes.
-
-    Depends only on the default layout (scaling keeps the order along each chain
-    and the palm grid's neighbourhoods), so it is cached per Gaussian count.
-    """
-    key = (model.n_gaussians, bool(model.right))
-    if key in _TOPOLOGY_CACHE:
-        return _TOPOLOGY_CACHE[key]
-    m = model.n_gaussians
-    a_idx, b_idx = [], []
-    palm = np.flatnonzero(model.g_chain < 0)
-    off = model.g_offsets[palm] / np.array([model.shape.width, model.shape.length, 1.0])
-    near = np.linalg.norm(off[:, None, :] - off[None, :, :], axis=-1)
-    spacing = np.sort(near + np.eye(palm.size) * 1e9, axis=1)[:, 0].max() * 1.5
-    for i in range(palm.size):
-        for j in range(i, palm.size):
-            if near[i, j] <= spacing:
-                a_idx.append(palm[i]), b_idx.append(palm[j])
-    first = np.zeros(5, np.int64)
-    for c in range(5):
-        ks = np.flatnonzero(model.g_chain == c)
-        order = ks[np.lexsort((model.g_offsets[ks, 1], model.g_segment[ks]))]
-        first[c] = order[0]
-        chain = [m + c, *order]
-        for k0, k1 in zip(chain[:-1], chain[1:]):
-            a_idx.append(k0), b_idx.append(k1)
-    out = (np.array(a_idx), np.array(b_idx), first)
-    _TOPOLOGY_CACHE[key] = out
-    return out
-
-
-def _palm_pairs(model: HandModel, ia: NDArray[np.int64], ib: NDArray[np.int64]) -> list[bool]:
-    """Per capsule: joins two different palm Gaussians (drawn as a quad without end discs)."""
-    m = model.n_gaussians
-    pa = (ia < m) & (model.g_chain[np.minimum(ia, m - 1)] < 0)
-    pb = (ib < m) & (model.g_chain[np.minimum(ib, m - 1)] < 0)
-    return (pa & pb & (ia != ib)).tolist()
-
-
-_SUBPIXEL_BITS = 3
-_SUB = float(1 << _SUBPIXEL_BITS)
-
-
-def _draw_skin(
-    model: HandModel, theta: NDArray[np.float64], intr: Intrinsics, roi: tuple[int, int, int, int]
-) -> NDArray[np.float32]:
-    """Front depth (mm) of the model's skin over ``roi``; ``inf`` where the skin is absent.
-
-    Each capsule of :func:`_skin` is drawn with OpenCV (two end discs and the
-    quad between them, subpixel precision) at one depth, its front surface at
-    its middle, far capsules first so that near ones cover them.
-    """
-    u0, v0, u1, v1 = roi
-    out = np.full((v1 - v0, u1 - u0), np.inf, dtype=np.float32)
-    P, radii, ia, ib = _skin(model, theta)
-    z = np.maximum(P[:, 2], 1.0)
-    uv = intr.project(P) - np.array([u0, v0])
-    # OpenCV fills every pixel a shape's outline touches: half a pixel wider all round.
-    r_px = np.maximum(radii * intr.fx / z - 0.5, 0.0)
-    front = 0.5 * (z[ia] + z[ib]) - 0.5 * (radii[ia] + radii[ib])
-    ab = uv[ib] - uv[ia]
-    normal = np.stack([-ab[:, 1], ab[:, 0]], 1) / np.maximum(np.linalg.norm(ab, axis=1), 1e-9)[:, None]
-    ra, rb = r_px[ia][:, None], r_px[ib][:, None]
-    quads = np.stack(
-        [uv[ia] + ra * normal, uv[ib] + rb * normal, uv[ib] - rb * normal, uv[ia] - ra * normal], 1
-    )
-    quads_i = np.round(quads * _SUB).astype(np.int32)
-    centres_i = np.round(uv * _SUB).astype(np.int64).tolist()
-    radii_i = np.round(r_px * _SUB).astype(np.int64).tolist()
-    has_disc = (radii > 0).tolist()
-    order = np.argsort(-front).tolist()
-    front_l = front.tolist()
-    ia_l, ib_l = ia.tolist(), ib.tolist()
-    quad_only = _palm_pairs(model, ia, ib)
-    for k in order:
-        value = front_l[k]
-        a_k, b_k = ia_l[k], ib_l[k]
-        if a_k != b_k:
-            cv2.fillConvexPoly(out, quads_i[k], value, cv2.LINE_8, _SUBPIXEL_BITS)
-        if quad_only[k]:
-            continue  # the palm's own discs are drawn by its one-Gaussian capsules
-        for e in (a_k,) if a_k == b_k else (a_k, b_k):
-            if has_disc[e]:
-                cv2.circle(out, centres_i[e], radii_i[e], value, -1, cv2.LINE_8, _SUBPIXEL_BITS)
-    return out
-
-
-@dataclass(frozen=True, eq=False)
-class _ScoreData:
-    """One frame's data inside the scoring box (see :func:`shape_score`)."""
-
-    roi: tuple[int, int, int, int]
-    depth: NDArray[np.float32]  # (h, w) mm, 0 = none
-    points: NDArray[np.float64]  # (h, w, 3) back-projected pixels, mm
-    cache: dict = field(default_factory=dict)  # points projected on the last hand axis
-
-
-def _score_data(pre: Preprocessed, roi: tuple[int, int, int, int]) -> _ScoreData:
-    intr = pre.intrinsics
-    u0, v0, u1, v1 = (max(0, roi[0]), max(0, roi[1]), min(intr.width, roi[2]), min(intr.height, roi[3]))
-    u1, v1 = max(u1, u0), max(v1, v0)
-    depth = pre.depth_mm[v0:v1, u0:u1].astype(np.float32)
-    vv, uu = np.mgrid[v0:v1, u0:u1]
-    pts = intr.backproject(np.stack([uu.ravel(), vv.ravel()], 1).astype(np.float64), depth.ravel().astype(np.float64))
-    return _ScoreData((u0, v0, u1, v1), depth, pts.reshape(depth.shape + (3,)))
-
-
-def _score(
-    model: HandModel, theta: NDArray[np.float64], data: _ScoreData, intr: Intrinsics, tolerance_mm: float
-) -> float:
-    if data.depth.size == 0:
-        return 0.0
-    model_depth = _draw_skin(model, theta, intr, data.roi)
-    covered = np.isfinite(model_depth)
-    axis = global_rotation(theta)[:, 1]
-    key = axis.tobytes()
-    if data.cache.get("axis") != key:  # the rotation rarely changes between candidates
-        data.cache["axis"], data.cache["along"] = key, data.points @ axis
-    hand = (data.depth > 0) & (data.cache["along"] > float(theta[:3] @ axis))
-    both = covered & hand & (np.abs(model_depth - data.depth) < tolerance_mm)
-    return float(both.sum() / max((covered | hand).sum(), 1))
-
-
-def shape_score(
-    model: HandModel,
-    theta: NDArray[np.float64],
-    pre: Preprocessed,
-    roi: tuple[int, int, int, int],
-    tolerance_mm: float = _TOLERANCE_MM,
-) -> float:
-    """Depth-aware overlap of the model's silhouette with the hand's, in [0, 1].
-
-    The model's skin is drawn as capsules joining consecutive Gaussians of each
-    chain and neighbouring palm Gaussians (radii = their sigmas, mm), projected
-    into the image at the resolution of ``pre``.  Data pixels count if they lie
-    inside ``roi`` (u0, v0, u1, v1, px, end-exclusive) and on the finger side
-    of the wrist (the forearm is not part of the model).  Score = pixels
-    covered by both with depths within ``tolerance_mm`` (mm), divided by pixels
-    covered by either.
-    """
-    return _score(model, theta, _score_data(pre, roi), pre.intrinsics, tolerance_mm)
-
-
 def _palm_mean(model: HandModel) -> NDArray[np.float64]:
     """Mean palm-Gaussian offset in the hand frame (mm), mirrored for a left hand."""
     mean = model.g_offsets[model.g_chain < 0].mean(axis=0)
@@ -433,7 +273,7 @@ class _Frame:
 
     pre: Preprocessed
     data: ImageSoG
-    scoring: _ScoreData
+    scoring: ScoreData
     pose: NDArray[np.float64]
 
 
@@ -447,7 +287,7 @@ def _prepare(pre: Preprocessed, pose: NDArray[np.float64], model: HandModel, con
     lo = np.floor((data.mu - data.sigma[:, None]).min(axis=0)) - _SCORE_MARGIN_PX
     hi = np.ceil((data.mu + data.sigma[:, None]).max(axis=0)) + _SCORE_MARGIN_PX
     box = (int(lo[0]), int(lo[1]), int(hi[0]) + 1, int(hi[1]) + 1)
-    return _Frame(pre, data, _score_data(pre, box), np.asarray(pose, dtype=np.float64).copy())
+    return _Frame(pre, data, score_data(pre, box), np.asarray(pose, dtype=np.float64).copy())
 
 
 def _preprocess_all(frames: Sequence[NDArray], intrinsics: Intrinsics, config: TrackerConfig) -> list[Preprocessed]:
@@ -563,7 +403,7 @@ def validate(
             th = _keep_palm_centre(fr.pose, current, m)
             th = _refine(m, th, fr.data, config, GUARD_RIGID_ITERATIONS, _RIGID)
             th = _refine(m, th, fr.data, config, GUARD_REFIT_ITERATIONS)
-            sums[k] += _score(m, th, fr.scoring, pre.intrinsics, _TOLERANCE_MM)
+            sums[k] += overlap_score(m, th, fr.scoring, pre.intrinsics, SCORE_TOLERANCE_MM)
         n += 1
     if n == 0:
         raise CalibrationError("no hand in the held-out frames (hold an open hand toward the camera)")
@@ -660,7 +500,10 @@ def calibrate(
         """Mean score of ``shape`` over the fit frames, scaled about each palm centre."""
         m = mirrored.scaled(shape)
         ths = [_keep_palm_centre(fr.pose, ref_model, m) for fr in fits]
-        return sum(_score(m, th, fr.scoring, intr, _TOLERANCE_MM) for th, fr in zip(ths, fits)) / len(fits), ths
+        return (
+            sum(overlap_score(m, th, fr.scoring, intr, SCORE_TOLERANCE_MM) for th, fr in zip(ths, fits)) / len(fits),
+            ths,
+        )
 
     best_shape = model.shape
     ref_model = mirrored.scaled(best_shape)

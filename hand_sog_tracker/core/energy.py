@@ -1,5 +1,8 @@
 """The tracking objective and its analytic gradient (paper 000, sec. 5.2).
 
+One job: the objective and its gradient; kept together because every term shares the model
+constants and the pose's kinematics, and each gradient reads best next to its energy.
+
 ``E = E_sim - w_c E_col - w_d E_dan - w_l E_lim - w_s E_smo - w_o E_ord - w_sal E_sal
 - w_sil E_sil`` is maximised over the 26 pose parameters.  ``E_sil`` (every model Gaussian
 projects onto the hand's pixels) lives in :mod:`hand_sog_tracker.core.silhouette`.  The last

@@ -1,5 +1,9 @@
 """The ``hand_sog_tracker`` ROS 2 node: depth images in, hand pose out.
 
+One job: the node's callbacks (input, tracking, publishing, diagnostics); kept together because
+they share the node's state on one executor thread (``~/calibrate`` is in
+:mod:`.calibration_service`).
+
 Topics (relative names, so a namespace or remapping moves them):
 
 ========================================  =====================================================
@@ -67,22 +71,19 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_msgs.msg import Header, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from hand_sog_tracker.core.calibration import CalibrationRejected, CalibrationResult, calibrate, select_frames
 from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
-from hand_sog_tracker.core.model_io import calibration_metadata, load_hand_shape, save_hand_shape
+from hand_sog_tracker.core.model_io import load_hand_shape
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerStatus, TrackResult
 from hand_sog_tracker.core.urdf import hand_urdf
 from hand_sog_tracker.errors import (
-    CalibrationError,
     DepthImageError,
     HandSogError,
     IntrinsicsError,
@@ -107,6 +108,7 @@ from hand_sog_tracker.interface import (
     image_to_depth_mm,
     stamp_to_ns,
 )
+from hand_sog_tracker.ros.calibration_service import CALIB_HISTORY, CalibFrame, CalibrationService
 from hand_sog_tracker.ros.conversions import (
     bgr_to_image_msg,
     delete_all_markers,
@@ -135,11 +137,6 @@ WARN_THROTTLE_S = 2.0
 #: A gap between two received images longer than this is a pause, not missed frames.
 MAX_GAP_S = 1.0
 _NUMBERS = re.compile(r"\d+(\.\d+)?")
-#: Tracked frames kept for ~/calibrate (one at least CALIB_SPACING_S after the previous).
-CALIB_HISTORY = 15
-CALIB_SPACING_S = 0.06
-#: Frames of the history held out of the fit to check it (the guard).
-CALIB_HOLDOUT = 3
 
 
 @dataclass(frozen=True)
@@ -189,7 +186,7 @@ class _Window:
     start: float = field(default_factory=time.monotonic)
 
 
-class TrackerNode(Node):
+class TrackerNode(CalibrationService, Node):
     """Sum-of-Gaussians hand tracker node (see the module docstring).
 
     Parameters
@@ -237,7 +234,7 @@ class TrackerNode(Node):
         self._markers_shown = False
         self._frame_id = ""
         # Recent tracked frames for ~/calibrate: (depth, intrinsics, pose or None, stamp ns).
-        self._calib_history: deque[_CalibFrame] = deque(maxlen=CALIB_HISTORY)
+        self._calib_history: deque[CalibFrame] = deque(maxlen=CALIB_HISTORY)
 
         # Every callback is in the node's default group except ~/calibrate: its coroutine holds
         # its callback group while it awaits the calibration worker thread, so it gets a group
@@ -609,141 +606,6 @@ class TrackerNode(Node):
                 TFMessage, TF_TOPIC, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
             )
         self._tf_pub.publish(self._tf_msg_type(transforms=hand_transforms(header, pose, tips_mm)))
-
-    def _remember(
-        self, depth: NDArray[np.float32], intr: Intrinsics, pose: NDArray[np.float64] | None, stamp: int
-    ) -> None:
-        """Keep a tracked frame for ~/calibrate (at most one per CALIB_SPACING_S)."""
-        last = self._calib_history[-1] if self._calib_history else None
-        if last is not None and 0 <= stamp - last.stamp_ns < CALIB_SPACING_S * 1e9:
-            return
-        self._calib_history.append(_CalibFrame(depth, intr, None if pose is None else pose.copy(), stamp))
-
-    async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        """Fit the hand model to recent frames on a worker thread; tracking goes on meanwhile.
-
-        The callback is a coroutine: it starts the fit on a thread and awaits its result, so
-        the single-threaded executor keeps running the image callbacks in between (the
-        worker triggers a guard condition when done, which wakes the executor).  The fit
-        uses ``calibration_frames`` open-hand frames of the last second (the least spread
-        ones) and is checked on up to CALIB_HOLDOUT other frames of it (the guard of
-        :func:`~hand_sog_tracker.core.calibration.calibrate`); a refused fit changes and
-        saves nothing.  Calls are served one at a time (own callback group).
-        """
-        with self._tracker_lock:  # a consistent snapshot of the history and the model
-            history = list(self._calib_history)
-            model = self._tracker.model
-        settings = self._settings
-        if not history:
-            response.success = False
-            response.message = (
-                "no depth frames received yet: start the camera and hold an open hand in view"
-            )
-            self.get_logger().warning(f"calibration refused: {response.message}")
-            return response
-        intr = history[-1].intrinsics
-        history = [h for h in history if h.intrinsics == intr]
-        fit_idx, hold_idx = select_frames([h.pose for h in history], settings.calibration_frames, CALIB_HOLDOUT)
-        if not fit_idx or not hold_idx:
-            tracked = sum(h.pose is not None for h in history)
-            response.success = False
-            response.message = (
-                f"calibration failed: {tracked} tracked frames in the last "
-                f"{CALIB_HISTORY * CALIB_SPACING_S:.1f} s, {len(fit_idx)} with an open hand; need an open "
-                "hand on at least one frame and one more frame to check the fit on (hold an open hand "
-                "toward the camera for a second)"
-            )
-            self.get_logger().warning(response.message)
-            return response
-        fit = [history[i] for i in fit_idx]
-        hold = [history[i] for i in hold_idx]
-        self.get_logger().info(
-            f"calibrating the hand model on {len(fit)} frames, checking it on {len(hold)} others "
-            "(tracking goes on) ..."
-        )
-        future: Future = Future()
-
-        def work() -> None:
-            try:
-                try:  # Linux: a nicer thread leaves the CPU to tracking when cores are busy
-                    import os
-
-                    os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
-                except (AttributeError, OSError):
-                    pass
-                future.set_result(
-                    calibrate(
-                        [h.depth for h in fit], intr, settings.tracker, model,
-                        poses=[h.pose for h in fit],
-                        holdout=[h.depth for h in hold], holdout_poses=[h.pose for h in hold],
-                    )
-                )
-            except BaseException as err:  # noqa: BLE001 - handed to the service callback
-                future.set_exception(err)
-            finally:
-                try:
-                    self._calib_wake.trigger()
-                except Exception:  # noqa: BLE001 - the node was destroyed meanwhile
-                    pass
-
-        threading.Thread(target=work, name="hand_sog_calibration", daemon=True).start()
-        try:
-            res: CalibrationResult = await future
-        except CalibrationRejected as err:
-            response.success = False
-            response.message = f"calibration rejected, nothing changed or saved: {err}"
-            self.get_logger().warning(response.message)
-            return response
-        except HandSogError as err:
-            kind = "calibration failed" if isinstance(err, CalibrationError) else "calibration error"
-            response.success = False
-            response.message = f"{kind}: {err}"
-            self.get_logger().warning(response.message)
-            return response
-        except Exception as err:  # noqa: BLE001 - a bug in the fit must not kill the node
-            response.success = False
-            response.message = f"calibration error: {err!r}"
-            self.get_logger().error(response.message)
-            return response
-        with self._tracker_lock:  # atomic switch between two frames
-            self._tracker.set_model(res.model)
-        s = res.shape
-        v = res.validation
-        assert v is not None
-        try:
-            path = save_hand_shape(
-                settings.user_model_path,
-                s,
-                right=settings.tracker.right_hand,
-                extra=calibration_metadata(
-                    res,
-                    fit_stamps_ns=[fit[i].stamp_ns for i in res.used_frames],
-                    holdout_stamps_ns=[h.stamp_ns for h in hold],
-                ),
-            )
-            saved = f"saved to {path}"
-        except HandSogError as err:
-            saved = f"NOT saved: {err}"
-            self.get_logger().warning(f"calibrated model could not be saved: {err}")
-        response.success = True
-        response.message = (
-            f"length={s.length:.3f} width={s.width:.3f} depth={s.depth:.3f} sigma={s.sigma:.3f}; "
-            f"fit score {res.score_before:.4f} -> {res.score_after:.4f} "
-            f"({len(res.used_frames)} frames, {res.seconds:.2f} s); {v.describe()}; {saved}"
-        )
-        self.get_logger().info(f"calibrated: {response.message}")
-        return response
-
-
-@dataclass(frozen=True, eq=False)
-class _CalibFrame:
-    """A tracked frame kept for ~/calibrate."""
-
-    depth: NDArray[np.float32]
-    intrinsics: Intrinsics
-    pose: NDArray[np.float64] | None
-    stamp_ns: int
-
 
 def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
     """The executor :func:`main` uses: single-threaded.

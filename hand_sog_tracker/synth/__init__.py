@@ -2,7 +2,10 @@
 
 NumPy only.  See :mod:`~hand_sog_tracker.synth.render` (the renderer),
 :mod:`~hand_sog_tracker.synth.motions` (scripted Dexter-1-like motions) and
-:mod:`~hand_sog_tracker.synth.sequence` (rendered sequences with ground truth).
+:mod:`~hand_sog_tracker.synth.sequence` (rendered sequences with ground truth);
+the skinned mesh hand: :mod:`~hand_sog_tracker.synth.mesh` (with :mod:`~hand_sog_tracker.synth.gltf`
+its file reader, :mod:`~hand_sog_tracker.synth.raster` its rasteriser and
+:mod:`~hand_sog_tracker.synth.sensors` its sensor models).
 """
 
 from __future__ import annotations

@@ -1,5 +1,9 @@
 """Depth renderer of a skinned triangle-mesh hand: synthetic data independent of the tracker's model.
 
+One job: load, shape, pose and skin the mesh hand and render it (the rasteriser and sensors are
+:mod:`.raster` and :mod:`.sensors`); kept together because the pose mapping below describes
+:func:`load_mesh_hand` and :func:`pose_mesh` as one design.
+
 The capsule renderer (:mod:`hand_sog_tracker.synth.render`) is built from the
 tracker's own segments and radii, so it flatters the tracker.  This one poses
 the skinned WebXR generic hand mesh (``data/webxr_hand/right.glb`` and
@@ -68,20 +72,10 @@ scores about 0 mm.
 
 Rasteriser and sensors
 ----------------------
-:func:`rasterise`: vertices are projected with any pinhole
-:class:`~hand_sog_tracker.core.types.Intrinsics`; triangles are grouped by the
-power-of-two size of their pixel bounding box, each group is tested on the
-pixel centres of its boxes at once (edge functions), depth is interpolated
-as ``1/z`` (exact for planar triangles) and the nearest hit per pixel is kept
-with ``np.minimum.at``.  Sensor models (:data:`SENSORS`): ``clean``; ``tof``
-(Gaussian depth noise growing with depth, flying pixels interpolated between
-foreground and background at depth edges, dropout at grazing angles from the
-true surface normal, sparse random dropout, whole millimetres like the uint16
-output of ToF cameras); ``structured`` (a projector
-50 mm to the right of the camera: shadow holes left of depth edges, holes
-at grazing angles and on the left border of the silhouette, sub-pixel
-disparity noise, a 3x3 median over the disparity, and disparity quantised in
-1/8 px, so the depth step grows with ``z**2``).
+The posed mesh is drawn by the Z-buffer rasteriser :func:`rasterise` of
+:mod:`hand_sog_tracker.synth.raster`, and a sensor model (:data:`SENSORS`:
+``clean``, ``tof``, ``structured``) of :mod:`hand_sog_tracker.synth.sensors`
+is applied to the clean depth; both are re-exported here.
 """
 
 from __future__ import annotations
@@ -100,6 +94,8 @@ from hand_sog_tracker.core.kinematics import chain_frames, check_pose, global_ro
 from hand_sog_tracker.core.types import Intrinsics
 from hand_sog_tracker.errors import InputError
 from hand_sog_tracker.synth.gltf import read_glb
+from hand_sog_tracker.synth.raster import rasterise, view_cosine
+from hand_sog_tracker.synth.sensors import SENSORS, apply_sensor
 
 if TYPE_CHECKING:
     from hand_sog_tracker.synth.sequence import SyntheticFrame
@@ -124,8 +120,6 @@ __all__ = [
 
 #: Directory of the bundled WebXR hand meshes (``right.glb``, ``left.glb``, ``LICENSE.md``).
 MESH_DIR: Final[Path] = Path(__file__).resolve().parent.parent / "data" / "webxr_hand"
-#: Sensor models of :func:`apply_sensor`.
-SENSORS: Final[tuple[str, ...]] = ("clean", "tof", "structured")
 
 _FINGER_PREFIX: Final = ("thumb", "index-finger", "middle-finger", "ring-finger", "pinky-finger")
 _CHAIN_JOINTS: Final[tuple[tuple[str, ...], ...]] = (
@@ -143,8 +137,6 @@ _FOREARM_R_ELBOW = 33.0  #: mm, at the far end
 _FOREARM_FLATTEN = 0.72  #: palmar-dorsal / radial-ulnar semi-axis (the mesh's wrist section)
 _FOREARM_RINGS = 11
 _FOREARM_SIDES = 20
-
-_NEAR_MM = 1.0  #: triangles with a vertex closer than this (or behind the camera) are skipped
 
 
 def _ref_model():  # the tracker's default right hand: zero-pose directions and chain rotations
@@ -497,245 +489,6 @@ def mesh_fingertips(
     return pose_mesh(theta, shape, right, forearm=False).fingertips
 
 
-_SIZE_CLASSES = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192)
-
-
-def rasterise(
-    vertices: NDArray[np.float64], triangles: NDArray[np.int64], intrinsics: Intrinsics
-) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """Z-buffer a triangle mesh.
-
-    Parameters
-    ----------
-    vertices : array, shape (n, 3), mm, camera optical frame
-    triangles : int array, shape (t, 3)
-    intrinsics : Intrinsics
-
-    Returns
-    -------
-    zbuf : array, shape (H, W), float64
-        Depth ``z`` (mm) of the nearest triangle at each pixel centre; ``inf`` = none.
-    tri_id : int array, shape (H, W)
-        Index of that triangle, -1 where none.
-    """
-    W, H = intrinsics.width, intrinsics.height
-    v = np.asarray(vertices, dtype=np.float64)
-    tris = np.asarray(triangles, dtype=np.int64)
-    zbuf = np.full(H * W, np.inf)
-    tri_id = np.full(H * W, -1, dtype=np.int64)
-    z = v[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = intrinsics.fx * v[:, 0] / z + intrinsics.cx
-        w = intrinsics.fy * v[:, 1] / z + intrinsics.cy
-    tu, tv, tz = u[tris], w[tris], z[tris]  # (t, 3)
-    ok = np.all(tz > _NEAR_MM, axis=1)
-    u0 = np.ceil(tu.min(axis=1))
-    u1 = np.floor(tu.max(axis=1))
-    v0 = np.ceil(tv.min(axis=1))
-    v1 = np.floor(tv.max(axis=1))
-    u0, v0 = np.maximum(u0, 0), np.maximum(v0, 0)
-    u1, v1 = np.minimum(u1, W - 1), np.minimum(v1, H - 1)
-    area = (tu[:, 1] - tu[:, 0]) * (tv[:, 2] - tv[:, 0]) - (tu[:, 2] - tu[:, 0]) * (tv[:, 1] - tv[:, 0])
-    ok &= (u1 >= u0) & (v1 >= v0) & (np.abs(area) > 1e-12)
-    idx = np.nonzero(ok)[0]
-    if idx.size == 0:
-        return zbuf.reshape(H, W), tri_id.reshape(H, W)
-    bw = (u1[idx] - u0[idx] + 1).astype(np.int64)
-    bh = (v1[idx] - v0[idx] + 1).astype(np.int64)
-    cw = np.searchsorted(_SIZE_CLASSES, bw)
-    ch = np.searchsorted(_SIZE_CLASSES, bh)
-    key = cw * 64 + ch
-    pix_all, z_all, id_all = [], [], []
-    for k in np.unique(key):
-        sel = idx[key == k]
-        SW, SH = _SIZE_CLASSES[int(k) // 64], _SIZE_CLASSES[int(k) % 64]
-        pu = u0[sel][:, None, None] + np.arange(SW)[None, None, :]  # (m, 1, SW)
-        pv = v0[sel][:, None, None] + np.arange(SH)[None, :, None]  # (m, SH, 1)
-        a, b_, c = tu[sel], tv[sel], tz[sel]
-        inv_area = 1.0 / area[sel][:, None, None]
-        U = [a[:, i][:, None, None] for i in range(3)]
-        Vv = [b_[:, i][:, None, None] for i in range(3)]
-        # barycentric weights from edge functions
-        l0 = ((U[1] - pu) * (Vv[2] - pv) - (U[2] - pu) * (Vv[1] - pv)) * inv_area
-        l1 = ((U[2] - pu) * (Vv[0] - pv) - (U[0] - pu) * (Vv[2] - pv)) * inv_area
-        l2 = 1.0 - l0 - l1
-        eps = -1e-9
-        inside = (l0 >= eps) & (l1 >= eps) & (l2 >= eps)
-        inside &= (pu <= u1[sel][:, None, None]) & (pv <= v1[sel][:, None, None])
-        if not inside.any():
-            continue
-        invz = l0 / c[:, 0][:, None, None] + l1 / c[:, 1][:, None, None] + l2 / c[:, 2][:, None, None]
-        m_i, y_i, x_i = np.nonzero(inside)
-        pix_all.append((v0[sel][m_i] + y_i).astype(np.int64) * W + (u0[sel][m_i] + x_i).astype(np.int64))
-        z_all.append(1.0 / invz[m_i, y_i, x_i])
-        id_all.append(sel[m_i])
-    if not pix_all:
-        return zbuf.reshape(H, W), tri_id.reshape(H, W)
-    pix = np.concatenate(pix_all)
-    zz = np.concatenate(z_all)
-    ids = np.concatenate(id_all)
-    np.minimum.at(zbuf, pix, zz)
-    win = zz <= zbuf[pix]
-    tri_id[pix[win]] = ids[win]
-    return zbuf.reshape(H, W), tri_id.reshape(H, W)
-
-
-def _view_cosine(
-    vertices: NDArray[np.float64], triangles: NDArray[np.int64], tri_id: NDArray[np.int64], intr: Intrinsics
-) -> NDArray[np.float32]:
-    """|cos| of the angle between each pixel's ray and its triangle's normal, (H, W); 1 off the mesh."""
-    p = vertices[triangles]
-    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    H, W = tri_id.shape
-    uu = (np.arange(W) - intr.cx) / intr.fx
-    vv = (np.arange(H) - intr.cy) / intr.fy
-    ray = np.empty((H, W, 3))
-    ray[:, :, 0] = uu[None, :]
-    ray[:, :, 1] = vv[:, None]
-    ray[:, :, 2] = 1.0
-    ray /= np.linalg.norm(ray, axis=2, keepdims=True)
-    hit = tri_id >= 0
-    cos = np.ones((H, W), dtype=np.float32)
-    cos[hit] = np.abs(np.einsum("ki,ki->k", n[tri_id[hit]], ray[hit]))
-    return cos
-
-
-# --- sensor models ----------------------------------------------------------------------------
-
-_EDGE_JUMP_MM = 20.0
-_TOF_NOISE_MM = 1.2  #: ToF noise sigma at 400 mm, grows with (z / 400)^2
-_TOF_FLYING_SHARE = 0.4
-_TOF_GRAZING_COS = 0.3
-_TOF_RANDOM_DROPOUT = 0.002
-_SL_BASELINE_MM = 50.0
-_SL_SUBPIXEL = 8.0  #: disparity steps per pixel
-_SL_DISP_NOISE_PX = 0.06
-_SL_GRAZING_COS = (0.2, 0.4)  #: holes certain below the first, none above the second
-
-
-def _neighbours(z: NDArray[np.float32], fill: float) -> NDArray[np.float32]:
-    p = np.pad(z, 1, mode="constant", constant_values=fill)
-    return np.stack([p[:-2, 1:-1], p[2:, 1:-1], p[1:-1, :-2], p[1:-1, 2:]])
-
-
-def _roi(mask: NDArray[np.bool_], pad: int) -> tuple[slice, slice] | None:
-    rows = np.nonzero(mask.any(axis=1))[0]
-    cols = np.nonzero(mask.any(axis=0))[0]
-    if rows.size == 0:
-        return None
-    H, W = mask.shape
-    return (
-        slice(max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H)),
-        slice(max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)),
-    )
-
-
-def _tof(depth: NDArray[np.float32], cos: NDArray[np.float32], rng: np.random.Generator) -> None:
-    roi = _roi(depth > 0, 2)
-    if roi is None:
-        return
-    d = depth[roi]
-    c = cos[roi]
-    clean = d.copy()
-    ok = clean > 0
-    # Dropout at grazing angles (weak return).
-    p_drop = 0.75 * np.clip((_TOF_GRAZING_COS - c) / _TOF_GRAZING_COS, 0.0, 1.0)
-    cand = np.nonzero(ok & (p_drop > 0))
-    drop = rng.random(cand[0].size) < p_drop[cand]
-    d[cand[0][drop], cand[1][drop]] = 0.0
-    # Flying pixels: mixed returns between foreground and background at depth edges.
-    nb = _neighbours(clean, -1.0)
-    valid_nb = nb > 0
-    lo = np.minimum(np.where(valid_nb, nb, np.inf).min(axis=0), clean)
-    hi = np.maximum(np.where(valid_nb, nb, -np.inf).max(axis=0), clean)
-    jump = ok & (hi - lo > _EDGE_JUMP_MM)
-    cand = np.nonzero(jump)
-    pick = rng.random(cand[0].size) < _TOF_FLYING_SHARE
-    iy, ix = cand[0][pick], cand[1][pick]
-    frac = rng.uniform(0.1, 0.9, iy.size)
-    d[iy, ix] = (lo[iy, ix] + frac * (hi[iy, ix] - lo[iy, ix])).astype(np.float32)
-    cand = np.nonzero(ok & ~jump & np.any(nb == 0, axis=0))  # next to no return: weak, often lost
-    drop = rng.random(cand[0].size) < 0.3
-    d[cand[0][drop], cand[1][drop]] = 0.0
-    # Depth noise and sparse dropout.
-    sigma = np.float32(_TOF_NOISE_MM / 400.0**2) * d * d
-    d += sigma * rng.standard_normal(d.shape, dtype=np.float32)
-    np.maximum(d, 0.0, out=d)
-    n_drop = rng.binomial(d.size, _TOF_RANDOM_DROPOUT)
-    d.reshape(-1)[rng.integers(0, d.size, n_drop)] = 0.0
-    np.round(d, out=d)  # ToF cameras report whole millimetres
-
-
-def _structured(
-    depth: NDArray[np.float32], cos: NDArray[np.float32], rng: np.random.Generator, intr: Intrinsics
-) -> None:
-    roi = _roi(depth > 0, 2)
-    if roi is None:
-        return
-    d = depth[roi]
-    c = cos[roi]
-    ok = d > 0
-    fb = intr.fx * _SL_BASELINE_MM
-    disp = np.where(ok, fb / np.maximum(d, 1e-3), 0.0).astype(np.float64)  # px, 0 = none
-    # Projector shadow: the projector sits to the right (+x); a pixel is hidden
-    # from it if something to its right has a disparity larger by the pixel distance.
-    Hh, Ww = disp.shape
-    span = int(np.ceil(disp[ok].max() - disp[ok].min())) if ok.any() else 0
-    shadow = np.zeros_like(ok)
-    for k in range(1, min(span, Ww - 1) + 1):
-        occl = np.zeros_like(disp)
-        occl[:, :-k] = disp[:, k:] - k
-        shadow |= occl > disp + 0.5
-    # Left border of the silhouette: the matching window straddles the edge.
-    left = np.zeros_like(ok)
-    left[:, 1:] = ok[:, 1:] & (~ok[:, :-1] | (disp[:, :-1] < disp[:, 1:] - fb / 400.0**2 * _EDGE_JUMP_MM))
-    left &= rng.random(left.shape) < 0.5
-    # Grazing angles.
-    p_hole = np.clip((_SL_GRAZING_COS[1] - c) / (_SL_GRAZING_COS[1] - _SL_GRAZING_COS[0]), 0.0, 1.0)
-    graze = ok & (rng.random(ok.shape) < p_hole)
-    # Disparity noise, 3x3 median over valid neighbours of similar disparity, quantisation.
-    noisy = disp + _SL_DISP_NOISE_PX * rng.standard_normal(disp.shape)
-    pad = np.pad(noisy, 1, mode="edge")
-    padok = np.pad(ok, 1, mode="constant", constant_values=False)
-    stack = np.stack([pad[i : i + Hh, j : j + Ww] for i in range(3) for j in range(3)])
-    sok = np.stack([padok[i : i + Hh, j : j + Ww] for i in range(3) for j in range(3)])
-    sok &= np.abs(stack - noisy[None]) < 1.0
-    srt = np.sort(np.where(sok, stack, np.inf), axis=0)  # valid values first
-    cnt = np.maximum(sok.sum(axis=0), 1)
-    lo_i = ((cnt - 1) // 2)[None]
-    hi_i = (cnt // 2)[None]
-    med = 0.5 * (np.take_along_axis(srt, lo_i, axis=0)[0] + np.take_along_axis(srt, hi_i, axis=0)[0])
-    med = np.where(ok & np.isfinite(med), med, 0.0)
-    q = np.round(med * _SL_SUBPIXEL) / _SL_SUBPIXEL
-    out = np.where(ok & (q > 0), fb / np.maximum(q, 1e-6), 0.0)
-    out[shadow | left | graze] = 0.0
-    n_drop = rng.binomial(out.size, 0.001)
-    out.reshape(-1)[rng.integers(0, out.size, n_drop)] = 0.0
-    d[...] = out.astype(np.float32)
-
-
-def apply_sensor(
-    depth: NDArray[np.float32],
-    cos: NDArray[np.float32],
-    sensor: str,
-    intrinsics: Intrinsics,
-    rng: np.random.Generator,
-) -> None:
-    """Apply a sensor model (:data:`SENSORS`) in place to a clean depth image (H, W) mm (0 = none).
-
-    ``cos`` (H, W) is |cos| of the angle between the viewing ray and the surface normal.
-    """
-    if sensor == "clean":
-        return
-    if sensor == "tof":
-        _tof(depth, cos, rng)
-    elif sensor == "structured":
-        _structured(depth, cos, rng, intrinsics)
-    else:
-        raise InputError(f"unknown sensor {sensor!r}; choose one of {', '.join(SENSORS)}")
-
-
 def render_mesh_depth(
     theta: NDArray[np.float64],
     intrinsics: Intrinsics,
@@ -776,7 +529,7 @@ def render_mesh_depth(
         zbuf = np.where(zbuf < options.background_mm, zbuf, options.background_mm)
     depth = np.where(np.isfinite(zbuf), zbuf, 0.0).astype(np.float32)
     if options.sensor != "clean":
-        cos = _view_cosine(pm.vertices, pm.triangles, np.where(hit, tri_id, -1), intrinsics)
+        cos = view_cosine(pm.vertices, pm.triangles, np.where(hit, tri_id, -1), intrinsics)
         if options.background_mm is not None:
             cos[~hit] = 1.0
         apply_sensor(depth, cos, options.sensor, intrinsics, rng)

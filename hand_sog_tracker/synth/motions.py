@@ -1,5 +1,8 @@
 """Scripted hand motions in the spirit of the Dexter 1 sequences (paper 000, sec. 6).
 
+One job: the scripted motions; kept together because each motion is a short function and
+all share the key articulations and the small interpolation helpers.
+
 Every motion is a smooth function of time ``t = k / fps`` (so the first frames
 of a short and a long sequence agree), starts exactly at the start pose and
 keeps all joint angles within the model's limits.  The default start pose is

@@ -1,5 +1,8 @@
 """Ray-cast depth renderer of a surface hand (ground-truth data for tests and demos).
 
+One job: the capsule-hand renderer; kept together because its primitives, their ray
+intersections and its sensor artefacts are one pipeline used only by :func:`render_depth`.
+
 The rendered hand is deliberately *not* the tracker's Sum of Gaussians: it is a
 surface made of
 

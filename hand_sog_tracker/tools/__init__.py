@@ -18,6 +18,10 @@ Modules they share
 bagio
     Reading and writing depth / CameraInfo / ground-truth bags with ``rosbags`` (no ROS needed;
     topic names and message conversions from :mod:`hand_sog_tracker.interface`).
+bagwrite
+    Writing them (``BagWriter``, ``write_depth_bag``; re-exported by ``bagio``).
+bagmsgs
+    The bag convention's topics and types and the rosbags message builders (re-exported by ``bagio``).
 bagset
     Which bags to evaluate: bags and folders of bags with their ``hand_sog_sample.json`` sidecar.
 evaluation

@@ -1,5 +1,10 @@
 """Reading and writing depth bags with ``rosbags`` (no ROS installation needed).
 
+One job: reading depth bags; kept together because the reader, its topic checks and its error
+messages are one contract.  The writer (:mod:`hand_sog_tracker.tools.bagwrite`) and the
+message builders and bag-convention names (:mod:`hand_sog_tracker.tools.bagmsgs`) are
+re-exported here, so ``from hand_sog_tracker.tools.bagio import ...`` serves both.
+
 Bag convention (contract 5)
 ---------------------------
 ``/camera/depth/image_rect_raw`` (sensor_msgs/Image)
@@ -24,24 +29,18 @@ files are accepted.  Every failure of the bag itself is raised as
 from __future__ import annotations
 
 import bisect
-import functools
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace, TracebackType
-from typing import Any, Final, Iterable, Iterator, Literal
+from typing import Any, Iterator
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
-from rosbags.typesys.store import Typestore
 
-from hand_sog_tracker import interface
 from hand_sog_tracker.core.types import Intrinsics
-from hand_sog_tracker.errors import BagError, HandSogError, InputError
+from hand_sog_tracker.errors import BagError, HandSogError
 from hand_sog_tracker.interface import (
     COMPRESSED_SUFFIX,
     camera_info_to_intrinsics,
@@ -49,6 +48,26 @@ from hand_sog_tracker.interface import (
     image_to_depth_mm,
     stamp_to_ns,
 )
+from hand_sog_tracker.tools.bagmsgs import (
+    COMPRESSED_TYPE,
+    DEPTH_TOPIC,
+    GT_TOPIC,
+    GT_TYPE,
+    IMAGE_TYPE,
+    INFO_TOPIC,
+    INFO_TYPE,
+    OPTICAL_FRAME,
+    BagTopics,
+    camera_info_msg,
+    compressed_depth_msg,
+    depth_image_msg,
+    fingertips_from_msg,
+    fingertips_msg,
+    ns_to_stamp,
+    typestore,
+)
+from hand_sog_tracker.tools.bagmsgs import describe_error as _describe
+from hand_sog_tracker.tools.bagwrite import BagWriter, DepthSample, StorageName, write_depth_bag
 
 __all__ = [
     "DEPTH_TOPIC",
@@ -65,6 +84,7 @@ __all__ = [
     "DepthBagReader",
     "BagWriter",
     "DepthSample",
+    "StorageName",
     "write_depth_bag",
     "typestore",
     "resolve_bag_path",
@@ -80,165 +100,6 @@ __all__ = [
     "fingertips_msg",
     "fingertips_from_msg",
 ]
-
-#: Topics of the bag convention (:mod:`hand_sog_tracker.interface`, absolute names).
-DEPTH_TOPIC: Final[str] = interface.BAG_DEPTH_TOPIC
-INFO_TOPIC: Final[str] = interface.BAG_INFO_TOPIC
-GT_TOPIC: Final[str] = interface.GROUND_TRUTH_TOPIC
-OPTICAL_FRAME: Final[str] = "camera_depth_optical_frame"
-IMAGE_TYPE: Final[str] = "sensor_msgs/msg/Image"
-COMPRESSED_TYPE: Final[str] = "sensor_msgs/msg/CompressedImage"
-INFO_TYPE: Final[str] = "sensor_msgs/msg/CameraInfo"
-GT_TYPE: Final[str] = "geometry_msgs/msg/PoseArray"
-
-StorageName = Literal["mcap", "sqlite3"]
-
-
-@functools.lru_cache(maxsize=1)
-def typestore() -> Typestore:
-    """The ROS 2 Jazzy type store used to build and serialise messages."""
-    return get_typestore(Stores.ROS2_JAZZY)
-
-
-# -- small message helpers ---------------------------------------------------
-# stamp_to_ns is :func:`hand_sog_tracker.interface.stamp_to_ns` (imported above).
-def ns_to_stamp(ns: int) -> Any:
-    """Nanoseconds to a rosbags ``builtin_interfaces/msg/Time``."""
-    try:
-        return interface.ns_to_stamp(ns, typestore().types["builtin_interfaces/msg/Time"])
-    except InputError as err:
-        raise BagError(str(err)) from None
-
-
-def _header(stamp_ns: int, frame_id: str) -> Any:
-    Header = typestore().types["std_msgs/msg/Header"]
-    return Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
-
-
-def depth_image_msg(
-    depth_mm: ArrayLike,
-    stamp_ns: int,
-    frame_id: str = OPTICAL_FRAME,
-    encoding: Literal["16UC1", "32FC1"] = "16UC1",
-) -> Any:
-    """Build a rosbags ``sensor_msgs/msg/Image`` from a depth map.
-
-    Parameters
-    ----------
-    depth_mm : array, shape (H, W)
-        Depth in millimetres; 0, NaN or Inf = invalid.
-    stamp_ns : int
-        Header stamp, nanoseconds.
-    frame_id : str
-    encoding : {"16UC1", "32FC1"}
-        ``16UC1``: uint16 millimetres (rounded, invalid = 0, clipped to 65535);
-        ``32FC1``: float32 **metres** (REP 118), invalid = NaN.
-    """
-    d = np.asarray(depth_mm, dtype=np.float64)
-    if d.ndim != 2:
-        raise BagError(f"depth image must be 2-D (H, W), got shape {d.shape}")
-    valid = np.isfinite(d) & (d > 0)
-    if encoding == "16UC1":
-        pix = np.where(valid, np.clip(np.rint(d), 0, 65535), 0).astype("<u2")
-    elif encoding == "32FC1":
-        pix = np.where(valid, d / 1000.0, np.nan).astype("<f4")
-    else:
-        raise BagError(f"unsupported depth encoding {encoding!r} (use 16UC1 or 32FC1)")
-    Image = typestore().types[IMAGE_TYPE]
-    h, w = pix.shape
-    return Image(
-        header=_header(stamp_ns, frame_id),
-        height=h,
-        width=w,
-        encoding=encoding,
-        is_bigendian=0,
-        step=w * pix.itemsize,
-        data=np.frombuffer(np.ascontiguousarray(pix).tobytes(), dtype=np.uint8),
-    )
-
-
-def compressed_depth_msg(
-    depth_mm: ArrayLike,
-    stamp_ns: int,
-    frame_id: str = OPTICAL_FRAME,
-    encoding: Literal["16UC1", "32FC1"] = "16UC1",
-    codec: Literal["png", "rvl"] = "png",
-) -> Any:
-    """A rosbags ``sensor_msgs/msg/CompressedImage`` as compressed_depth_image_transport writes it.
-
-    See :func:`hand_sog_tracker.compressed_depth.encode_compressed_depth` (32FC1 quantises
-    inverse depth with the plugin's default parameters).
-    """
-    from hand_sog_tracker.compressed_depth import encode_compressed_depth
-    from hand_sog_tracker.errors import DepthImageError
-
-    try:
-        fmt, data = encode_compressed_depth(depth_mm, encoding, codec)
-    except DepthImageError as err:
-        raise BagError(str(err)) from err
-    return typestore().types[COMPRESSED_TYPE](
-        header=_header(stamp_ns, frame_id), format=fmt, data=np.frombuffer(data, dtype=np.uint8)
-    )
-
-
-def camera_info_msg(intrinsics: Intrinsics, stamp_ns: int, frame_id: str = OPTICAL_FRAME) -> Any:
-    """Build a rosbags ``sensor_msgs/msg/CameraInfo`` (plumb bob, zero distortion)."""
-    i = intrinsics
-    CameraInfo = typestore().types[INFO_TYPE]
-    Roi = typestore().types["sensor_msgs/msg/RegionOfInterest"]
-    return CameraInfo(
-        header=_header(stamp_ns, frame_id),
-        height=i.height,
-        width=i.width,
-        distortion_model="plumb_bob",
-        d=np.zeros(5, dtype=np.float64),
-        k=np.array([i.fx, 0.0, i.cx, 0.0, i.fy, i.cy, 0.0, 0.0, 1.0]),
-        r=np.eye(3).reshape(-1),
-        p=np.array([i.fx, 0.0, i.cx, 0.0, 0.0, i.fy, i.cy, 0.0, 0.0, 0.0, 1.0, 0.0]),
-        binning_x=0,
-        binning_y=0,
-        roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
-    )
-
-
-def fingertips_msg(fingertips_mm: ArrayLike, stamp_ns: int, frame_id: str = OPTICAL_FRAME) -> Any:
-    """Ground truth as a rosbags ``geometry_msgs/msg/PoseArray``.
-
-    Parameters
-    ----------
-    fingertips_mm : array, shape (5, 3)
-        Fingertips thumb .. little, millimetres (written as metres).
-    """
-    tips = np.asarray(fingertips_mm, dtype=np.float64)
-    if tips.shape != (5, 3) or not np.all(np.isfinite(tips)):
-        raise BagError(f"fingertips must be a finite (5, 3) array, got shape {tips.shape}")
-    t = typestore().types
-    Pose, Point, Quat = t["geometry_msgs/msg/Pose"], t["geometry_msgs/msg/Point"], t["geometry_msgs/msg/Quaternion"]
-    poses = [
-        Pose(position=Point(x=float(x), y=float(y), z=float(z)), orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0))
-        for x, y, z in tips / 1000.0
-    ]
-    return t[GT_TYPE](header=_header(stamp_ns, frame_id), poses=poses)
-
-
-def fingertips_from_msg(msg: Any) -> NDArray[np.float64]:
-    """Fingertips (5, 3) in millimetres from a PoseArray (metres).
-
-    Raises
-    ------
-    BagError
-        If the array does not hold exactly five finite poses.
-    """
-    poses = list(msg.poses)
-    if len(poses) != 5:
-        raise BagError(
-            f"ground-truth PoseArray at stamp {stamp_to_ns(msg.header.stamp)} ns has "
-            f"{len(poses)} poses, expected 5 (thumb, index, middle, ring, little)"
-        )
-    tips = np.array([[p.position.x, p.position.y, p.position.z] for p in poses], dtype=np.float64) * 1000.0
-    if not np.all(np.isfinite(tips)):
-        raise BagError(f"ground-truth PoseArray at stamp {stamp_to_ns(msg.header.stamp)} ns is not finite")
-    return tips
 
 
 # -- reading -------------------------------------------------------------------
@@ -308,11 +169,6 @@ class open_bag:  # lower case: used like a function: ``with open_bag(path) as re
                 pass
 
 
-def _describe(err: BaseException) -> str:
-    text = str(err).strip()
-    return f"{type(err).__name__}: {text}" if text else type(err).__name__
-
-
 def topic_table(reader: AnyReader) -> dict[str, tuple[str, int]]:
     """Topics of an open bag: ``{name: (msgtype, message count)}``."""
     return {
@@ -375,15 +231,6 @@ def deserialize(reader: AnyReader, path: Path, raw: bytes, connection: Connectio
         raise BagError(
             f"bag {path}: cannot decode a {connection.msgtype} message on {connection.topic}: {_describe(err)}"
         ) from err
-
-
-@dataclass(frozen=True)
-class BagTopics:
-    """Topic names of a depth bag (defaults: contract 5)."""
-
-    depth: str = DEPTH_TOPIC
-    info: str = INFO_TOPIC
-    truth: str = GT_TOPIC
 
 
 @dataclass(frozen=True, eq=False)
@@ -588,131 +435,3 @@ class DepthBagReader:
                 truth_mm=self.truth.get(stamp),
                 error=error,
             )
-
-
-# -- writing -------------------------------------------------------------------
-class BagWriter:
-    """Write a rosbag2 (ROS 2 Jazzy types, CDR) with ``rosbags``.
-
-    Parameters
-    ----------
-    path : str or Path
-        Bag directory to create; must not exist.
-    storage : {"mcap", "sqlite3"}
-    compress : bool
-        zstd compression: per chunk for mcap (the mcap storage's own chunk
-        compression, read by ``ros2 bag`` and rosbags), per message for sqlite3.
-
-    Examples
-    --------
-    >>> with BagWriter(tmp / "bag") as w:                      # doctest: +SKIP
-    ...     w.write(DEPTH_TOPIC, depth_image_msg(d, t), t)
-    """
-
-    def __init__(self, path: str | Path, storage: StorageName = "mcap", compress: bool = True) -> None:
-        self.path = Path(path)
-        if storage not in ("mcap", "sqlite3"):
-            raise BagError(f"unknown storage {storage!r} (use mcap or sqlite3)")
-        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-        try:
-            self._writer = Writer(self.path, version=Writer.VERSION_LATEST, storage_plugin=plugin)
-            if compress:
-                mode = CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE
-                self._writer.set_compression(mode, CompressionFormat.ZSTD)
-        except Exception as err:  # rosbags WriterError etc.
-            raise BagError(f"cannot create bag {self.path}: {_describe(err)}") from err
-        self._conns: dict[str, Connection] = {}
-
-    def __enter__(self) -> "BagWriter":
-        try:
-            self._writer.open()
-        except Exception as err:
-            raise BagError(f"cannot create bag {self.path}: {_describe(err)}") from err
-        return self
-
-    def write(self, topic: str, msg: Any, log_time_ns: int) -> None:
-        """Serialise ``msg`` (a rosbags message) and append it on ``topic``."""
-        ts = typestore()
-        conn = self._conns.get(topic)
-        if conn is None:
-            conn = self._writer.add_connection(topic, msg.__msgtype__, typestore=ts)
-            self._conns[topic] = conn
-        elif conn.msgtype != msg.__msgtype__:
-            raise BagError(f"topic {topic!r} already has type {conn.msgtype}, got {msg.__msgtype__}")
-        self._writer.write(conn, int(log_time_ns), ts.serialize_cdr(msg, msg.__msgtype__))
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        if exc_type is None:
-            try:
-                self._writer.close()
-            except Exception as err:
-                shutil.rmtree(self.path, ignore_errors=True)
-                raise BagError(f"cannot finish bag {self.path}: {_describe(err)}") from err
-        else:
-            try:
-                self._writer.abort()
-            finally:
-                shutil.rmtree(self.path, ignore_errors=True)
-
-
-@dataclass(frozen=True, eq=False)
-class DepthSample:
-    """One frame to write with :func:`write_depth_bag`.
-
-    Attributes
-    ----------
-    stamp_ns : int
-        Header stamp (and record time) of the image, CameraInfo and ground truth.
-    depth_mm : array, shape (H, W)
-        Depth, millimetres, 0/NaN invalid.
-    intrinsics : Intrinsics or None
-        Written as CameraInfo when not None.
-    truth_mm : array, shape (5, 3) or None
-        Ground-truth fingertips (mm), written when not None.
-    """
-
-    stamp_ns: int
-    depth_mm: NDArray
-    intrinsics: Intrinsics | None
-    truth_mm: NDArray[np.float64] | None = None
-
-
-def write_depth_bag(
-    path: str | Path,
-    samples: Iterable[DepthSample],
-    topics: BagTopics = BagTopics(),
-    encoding: Literal["16UC1", "32FC1"] = "16UC1",
-    storage: StorageName = "mcap",
-    compress: bool = True,
-    frame_id: str = OPTICAL_FRAME,
-    depth_codec: Literal["png", "rvl"] | None = None,
-) -> int:
-    """Write frames as a contract-5 bag: CameraInfo, then depth, then ground truth per frame.
-
-    With ``depth_codec`` the depth images are written as compressedDepth
-    ``CompressedImage`` on ``topics.depth + "/compressedDepth"`` instead of raw images.
-
-    Returns
-    -------
-    int
-        Number of depth images written.
-    """
-    n = 0
-    with BagWriter(path, storage=storage, compress=compress) as w:
-        for s in samples:
-            if s.intrinsics is not None:
-                w.write(topics.info, camera_info_msg(s.intrinsics, s.stamp_ns, frame_id), s.stamp_ns)
-            if depth_codec is None:
-                w.write(topics.depth, depth_image_msg(s.depth_mm, s.stamp_ns, frame_id, encoding), s.stamp_ns)
-            else:
-                msg = compressed_depth_msg(s.depth_mm, s.stamp_ns, frame_id, encoding, depth_codec)
-                w.write(topics.depth + COMPRESSED_SUFFIX, msg, s.stamp_ns)
-            if s.truth_mm is not None:
-                w.write(topics.truth, fingertips_msg(s.truth_mm, s.stamp_ns, frame_id), s.stamp_ns)
-            n += 1
-    return n

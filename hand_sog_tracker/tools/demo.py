@@ -1,5 +1,8 @@
 """``demo``: run the product, ``tracker_node``, on a bundled bag and show what it does.
 
+One job: the ``demo`` command; kept together because its listener, frame drawing, video writer
+and run loop serve only this command (the node harness is :mod:`.node_harness`).
+
 Usage::
 
     demo [BAG] [--domain-id N] [--video OUT.mp4] [--rate R] [--max-frames N]

@@ -1,5 +1,8 @@
 """``make_sample_bags``: write the deterministic synthetic sample bags of ``bags/``.
 
+One job: the ``make_sample_bags`` command; kept together because the bag specifications, the
+writer and the digest define one reproducible data set (its hashes are tested).
+
 Usage::
 
     make_sample_bags [--out bags] [--frames N] [--motions M [M ...]]

@@ -1,5 +1,8 @@
 """``replay_bag``: publish a bag's topics live, a stand-in for ``ros2 bag play``.
 
+One job: the ``replay_bag`` command; kept together because the message conversion and
+:class:`BagPublisher` exist only for its replay loop.
+
 Usage::
 
     replay_bag BAG [--rate R] [--loop] [--start-offset S] [--topics T [T ...]]

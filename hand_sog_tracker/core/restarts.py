@@ -1,0 +1,231 @@
+"""The tracker's restart strategies (seeds 001 and 004): ways out of local optima after a frame's fit.
+
+:class:`RestartStrategies` is a mixin of :class:`hand_sog_tracker.core.tracker.Tracker`
+(it uses the tracker's ``_model``, ``_config``, ``_frame_count`` and ``_maximise``):
+
+- :meth:`~RestartStrategies._finger_restarts`: a finger hanging in empty space is restarted
+  extended, curled and like the other fingers;
+- :meth:`~RestartStrategies._shift_restarts`: every finger takes its neighbour's articulation;
+- :meth:`~RestartStrategies._detection_restarts`: a finger is pulled onto a fingertip
+  detection no model finger explains.
+
+Candidates are judged by :meth:`~RestartStrategies._score`: the objective without the salient
+term minus the assignment cost of the detections (seed 001, eq. 11).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace as replace_config
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
+from hand_sog_tracker.core.depth_sog import ImageSoG
+from hand_sog_tracker.core.energy import SALIENT_SCALE_MM, Objective, TipTargets
+from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, JOINTS, HandModel, chain_slice
+from hand_sog_tracker.core.kinematics import fingertips
+from hand_sog_tracker.core.optimizer import OptimizeResult
+from hand_sog_tracker.core.salient import Detections, assign_detections
+from hand_sog_tracker.core.types import TrackerConfig
+
+__all__ = [
+    "RestartStrategies",
+    "RESTART_TIP_MM",
+    "RESTART_ITERATIONS",
+    "ASSIGN_LAMBDA_MM",
+    "UNEXPLAINED_DETECTION_MM",
+    "UNEXPLAINED_CONFIDENCE",
+    "SHIFT_EVERY",
+]
+
+# Tuning constants, documented like those of :mod:`hand_sog_tracker.core.tracker` (what, unit,
+# and where the value comes from).
+#: A fingertip this far from all data (mm) triggers a restart of its finger (seed 004's
+#: restarts; the distance is chosen here).
+RESTART_TIP_MM = 25.0
+#: Iterations each restart candidate gets (count; chosen here, raised to 12 in commit f16019d).
+RESTART_ITERATIONS = 12
+#: Cost (mm) of a fingertip without a detection in the assignment (the role of seed 001's
+#: lambda, eq. 11; its value 1.2 is in another unit, 30 mm is chosen here); a detection costs
+#: this times its confidence when declared a false positive.
+ASSIGN_LAMBDA_MM = 30.0
+#: A confident detection this far (mm) from its nearest fingertip is a finger the model
+#: has not found: the neighbouring fingers are restarted onto it (chosen here; about the
+#: spacing of neighbouring MCP joints in the default hand, 18-20 mm).
+UNEXPLAINED_DETECTION_MM = 20.0
+#: Smallest detection confidence (in [0, 1]) that counts as unexplained (chosen here).
+UNEXPLAINED_CONFIDENCE = 0.5
+#: Without an unexplained detection, finger-shifted restarts (seed 004) are tried every this
+#: many frames (count; chosen here, commit 0e963cc).
+SHIFT_EVERY = 6
+
+
+class RestartStrategies:
+    """Mixin of :class:`~hand_sog_tracker.core.tracker.Tracker`: the restart strategies."""
+
+    _model: HandModel
+    _config: TrackerConfig
+    _frame_count: int
+    _maximise: Callable[..., OptimizeResult]
+
+    def _finger_restarts(self, obj: Objective, res: OptimizeResult, data: ImageSoG) -> OptimizeResult:
+        """Restart a dangling finger from other configurations (seed 004).
+
+        When a fingertip is farther than ``RESTART_TIP_MM`` from every data
+        point, the finger hangs in empty space (typically left extended over a
+        fist).  The chain whose tip is farthest is re-set to an extended, a
+        curled and (for the four fingers) the other fingers' mean
+        configuration; each candidate gets ``RESTART_ITERATIONS`` iterations
+        and the best objective wins.  At most one chain per frame.
+        """
+        if data.n == 0:
+            return res
+        tips = fingertips(self._model, res.x)
+        d2 = ((tips[:, None, :] - data.points[None, :, :]) ** 2).sum(-1)
+        far = np.sqrt(d2.min(axis=1))
+        c = int(np.argmax(far))
+        if far[c] < RESTART_TIP_MM:
+            return res
+        sl = chain_slice(c)
+        candidates = [FINGER_EXTENDED, FINGER_CURLED]
+        if c > 0:
+            others = [k for k in range(1, 5) if k != c]
+            candidates.append(np.mean([res.x[chain_slice(k)] for k in others], axis=0))
+        best = res
+        for joints in candidates:
+            x0 = res.x.copy()
+            x0[sl] = joints
+            cand = self._maximise(obj, x0, iterations=RESTART_ITERATIONS)
+            if cand.fun > best.fun:
+                best = cand
+        return best
+
+    def _shift_restarts(
+        self, obj: Objective, res: OptimizeResult, det: Detections, force: bool = False
+    ) -> OptimizeResult:
+        """Move every finger's articulation to its neighbour (seed 004's finger-shifted restarts).
+
+        A model whose fingers each lie on their neighbour's data (one curled into the palm,
+        the others spread over its place) is a deep local optimum: every finger explains
+        data.  The candidate gives index .. little the flexions of their neighbour on one
+        side (the last finger keeps its own) and neutral abductions, is refined for
+        ``RESTART_ITERATIONS`` and is kept only if its :meth:`_score` is higher.  Tried in
+        both directions when a confident detection is unexplained (see
+        :meth:`_detection_restarts`) or with ``force`` (initialisation), otherwise one
+        direction every ``SHIFT_EVERY`` frames.
+        """
+        if not force:
+            self._frame_count += 1
+        if force or self._lonely(res.x, det).size:
+            sides = (1, -1)
+        elif self._frame_count % SHIFT_EVERY == 0:
+            sides = (1 if (self._frame_count // SHIFT_EVERY) % 2 else -1,)
+        else:
+            return res
+        plain = self._plain(obj)
+        best, best_val = res, self._score(plain, res.x, det)
+        q = res.x[JOINTS].reshape(5, CHAIN_JOINTS)
+        for side in sides:
+            # Each finger takes its neighbour's flexions, with the abductions neutral: the
+            # neighbour's abduction is what carried it over onto this finger's data.
+            shifted = q[np.clip(np.arange(1, 5) + side, 1, 4)].copy()
+            shifted[:, 1] = 0.0
+            x0 = res.x.copy()
+            x0[chain_slice(1).start :] = shifted.ravel()
+            cand = self._maximise(plain, x0, iterations=RESTART_ITERATIONS)
+            val = self._score(plain, cand.x, det)
+            if val > best_val:
+                best, best_val = cand, val
+        return best
+
+    def _detection_restarts(
+        self, obj: Objective, res: OptimizeResult, det: Detections
+    ) -> OptimizeResult:
+        """Put a finger onto a detection that no model finger explains (seed 001 + 004).
+
+        A confident detection farther than ``UNEXPLAINED_DETECTION_MM`` from every model
+        fingertip is a finger the model has missed (typically one curled toward the camera
+        while the model finger lies on its neighbour).  Each of the two model fingers
+        nearest to it is pulled onto it (the salient term alone, strongly weighted, for
+        ``RESTART_ITERATIONS``), then released into the objective without the salient term
+        (which would favour the assignment the frame started with); a candidate is kept only
+        if its :meth:`_score` is higher than before.
+        """
+        lonely = self._lonely(res.x, det)
+        if lonely.size == 0:
+            return res
+        s = int(lonely[np.argmax(det.confidence[lonely])])
+        dist = np.linalg.norm(det.points[s] - fingertips(self._model, res.x), axis=1)
+        cfg = self._config
+        plain = self._plain(obj)
+        best, best_val = res, self._score(plain, res.x, det)
+        for c in np.argsort(dist)[:2]:
+            w = np.zeros(5)
+            w[c] = 1.0
+            pts = np.zeros((5, 3))
+            pts[c] = det.points[s]
+            pull = Objective(
+                self._model, obj.data, replace_config(cfg, w_sal=max(cfg.w_sal, 1.0) * 20.0),
+                previous=obj.previous, targets=TipTargets(pts, w), silhouette=obj.silhouette,
+            )
+            starts = [self._maximise(pull, res.x, iterations=RESTART_ITERATIONS).x]
+            if det.end_on[s] and c > 0:
+                # A finger seen end-on is curled toward the camera: also try it curled.
+                curled = res.x.copy()
+                curled[chain_slice(c)] = FINGER_CURLED
+                starts.append(curled)
+            for x0 in starts:
+                cand = self._maximise(plain, x0, iterations=RESTART_ITERATIONS)
+                val = self._score(plain, cand.x, det)
+                if val > best_val:
+                    best, best_val = cand, val
+        return best
+
+    def _lonely(self, theta: NDArray[np.float64], det: Detections) -> NDArray[np.int64]:
+        """Confident detections farther than ``UNEXPLAINED_DETECTION_MM`` from every fingertip."""
+        if det.n == 0:
+            return np.zeros(0, dtype=np.int64)
+        tips = fingertips(self._model, theta)
+        dist = np.linalg.norm(det.points[:, None, :] - tips[None, :, :], axis=-1).min(axis=1)
+        return np.flatnonzero(
+            (dist > UNEXPLAINED_DETECTION_MM) & (det.confidence >= UNEXPLAINED_CONFIDENCE)
+        )
+
+    def _score(self, plain: Objective, theta: NDArray[np.float64], det: Detections) -> float:
+        """How well ``theta`` explains the frame: the objective without the salient term,
+        minus the assignment cost of the detections at ``theta`` (fresh, not the one the
+        frame started with), weighted like the salient term."""
+        return plain(theta, gradient=False)[0] - self._config.w_sal * self._assignment_cost(theta, det)
+
+    def _plain(self, obj: Objective) -> Objective:
+        """``obj`` without the salient term (to judge candidates built from detections)."""
+        if obj.targets is None or self._config.w_sal == 0:
+            return obj
+        return Objective(
+            self._model,
+            obj.data,
+            replace_config(self._config, w_sal=0.0),
+            previous=obj.previous,
+            silhouette=obj.silhouette,
+        )
+
+    def _assignment_cost(self, theta: NDArray[np.float64], det: Detections) -> float:
+        """Seed 001's assignment cost (eq. 11) at ``theta``, in units of ``SALIENT_SCALE_MM``.
+
+        Assigned pairs cost their distance, detections left over ``lambda * confidence``,
+        fingertips without a detection ``lambda``: a hypothesis whose fingertips are not
+        where the fingertips are seen (a hand flipped palm-for-back, fingers swapped) scores
+        worse even where the depth overlap cannot tell.
+        """
+        if det.n == 0:
+            return 0.0
+        tips = fingertips(self._model, theta)
+        assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
+        has = assigned >= 0
+        d = np.linalg.norm(tips[has] - det.points[assigned[has]], axis=1).sum()
+        unused = np.ones(det.n, bool)
+        unused[assigned[has]] = False
+        cost = d + ASSIGN_LAMBDA_MM * ((~has).sum() + det.confidence[unused].sum())
+        return float(cost / SALIENT_SCALE_MM)
