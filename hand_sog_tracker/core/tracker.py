@@ -215,7 +215,11 @@ class Tracker(RestartStrategies):
 
     # -- internals -----------------------------------------------------------
     def _data_near(
-        self, pre: Preprocessed, theta: NDArray[np.float64], detect: bool = False
+        self,
+        pre: Preprocessed,
+        theta: NDArray[np.float64],
+        detect: bool = False,
+        outline: bool = True,
     ) -> tuple[ImageSoG, Detections, Silhouette | None]:
         """Data Gaussians around the hand at ``theta``, without the forearm.
 
@@ -223,11 +227,12 @@ class Tracker(RestartStrategies):
         the plane through the wrist normal to the hand's long axis) are
         dropped: the model has no forearm, and forearm data would pull the palm
         down the arm.  With ``detect``, also the fingertip detections in the same
-        region (used by the salient term and the restarts), else none; and the
-        silhouette of the depth in the same depth window (None when ``w_sil`` is 0).
+        region (used by the salient term and the restarts), else none; and with
+        ``outline`` the silhouette of the depth in the same depth window (None
+        without it or when ``w_sil`` is 0).
         """
         roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
-        sil = silhouette(pre, window, roi) if self._config.w_sil > 0 else None
+        sil = silhouette(pre, window, roi) if outline and self._config.w_sil > 0 else None
         det = Detections.empty()
         if detect:
             det = detect_fingertips(pre, roi, window)
@@ -305,7 +310,7 @@ class Tracker(RestartStrategies):
         scored = []
         det = None
         for x0 in initial_hypotheses(self._model, blob, cfg.init_hypotheses):
-            data, det_x, _ = self._data_near(pre, x0, detect=det is None)
+            data, det_x, _ = self._data_near(pre, x0, detect=det is None, outline=False)
             det = det_x if det is None else det
             if data.n == 0:
                 continue

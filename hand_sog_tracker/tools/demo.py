@@ -58,7 +58,7 @@ from hand_sog_tracker.errors import BagError, HandSogError, InputError
 from hand_sog_tracker.tools.bagio import BagFrame, BagTopics, DepthBagReader, deserialize, iter_messages, stamp_to_ns
 from hand_sog_tracker.tools.bagset import PROTOCOL, TEST_SPLIT, read_sidecar
 from hand_sog_tracker.tools.metrics import summarize_timings
-from hand_sog_tracker.tools.node_eval import _Payloads, _settled, _warm_up
+from hand_sog_tracker.tools.node_eval import _Payloads, _warm_up, drain
 from hand_sog_tracker.tools.node_harness import COUNTER_KEYS, NodeHarness, NodeOutputs
 from hand_sog_tracker.tools.records import (
     STATUS_NO_ESTIMATE,
@@ -425,12 +425,7 @@ def run_demo(
                     published.append((stamp, time.monotonic()))
             t_last_pub = time.monotonic()
             h.note_activity(t_last_pub)
-            stats: dict[str, Any] | None = None
-            while time.monotonic() - t_last_pub < drain_timeout_s and h.alive():
-                stats = _settled(h.outputs, t_last_pub + 0.1)
-                if stats is not None:
-                    break
-                time.sleep(0.02)
+            stats = drain(h, t_last_pub, drain_timeout_s)
             outs: NodeOutputs = h.outputs
             keypoints, kp_times, timings = listener.snapshot()
             t_end = max(t_last_pub, outs.last_activity)

@@ -68,6 +68,20 @@ def _settled(outs: NodeOutputs, after: float) -> dict[str, Any] | None:
     return None
 
 
+def drain(h: NodeHarness, t_last_pub: float, timeout_s: float) -> dict[str, Any] | None:
+    """Wait until the node reports (1 Hz ``/diagnostics``) that it is idle with nothing pending.
+
+    That is: it processed, rejected or dropped everything it received after ``t_last_pub``
+    (monotonic s).  Returns those counters, or None after ``timeout_s`` or if the node died.
+    """
+    while time.monotonic() - t_last_pub < timeout_s and h.alive():
+        stats = _settled(h.outputs, t_last_pub + 0.1)
+        if stats is not None:
+            return stats
+        time.sleep(0.02)
+    return None
+
+
 def _warm_up(h: NodeHarness, bagr: DepthBagReader, payload: _Payloads, timeout_s: float) -> dict[str, Any]:
     """Send the first CameraInfo and depth image until the node has processed the image.
 
@@ -222,14 +236,7 @@ def evaluate_through_node(
                     bar.update(1, "published")
             t_last_pub = time.monotonic()
             h.note_activity(t_last_pub)
-            # Drain: until the node reports (1 Hz /diagnostics) that it is idle with
-            # nothing pending, i.e. it processed, rejected or dropped all it received.
-            stats: dict[str, Any] | None = None
-            while time.monotonic() - t_last_pub < drain_timeout_s and h.alive():
-                stats = _settled(h.outputs, t_last_pub + 0.1)
-                if stats is not None:
-                    break
-                time.sleep(0.02)
+            stats = drain(h, t_last_pub, drain_timeout_s)
             outs = h.outputs
             if stats is None:
                 stats = outs.diagnostics[-1][1] if outs.diagnostics else None
