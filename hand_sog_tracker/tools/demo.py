@@ -58,13 +58,11 @@ from hand_sog_tracker.errors import BagError, HandSogError, InputError
 from hand_sog_tracker.tools.bagio import BagFrame, BagTopics, DepthBagReader, deserialize, iter_messages, stamp_to_ns
 from hand_sog_tracker.tools.bagset import PROTOCOL, TEST_SPLIT, read_sidecar
 from hand_sog_tracker.tools.metrics import summarize_timings
-from hand_sog_tracker.tools.node_eval import _Payloads, _warm_up, drain
+from hand_sog_tracker.tools.node_eval import _Payloads, _warm_up, drain, score_outputs
 from hand_sog_tracker.tools.node_harness import COUNTER_KEYS, NodeHarness, NodeOutputs
 from hand_sog_tracker.tools.records import (
-    STATUS_NO_ESTIMATE,
     STATUS_NO_OUTPUT,
     Evaluation,
-    FrameRecord,
     build_evaluation,
 )
 from hand_sog_tracker.tools.report import format_table1
@@ -444,19 +442,10 @@ def run_demo(
     rates = {k: _rate(v) for k, v in received.items()}
     counts = {k: len(v) for k, v in received.items()}
 
-    records: list[FrameRecord] = []
-    latencies: list[float] = []
     truth_by_stamp = {f.stamp_ns: f.truth_mm for f in frames}
-    for index, (stamp, t_pub) in enumerate(published):
-        m = outs.markers.get(stamp)
-        truth = truth_by_stamp.get(stamp)
-        if m is None:
-            records.append(FrameRecord(index, stamp, STATUS_NO_OUTPUT, None, truth, math.nan))
-            continue
-        ms = (m.t - t_pub) * 1e3
-        latencies.append(ms)
-        status = TrackerStatus.TRACKING.value if m.fingertips_mm is not None else STATUS_NO_ESTIMATE
-        records.append(FrameRecord(index, stamp, status, m.fingertips_mm, truth, ms))
+    records, latencies = score_outputs(
+        ((index, stamp, t_pub) for index, (stamp, t_pub) in enumerate(published)), outs, truth_by_stamp
+    )
     lat = summarize_timings(latencies)
     base = warm.get("node_counters")
     if stats is not None and base is not None:

@@ -15,8 +15,12 @@ import itertools
 import math
 import os
 import time
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
 
 from hand_sog_tracker.core.types import TrackerStatus
 from hand_sog_tracker.errors import BagError, InputError
@@ -66,6 +70,39 @@ def _settled(outs: NodeOutputs, after: float) -> dict[str, Any] | None:
         if t > after and c["processed"] + c["rejected"] + c["dropped"] >= c["received"]:
             return c
     return None
+
+
+def score_outputs(
+    published: Iterable[tuple[int, int, float]],
+    outs: NodeOutputs,
+    truth: Mapping[int, NDArray[np.float64] | None],
+) -> tuple[list[FrameRecord], list[float]]:
+    """One record per published image, matched by stamp with the node's fingertip markers.
+
+    Parameters
+    ----------
+    published : iterable of (index, stamp ns, monotonic publish time s)
+    outs : NodeOutputs
+        What the node published.
+    truth : mapping stamp ns -> fingertips (5, 3) mm or None
+
+    Returns
+    -------
+    records, and the end-to-end latencies (ms) of the answered images.
+    """
+    records: list[FrameRecord] = []
+    latencies: list[float] = []
+    for index, stamp, t_pub in published:
+        out = outs.markers.get(stamp)
+        gt = truth.get(stamp)
+        if out is None:
+            records.append(FrameRecord(index, stamp, STATUS_NO_OUTPUT, None, gt, math.nan))
+            continue
+        ms = (out.t - t_pub) * 1e3
+        latencies.append(ms)
+        status = TrackerStatus.TRACKING.value if out.fingertips_mm is not None else STATUS_NO_ESTIMATE
+        records.append(FrameRecord(index, stamp, status, out.fingertips_mm, gt, ms))
+    return records, latencies
 
 
 def drain(h: NodeHarness, t_last_pub: float, timeout_s: float) -> dict[str, Any] | None:
@@ -244,18 +281,7 @@ def evaluate_through_node(
         finally:
             bar.close()
 
-        records: list[FrameRecord] = []
-        latencies: list[float] = []
-        for index, stamp, t_pub in records_pub:
-            out = outs.markers.get(stamp)
-            truth = bagr.truth.get(stamp)
-            if out is None:
-                records.append(FrameRecord(index, stamp, STATUS_NO_OUTPUT, None, truth, math.nan))
-                continue
-            ms = (out.t - t_pub) * 1e3
-            latencies.append(ms)
-            status = TrackerStatus.TRACKING.value if out.fingertips_mm is not None else STATUS_NO_ESTIMATE
-            records.append(FrameRecord(index, stamp, status, out.fingertips_mm, truth, ms))
+        records, latencies = score_outputs(records_pub, outs, bagr.truth)
         if not records:
             raise BagError(f"bag {bag}: no depth image on {topics.depth!r} could be read")
         i0 = bagr.intrinsics_at(records[0].stamp_ns)
