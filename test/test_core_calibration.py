@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 
 from hand_sog_tracker.core.calibration import (
+    DEFAULT_HOLDOUT_FRAMES,
+    GUARD_FRAME_DROP,
     GUARD_MARGIN,
     CalibrationRejected,
+    Validation,
     calibrate,
     select_frames,
     shape_score,
@@ -105,6 +110,43 @@ def test_guard_margin_is_above_noise_and_below_a_five_percent_error() -> None:
     assert v.gain > GUARD_MARGIN and v.accepted
 
 
+def test_guard_refuses_a_deliberately_wrong_model_by_both_rules() -> None:
+    """Fingers 12% too long: lower mean held-out score and one frame much worse; the truth passes."""
+    truth = user_hand(1.05, 0.95)
+    seq = list(synthetic_sequence("abdadd", 4, INTR, shape=truth, seed=9))
+    depth, poses = [f.depth_mm for f in seq], [f.pose for f in seq]
+    base = default_hand_model(True)
+    wrong = HandShape(truth.length * 1.12, truth.width, truth.depth, truth.sigma)
+    v = validate(depth, poses, INTR, TrackerConfig(), base.scaled(truth), base.scaled(wrong))
+    print(v.describe(), v.failures())
+    assert not v.accepted and len(v.failures()) == 2
+    assert v.gain < 0 and v.worst_frame_gain < -GUARD_FRAME_DROP
+    assert v.tip_frames == 4 and np.isfinite(v.tip_current) and "fingertip-detection distance" in v.describe()
+    # The other way round (the true model replacing the wrong one) passes both rules.
+    back = validate(depth, poses, INTR, TrackerConfig(), base.scaled(wrong), base.scaled(truth))
+    assert back.accepted, back.failures()
+    meta = back.metadata()
+    assert meta["holdout_tip_frames"] == 4 and meta["holdout_worst_frame_gain"] == back.worst_frame_gain
+
+
+def test_each_guard_rule_alone_refuses() -> None:
+    """The rules on the numbers: mean gain, the worst frame (the fingertip distances are only reported)."""
+    good = Validation(6, 0.80, 0.85, GUARD_MARGIN, worst_frame_gain=0.01, tip_current=4.0, tip_fitted=3.5, tip_frames=6)
+    assert good.accepted and good.failures() == []
+    small = Validation(6, 0.80, 0.805, GUARD_MARGIN, 0.0)
+    assert small.failures() == [f"mean held-out score gain +0.0050 < margin {GUARD_MARGIN:.4f}"]
+    one_frame = Validation(6, 0.80, 0.85, GUARD_MARGIN, worst_frame_gain=-GUARD_FRAME_DROP - 0.01)
+    assert one_frame.failures() == [f"one held-out frame loses {GUARD_FRAME_DROP + 0.01:.4f} > {GUARD_FRAME_DROP:.4f}"]
+    farther = Validation(6, 0.80, 0.85, GUARD_MARGIN, 0.01, tip_current=4.0, tip_fitted=9.0, tip_frames=6)
+    assert farther.accepted and "4.00 -> 9.00 mm" in farther.describe()
+    old = Validation(3, 0.80, 0.85, 0.01)  # positional use of earlier versions still works
+    assert old.accepted and old.gain == pytest.approx(0.05) and "fingertip" not in old.describe()
+    err = CalibrationRejected(HandShape(), one_frame)
+    assert "one held-out frame loses" in str(err) and "held-out score" in str(err)
+    back = pickle.loads(pickle.dumps(err))  # the node's fit runs in a child process
+    assert isinstance(back, CalibrationRejected) and str(back) == str(err) and back.validation.gain == one_frame.gain
+
+
 def test_select_frames_prefers_open_unspread_frames_and_holds_out_others() -> None:
     poses = []
     for i in range(10):
@@ -117,6 +159,8 @@ def test_select_frames_prefers_open_unspread_frames_and_holds_out_others() -> No
     fit, hold = select_frames(poses, n_fit=3, n_holdout=3)
     assert fit == [0, 2, 4]  # least spread, open, not adjacent
     assert len(hold) == 3 and not set(hold) & set(fit) and 5 not in hold
+    fit, hold = select_frames(poses)  # defaults: 3 fit, DEFAULT_HOLDOUT_FRAMES held out
+    assert fit == [0, 2, 4] and len(hold) == DEFAULT_HOLDOUT_FRAMES and not set(hold) & set(fit)
     assert select_frames([None, None]) == ([], [])
 
 

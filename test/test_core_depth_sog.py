@@ -183,3 +183,68 @@ def test_quadtree_equals_the_plain_recursion(min_quad: int) -> None:
     np.testing.assert_array_equal(sog.mu, mu)
     np.testing.assert_array_equal(sog.sigma, sigma)
     np.testing.assert_array_equal(sog.depth, depth)
+
+
+def _sorted_leaves(sog, mirror_width: int | None = None) -> np.ndarray:
+    mu = sog.mu.copy()
+    if mirror_width is not None:
+        mu[:, 0] = mirror_width - 1 - mu[:, 0]
+    a = np.column_stack([mu, sog.sigma, sog.depth])
+    return a[np.lexsort(a.T[::-1])]
+
+
+@pytest.mark.parametrize("shift", [0, 1, 5])
+def test_mirrored_frame_gives_the_mirrored_quads(shift: int) -> None:
+    # u -> W - 1 - u with cx -> W - 1 - cx: the block lattice is centred on the image, so the
+    # mirror image is cut into the mirrored blocks whatever the ROI (the same leaves, mirrored).
+    rng = np.random.default_rng(shift)
+    h, w = 120, 160
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = (450.0 + 0.6 * xx + 0.2 * yy + 35.0 * (xx > 70 + 3 * shift)).astype(np.float32)
+    img += rng.normal(0.0, 1.0, img.shape).astype(np.float32)
+    img[rng.random(img.shape) < 0.03] = 0.0
+    img[:, : 17 + shift] = 0.0
+    intr = Intrinsics(fx=150.0, fy=150.0, cx=80.0, cy=60.0, width=w, height=h)
+    mirrored = Intrinsics(fx=150.0, fy=150.0, cx=w - 1 - 80.0, cy=60.0, width=w, height=h)
+    cfg = TrackerConfig(median_kernel=0)
+    pre, prem = preprocess(img, intr, cfg), preprocess(np.ascontiguousarray(img[:, ::-1]), mirrored, cfg)
+    roi = (9 + shift, 7, 150, 113)
+    a = quadtree_sog(pre, 10.0, roi, (400.0, 700.0))
+    b = quadtree_sog(prem, 10.0, (w - roi[2], roi[1], w - roi[0], roi[3]), (400.0, 700.0))
+    assert a.n == b.n > 20
+    np.testing.assert_array_equal(_sorted_leaves(a), _sorted_leaves(b, w))
+
+
+def test_decimation_keeps_the_mirrored_pixels() -> None:
+    # A 640-wide image mirrored (cx 320 -> 319) keeps the mirror images of the kept pixels:
+    # the decimation lattice runs through the pixel nearest the principal point.
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(200.0, 590.0, (480, 640)).astype(np.float32)
+    intr = Intrinsics(fx=574.5, fy=574.5, cx=320.0, cy=240.0, width=640, height=480)
+    mirrored = Intrinsics(fx=574.5, fy=574.5, cx=319.0, cy=240.0, width=640, height=480)
+    cfg = TrackerConfig(median_kernel=0)
+    a = preprocess(depth, intr, cfg)
+    b = preprocess(np.ascontiguousarray(depth[:, ::-1]), mirrored, cfg)
+    np.testing.assert_array_equal(b.depth_mm, a.depth_mm[:, ::-1])
+    assert b.intrinsics.cx == pytest.approx(a.intrinsics.width - 1 - a.intrinsics.cx)
+    np.testing.assert_array_equal(a.depth_mm, np.where((depth > 150) & (depth < 600), depth, 0)[::2, ::2])
+
+
+def test_fast_preprocessing_equals_the_plain_expressions() -> None:
+    # The window as validity test and the median agreement by OpenCV give exactly the pixels
+    # of check_depth, the NumPy window and the NumPy agreement test, for all input types.
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-100.0, 800.0, (60, 80)).astype(np.float32)
+    for value in (np.nan, np.inf, -np.inf, 0.0):
+        x[rng.random(x.shape) < 0.05] = value
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=40.0, cy=30.0, width=80, height=60)
+    for arr in (x, x.astype(np.float64), np.nan_to_num(x, posinf=0, neginf=0).astype(np.uint16)):
+        for cfg in (TrackerConfig(), TrackerConfig(median_kernel=5), TrackerConfig(quadtree_threshold_mm=400.0)):
+            d = check_depth(arr, intr)
+            d = np.where((d > cfg.near_mm) & (d < cfg.far_mm), d, np.float32(0.0))
+            import cv2
+
+            med = cv2.medianBlur(d, cfg.median_kernel)
+            keep = (d > 0) & (med > 0) & (np.abs(med - d) < cfg.quadtree_threshold_mm)
+            ref = np.where(keep, med, np.float32(0.0))
+            assert preprocess(arr, intr, cfg).depth_mm.tobytes() == ref.tobytes()

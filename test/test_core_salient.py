@@ -11,7 +11,7 @@ from hand_sog_tracker.core.depth_sog import preprocess
 from hand_sog_tracker.core.hand_model import default_hand_model
 from hand_sog_tracker.core.salient import Detections, assign_detections, detect_fingertips
 from hand_sog_tracker.core.tracker import hand_roi
-from hand_sog_tracker.core.types import TrackerConfig
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence
 from hand_sog_tracker.synth.sequence import default_intrinsics
 
@@ -127,7 +127,9 @@ def _detect_reference(pre, roi, window_mm, max_detections: int = 8) -> Detection
         return Detections.empty()
     intr = pre.intrinsics
     f = float(np.sqrt(intr.fx * intr.fy))
-    z_ref = float(np.median(d[valid]))
+    cu = int(np.floor(intr.cx + 0.5) - u0) % 2
+    cv = int(np.floor(intr.cy + 0.5) - v0) % 2
+    z_ref = float(np.median(d[cv::2, cu::2][valid[cv::2, cu::2]]))  # over the candidates
     r_px = max(RING_RADIUS_MM * f / z_ref, 3.0)
     offsets = _ring_offsets(r_px)
     pad = int(np.abs(offsets).max()) + 1
@@ -140,9 +142,10 @@ def _detect_reference(pre, roi, window_mm, max_detections: int = 8) -> Detection
     big[bv0 - v0 + pad : bv1 - v0 + pad, bu0 - u0 + pad : bu1 - u0 + pad] = np.where(
         (src > near) & (src < far), src, np.float32(0.0)
     )
-    # Candidates: valid pixels on a 2-pixel grid (a tip region is several pixels wide).
-    vv, uu = np.nonzero(valid[::2, ::2])
-    vv, uu = vv * 2, uu * 2
+    # Candidates: valid pixels on a 2-pixel grid (a tip region is several pixels wide)
+    # through the pixel nearest the principal point.
+    vv, uu = np.nonzero(valid[cv::2, cu::2])
+    vv, uu = vv * 2 + cv, uu * 2 + cu
     stride = big.shape[1]
     flat = big.ravel()
     centre = (vv + pad) * stride + (uu + pad)
@@ -163,7 +166,7 @@ def _detect_reference(pre, roi, window_mm, max_detections: int = 8) -> Detection
     keep = ~blocked & (side_tip | end_on)
     if not keep.any():
         return Detections.empty()
-    grid = np.zeros(((hh + 1) // 2, (ww + 1) // 2), np.uint8)
+    grid = np.zeros(valid[cv::2, cu::2].shape, np.uint8)
     grid[vv[keep] // 2, uu[keep] // 2] = 1
     n_lab, labels, stats, cents = cv2.connectedComponentsWithStats(grid, connectivity=8)
     expected = np.pi * (0.5 * r_px) ** 2 / 4.0  # in grid cells
@@ -177,13 +180,14 @@ def _detect_reference(pre, roi, window_mm, max_detections: int = 8) -> Detection
     z_sum = np.bincount(lab, weights=dc[keep], minlength=n_reg)
     end_sum = np.bincount(lab, weights=end_on[keep].astype(np.float64), minlength=n_reg)
     cnt = np.maximum(np.bincount(lab, minlength=n_reg), 1)
-    uv_all = 2.0 * cents[1:] + np.array([u0, v0], dtype=np.float64)
+    uv_all = 2.0 * cents[1:] + np.array([u0 + cu, v0 + cv], dtype=np.float64)
     z_all = z_sum / cnt + TIP_DEPTH_OFFSET_MM
     uvs = uv_all[big]
     pts = intr.backproject(uvs, z_all[big])
     conf = np.minimum(1.0, area[big] / expected)
     ends = end_sum[big] / cnt[big] > 0.5
-    order = np.argsort(conf)[::-1][:max_detections]
+    order = sorted(range(conf.size), key=lambda i: (-conf[i], uvs[i, 1], abs(uvs[i, 0] - intr.cx), pts[i, 2]))
+    order = np.array(order[:max_detections], dtype=np.int64)
     return Detections(points=pts[order], uv=uvs[order], confidence=conf[order], end_on=ends[order])
 
 
@@ -220,3 +224,39 @@ def test_assignment_is_optimal_with_many_detections(seed: int) -> None:
     used = assigned[assigned >= 0]
     assert len(set(used.tolist())) == used.size
     assert _cost(tips, det, assigned, 30.0) == pytest.approx(_brute_force(tips, det, 30.0))
+
+
+@pytest.mark.parametrize("shift", [0, 1])
+def test_mirrored_frame_gives_the_mirrored_detections(shift: int) -> None:
+    # A frame mirrored left-right (u -> W - 1 - u, cx -> W - 1 - cx) is the same hand seen as
+    # a left hand: the detector must sample the mirrored pixels and find the mirrored tips,
+    # for ROIs of either parity.
+    base = default_intrinsics()
+    intr = Intrinsics(base.fx, base.fy, 160.0, 120.0, 320, 240)  # principal point on a pixel
+    mirrored = Intrinsics(base.fx, base.fy, 319.0 - intr.cx, intr.cy, 320, 240)
+    model = default_hand_model()
+    found = 0
+    for frame in mesh_sequence("abdadd", 3, seed=4, intrinsics=intr):
+        pre = preprocess(frame.depth_mm, intr, TrackerConfig())
+        prem = preprocess(np.ascontiguousarray(frame.depth_mm[:, ::-1]), mirrored, TrackerConfig())
+        roi, window = hand_roi(model, frame.pose, pre.intrinsics, 160.0)
+        roi = (roi[0] - shift, roi[1], roi[2], roi[3])
+        a = detect_fingertips(pre, roi, window)
+        b = detect_fingertips(prem, (320 - roi[2], roi[1], 320 - roi[0], roi[3]), window)
+        found += a.n
+        assert a.n == b.n
+        np.testing.assert_allclose(b.uv, np.column_stack([319.0 - a.uv[:, 0], a.uv[:, 1]]), atol=1e-9)
+        np.testing.assert_allclose(b.points, a.points * [-1.0, 1.0, 1.0], atol=1e-9)
+        np.testing.assert_array_equal(b.confidence, a.confidence)
+        np.testing.assert_array_equal(b.end_on, a.end_on)
+    assert found >= 10
+
+
+def test_median_by_partition_equals_numpys() -> None:
+    from hand_sog_tracker.core.salient import _median
+
+    rng = np.random.default_rng(5)
+    for n in [1, 2, 3, 4, 7, 10, 999, 1000]:
+        for _ in range(10):
+            a = np.round(rng.uniform(200.0, 700.0, n)).astype(np.float32)  # with ties
+            assert _median(a) == float(np.median(a))

@@ -72,6 +72,9 @@ def test_tracking_goes_on_during_a_calibration_and_the_fit_is_saved_with_metadat
         assert len(str(info["fit_stamps"]).split()) == info["fit_frames"]
         assert len(str(info["fit_pose_0"]).split()) == 26
         assert info["holdout_score_fitted"] >= info["holdout_score_current"] + info["guard_margin"]
+        assert len(str(info["holdout_stamps"]).split()) == info["holdout_frames"] >= 3
+        assert info["holdout_worst_frame_gain"] >= -info["guard_frame_drop"]
+        assert "guard_margin" in str(info["guard_rules"])
     finally:
         rig.close()
 
@@ -82,6 +85,7 @@ def test_a_refused_fit_changes_and_saves_nothing(ros_context, tmp_path: Path, mo
         raise CalibrationRejected(HandShape(0.9, 0.9, 0.9, 0.9), Validation(3, 0.8412, 0.8321, 0.01))
 
     monkeypatch.setattr(calibration_service, "calibrate", refuse)
+    monkeypatch.setattr(calibration_service, "FIT_IN_PROCESS", False)  # the stand-in runs on the worker thread
     rig = Rig(ros_context, tmp_path)
     try:
         rig.send_info()

@@ -21,7 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_the_shipped_params_file_gives_the_default_config() -> None:
     values = read_params_file(REPO / "config" / "hand_sog_tracker.yaml")
-    assert values["iterations"] == 10 and values["handedness"] == "right" and values["user_model_path"] == ""
+    assert values["iterations"] == TrackerConfig().iterations == 7
+    assert values["handedness"] == "right" and values["user_model_path"] == ""
     assert tracker_config(values) == TrackerConfig()
     assert {"user_model_path", "debug_image", "calibration_frames"} <= set(node_only(values))
     assert "near_mm" not in node_only(values) and "handedness" not in node_only(values)

@@ -20,8 +20,9 @@ from hand_sog_tracker.core.hand_model import FIRST_JOINT, JOINTS, N_PARAMS
 
 __all__ = ["OptimizeResult", "StepSizes", "maximise"]
 
-#: Objective signature: theta (26,) -> (value, gradient (26,)).
-ObjectiveFn = Callable[[NDArray[np.float64]], tuple[float, NDArray[np.float64] | None]]
+#: Objective signature: ``fun(theta (26,), gradient=True) -> (value, gradient (26,) or None)``;
+#: with ``gradient=False`` only the value is needed (``None`` may be returned for the gradient).
+ObjectiveFn = Callable[..., tuple[float, NDArray[np.float64] | None]]
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,9 @@ class OptimizeResult:
     message : str
     history : array, shape (nit + 1,)
         Objective at the start and after each iteration.
+    steps : array, shape (26,)
+        Step lengths at the end (mm for translation, rad otherwise): a warm start for the
+        next fit of a similar problem (``initial_steps``).
     """
 
     x: NDArray[np.float64]
@@ -70,6 +74,7 @@ class OptimizeResult:
     status: int
     message: str
     history: NDArray[np.float64]
+    steps: NDArray[np.float64] | None = None
 
 
 def maximise(
@@ -80,13 +85,15 @@ def maximise(
     active: NDArray[np.bool_] | None = None,
     initial_scale: float = 1.0,
     bounds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    initial_steps: NDArray[np.float64] | None = None,
 ) -> OptimizeResult:
     """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps.
 
     Parameters
     ----------
     fun : callable
-        ``theta -> (value, gradient)``.
+        ``fun(theta, gradient=True) -> (value, gradient)``.  The last iterate is evaluated
+        with ``gradient=False``: only its value is used.
     x0 : array, shape (26,)
         Start pose.
     iterations : int
@@ -99,9 +106,14 @@ def maximise(
     bounds : (low, high) arrays, shape (26,) each, optional
         Every iterate is projected into ``[low, high]`` (seed 004's joint limits by
         projection; use +-inf for free parameters).  ``x0`` itself is projected too.
+    initial_steps : array, shape (26,), optional
+        Start step lengths per parameter (mm / rad), e.g. the ``steps`` of the previous
+        frame's result; overrides ``steps.initial`` and ``initial_scale``.
     """
     x = np.array(x0, dtype=np.float64)
     step = steps.expand(steps.initial) * initial_scale
+    if initial_steps is not None:
+        step = np.array(initial_steps, dtype=np.float64)
     lo, hi = steps.expand(steps.minimum), steps.expand(steps.maximum)
     mask = np.ones(N_PARAMS, bool) if active is None else np.asarray(active, bool)
     if bounds is not None:
@@ -122,8 +134,11 @@ def maximise(
         if bounds is not None:
             x = np.clip(x, bounds[0], bounds[1])
         prev_sign = sign
-        val, grad = fun(x)
-        assert grad is not None
+        if nit < iterations:
+            val, grad = fun(x)
+            assert grad is not None
+        else:
+            val = fun(x, gradient=False)[0]
         history.append(val)
         if val > best_val:
             best_x, best_val = x.copy(), val
@@ -139,4 +154,5 @@ def maximise(
         status=status,
         message="step lengths became negligible" if status == 1 else "iterations exhausted",
         history=np.asarray(history),
+        steps=step,
     )

@@ -38,6 +38,7 @@ __all__ = [
     "UNEXPLAINED_DETECTION_MM",
     "UNEXPLAINED_CONFIDENCE",
     "SHIFT_EVERY",
+    "RESTART_COOLDOWN",
 ]
 
 # Tuning constants, documented like those of :mod:`hand_sog_tracker.core.tracker` (what, unit,
@@ -60,6 +61,9 @@ UNEXPLAINED_CONFIDENCE = 0.5
 #: Without an unexplained detection, finger-shifted restarts (seed 004) are tried every this
 #: many frames (count; chosen here, commit 0e963cc).
 SHIFT_EVERY = 6
+#: After restarts triggered by an unexplained detection all lost, they are not tried again
+#: for this many frames (count; chosen here).
+RESTART_COOLDOWN = 5
 
 
 class RestartStrategies:
@@ -103,7 +107,12 @@ class RestartStrategies:
         return best
 
     def _shift_restarts(
-        self, obj: Objective, res: OptimizeResult, det: Detections, force: bool = False
+        self,
+        obj: Objective,
+        res: OptimizeResult,
+        det: Detections,
+        force: bool = False,
+        lonely: NDArray[np.int64] | None = None,
     ) -> OptimizeResult:
         """Move every finger's articulation to its neighbour (seed 004's finger-shifted restarts).
 
@@ -114,11 +123,12 @@ class RestartStrategies:
         ``RESTART_ITERATIONS`` and is kept only if its :meth:`_score` is higher.  Tried in
         both directions when a confident detection is unexplained (see
         :meth:`_detection_restarts`) or with ``force`` (initialisation), otherwise one
-        direction every ``SHIFT_EVERY`` frames.
+        direction every ``SHIFT_EVERY`` frames.  ``lonely``: :meth:`_lonely` at ``res.x``
+        when already known.
         """
         if not force:
             self._frame_count += 1
-        if force or self._lonely(res.x, det).size:
+        if force or (self._lonely(res.x, det) if lonely is None else lonely).size:
             sides = (1, -1)
         elif self._frame_count % SHIFT_EVERY == 0:
             sides = (1 if (self._frame_count // SHIFT_EVERY) % 2 else -1,)
@@ -135,13 +145,17 @@ class RestartStrategies:
             x0 = res.x.copy()
             x0[chain_slice(1).start :] = shifted.ravel()
             cand = self._maximise(plain, x0, iterations=RESTART_ITERATIONS)
-            val = self._score(plain, cand.x, det)
+            val = self._score(plain, cand.x, det, value=cand.fun)
             if val > best_val:
                 best, best_val = cand, val
         return best
 
     def _detection_restarts(
-        self, obj: Objective, res: OptimizeResult, det: Detections
+        self,
+        obj: Objective,
+        res: OptimizeResult,
+        det: Detections,
+        lonely: NDArray[np.int64] | None = None,
     ) -> OptimizeResult:
         """Put a finger onto a detection that no model finger explains (seed 001 + 004).
 
@@ -151,9 +165,11 @@ class RestartStrategies:
         nearest to it is pulled onto it (the salient term alone, strongly weighted, for
         ``RESTART_ITERATIONS``), then released into the objective without the salient term
         (which would favour the assignment the frame started with); a candidate is kept only
-        if its :meth:`_score` is higher than before.
+        if its :meth:`_score` is higher than before.  ``lonely``: :meth:`_lonely` at ``res.x``
+        when already known.
         """
-        lonely = self._lonely(res.x, det)
+        if lonely is None:
+            lonely = self._lonely(res.x, det)
         if lonely.size == 0:
             return res
         s = int(lonely[np.argmax(det.confidence[lonely])])
@@ -178,7 +194,7 @@ class RestartStrategies:
                 starts.append(curled)
             for x0 in starts:
                 cand = self._maximise(plain, x0, iterations=RESTART_ITERATIONS)
-                val = self._score(plain, cand.x, det)
+                val = self._score(plain, cand.x, det, value=cand.fun)
                 if val > best_val:
                     best, best_val = cand, val
         return best
@@ -193,11 +209,16 @@ class RestartStrategies:
             (dist > UNEXPLAINED_DETECTION_MM) & (det.confidence >= UNEXPLAINED_CONFIDENCE)
         )
 
-    def _score(self, plain: Objective, theta: NDArray[np.float64], det: Detections) -> float:
+    def _score(
+        self, plain: Objective, theta: NDArray[np.float64], det: Detections, value: float | None = None
+    ) -> float:
         """How well ``theta`` explains the frame: the objective without the salient term,
         minus the assignment cost of the detections at ``theta`` (fresh, not the one the
-        frame started with), weighted like the salient term."""
-        return plain(theta, gradient=False)[0] - self._config.w_sal * self._assignment_cost(theta, det)
+        frame started with), weighted like the salient term.  ``value``: ``plain`` at
+        ``theta`` when already known (a fit of ``plain`` returns it)."""
+        if value is None:
+            value = plain(theta, gradient=False)[0]
+        return value - self._config.w_sal * self._assignment_cost(theta, det)
 
     def _plain(self, obj: Objective) -> Objective:
         """``obj`` without the salient term (to judge candidates built from detections)."""

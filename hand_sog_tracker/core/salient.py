@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.depth_sog import Preprocessed, _in_window
+from hand_sog_tracker.core.depth_sog import SHARED_MARGIN_PX, Preprocessed, _in_window, hand_window
 
 # The detector is this package's own (seed 001 trains one): every constant below is chosen
 # here from the default hand's sizes, the reason beside it.
@@ -84,12 +84,20 @@ class Detections:
         return Detections(np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
 
 
-_RING_ANGLES = 2.0 * np.pi * np.arange(RING_SAMPLES) / RING_SAMPLES
-_RING_UNIT = np.stack([np.cos(_RING_ANGLES), np.sin(_RING_ANGLES)], 1)  # (RING_SAMPLES, 2)
+_QUARTER = RING_SAMPLES // 4
+_RING_ANGLES = 2.0 * np.pi * np.arange(_QUARTER + 1) / RING_SAMPLES  # first quadrant
 
 
 def _ring_offsets(radius_px: float) -> NDArray[np.int64]:
-    return np.round(_RING_UNIT * radius_px).astype(np.int64)
+    """Ring sample offsets (du, dv), shape (RING_SAMPLES, 2), px, counter-clockwise from +u.
+
+    Rounded in the first quadrant and reflected into the others, so that the ring is exactly
+    symmetric under u -> -u, v -> -v and u <-> v (a mirrored image sees the mirrored ring).
+    """
+    q = np.round(np.cos(_RING_ANGLES) * radius_px).astype(np.int64)  # du of angles 0..90 deg
+    du = np.concatenate([q, -q[-2::-1], -q[1:], q[-2:0:-1]])
+    dv = np.concatenate([q[::-1], q[1:], -q[-2::-1], -q[1:-1]])
+    return np.stack([du, dv], 1)
 
 
 def detect_fingertips(
@@ -128,41 +136,64 @@ def detect_fingertips(
     if u1 - u0 < 8 or v1 - v0 < 8:
         return Detections.empty()
     near, far = window_mm
-    d = _in_window(depth[v0:v1, u0:u1], near, far)
+    # The windowed depth around the ROI, shared with the quadtree and the silhouette.
+    hw = hand_window(pre, roi, window_mm)
+    d = hw.view(u0, v0, u1, v1)
     valid = d > 0
-    vals = d[valid]
-    if vals.size < 20:
+    if np.count_nonzero(valid) < 20:
         return Detections.empty()
     intr = pre.intrinsics
+    # Candidates: valid pixels on a 2-pixel grid (a tip region is several pixels wide),
+    # anchored on the pixel nearest the principal point (not on the ROI): the mirror image
+    # (u -> W - 1 - u, cx -> W - 1 - cx) samples the mirrored pixels, and a ROI moving by a
+    # pixel samples the same ones.  (cu, cv): first grid pixel in the ROI.
+    cu = int(np.floor(intr.cx + 0.5) - u0) % 2
+    cv = int(np.floor(intr.cy + 0.5) - v0) % 2
+    grid_valid = valid[cv::2, cu::2]
+    gw = grid_valid.shape[1]
+    vv, uu = np.divmod(np.flatnonzero(grid_valid), gw)
+    vv, uu = vv * 2 + cv, uu * 2 + cu
+    # The candidates' depths, gathered from the shared window (flat indices ``centre``).
+    stride = hw.depth.shape[1]
+    flat = hw.depth.ravel()
+    centre = (vv + (v0 - hw.v0)) * stride + (uu + (u0 - hw.u0))
+    dc = flat[centre]
+    # The hand's depth: the median over the candidates (a quarter of the pixels).
+    z_ref = _median(dc if dc.size else d[valid])
     f = float(np.sqrt(intr.fx * intr.fy))
-    z_ref = float(np.median(vals, overwrite_input=True))
     r_px = max(RING_RADIUS_MM * f / z_ref, 3.0)
     offsets = _ring_offsets(r_px)
     pad = int(np.abs(offsets).max()) + 1
-    # The ROI padded by the ring: outside the image is "unknown" (-1), invalid is 0.  The
-    # ROI itself is ``d``; only the strips around it are windowed here.
-    hh, ww = v1 - v0, u1 - u0
-    big = np.full((hh + 2 * pad, ww + 2 * pad), -1.0, np.float32)
-    bu0, bv0 = max(u0 - pad, 0), max(v0 - pad, 0)
-    bu1, bv1 = min(u1 + pad, w), min(v1 + pad, h)
-    big[pad : pad + hh, pad : pad + ww] = d
-    for r0, r1, c0, c1 in ((bv0, v0, bu0, bu1), (v1, bv1, bu0, bu1), (v0, v1, bu0, u0), (v0, v1, u1, bu1)):
-        if r1 > r0 and c1 > c0:
-            src = depth[r0:r1, c0:c1]
-            big[r0 - v0 + pad : r1 - v0 + pad, c0 - u0 + pad : c1 - u0 + pad] = np.where(
-                (src > near) & (src < far), src, np.float32(0.0)
-            )
-    # Candidates: valid pixels on a 2-pixel grid (a tip region is several pixels wide).
-    grid_valid = valid[::2, ::2]
-    vv, uu = np.divmod(np.flatnonzero(grid_valid), grid_valid.shape[1])
-    vv, uu = vv * 2, uu * 2
-    stride = big.shape[1]
-    flat = big.ravel()
-    centre = (vv + pad) * stride + (uu + pad)
-    dc = flat[centre]
-    # All ring samples of all candidates at once, shape (RING_SAMPLES, candidates).
-    s = flat[centre[None, :] + (offsets[:, 1] * stride + offsets[:, 0])[:, None]]
+    # Ring samples read the ROI padded by the ring: outside the image is "unknown" (-1),
+    # invalid is 0.  The shared window is exactly that when the ring fits in its margin.
+    if pad > SHARED_MARGIN_PX:  # a ring wider than the shared margin (a hand nearer than 200 mm)
+        hh, ww = v1 - v0, u1 - u0
+        big = np.full((hh + 2 * pad, ww + 2 * pad), -1.0, np.float32)
+        cu0, cv0 = max(u0 - pad, 0), max(v0 - pad, 0)
+        cu1, cv1 = min(u1 + pad, w), min(v1 + pad, h)
+        big[cv0 - v0 + pad : cv1 - v0 + pad, cu0 - u0 + pad : cu1 - u0 + pad] = _in_window(
+            depth[cv0:cv1, cu0:cu1], near, far, nan_free=True
+        )
+        stride = big.shape[1]
+        flat = big.ravel()
+        centre = (vv + pad) * stride + (uu + pad)
+    step = offsets[:, 1] * stride + offsets[:, 0]  # flat offsets of the ring samples
+    # First the four samples on the axes (every quarter of the ring): a fingertip seen from
+    # the side meets its own surface in one arc of at most a quarter of the ring, and any
+    # quarter-long arc holds exactly one axis sample; end-on, none.  So two or more axis
+    # samples on the pixel's surface, or one blocked, rule a candidate out exactly, and the
+    # full ring is sampled only for the rest (most of the hand's inside goes here).
+    q = RING_SAMPLES // 4
+    s = flat[centre[None, :] + step[::q, None]]
     diff = s - dc
+    on_surface = s > 0
+    n_axis = (on_surface & (np.abs(diff) < SAME_SURFACE_MM)).sum(0)
+    axis_blocked = ((s < 0) | (on_surface & (diff < -SAME_SURFACE_MM))).any(axis=0)
+    cand = np.flatnonzero((n_axis <= 1) & ~axis_blocked)
+    dcc = dc[cand]
+    # All ring samples of the remaining candidates at once, shape (RING_SAMPLES, candidates).
+    s = flat[centre[cand][None, :] + step[:, None]]
+    diff = s - dcc
     on_surface = s > 0
     same = on_surface & (np.abs(diff) < SAME_SURFACE_MM)
     blocked = ((s < 0) | (on_surface & (diff < -SAME_SURFACE_MM))).any(axis=0)
@@ -175,8 +206,9 @@ def detect_fingertips(
     keep = ~blocked & (side_tip | end_on)
     if not keep.any():
         return Detections.empty()
-    grid = np.zeros(((hh + 1) // 2, (ww + 1) // 2), np.uint8)
-    gv, gu = vv[keep] // 2, uu[keep] // 2
+    sel = cand[keep]  # increasing, like the candidates
+    grid = np.zeros(grid_valid.shape, np.uint8)
+    gv, gu = vv[sel] // 2, uu[sel] // 2
     grid[gv, gu] = 1
     # Labels only (the statistics of connectedComponentsWithStats cost several times more);
     # areas and centroids from the candidate cells, each cell once: integer sums, exact.
@@ -190,21 +222,35 @@ def detect_fingertips(
     if big.size == 0:
         return Detections.empty()
     # Per region: mean depth and share of end-on cells, from the candidate cells' labels.
-    z_sum = np.bincount(lab, weights=dc[keep], minlength=n_reg)
+    z_sum = np.bincount(lab, weights=dcc[keep], minlength=n_reg)
     end_sum = np.bincount(lab, weights=end_on[keep].astype(np.float64), minlength=n_reg)
     cents = np.stack(
         [np.bincount(lab, weights=gu.astype(np.float64), minlength=n_reg),
          np.bincount(lab, weights=gv.astype(np.float64), minlength=n_reg)], axis=1,
     ) / area[:, None]
     cnt = np.maximum(cnt, 1)
-    uv_all = 2.0 * cents + np.array([u0, v0], dtype=np.float64)
+    uv_all = 2.0 * cents + np.array([u0 + cu, v0 + cv], dtype=np.float64)
     z_all = z_sum / cnt + TIP_DEPTH_OFFSET_MM
     uvs = uv_all[big]
     pts = intr.backproject(uvs, z_all[big])
     conf = np.minimum(1.0, area[big] / expected)
     ends = end_sum[big] / cnt[big] > 0.5
-    order = np.argsort(conf)[::-1][:max_detections]
+    # Most confident first; ties (many regions have confidence 1) by row, then by distance
+    # from the principal point's column, then depth: an order the mirror image keeps.
+    order = np.lexsort((pts[:, 2], np.abs(uvs[:, 0] - intr.cx), uvs[:, 1], -conf))[:max_detections]
     return Detections(points=pts[order], uv=uvs[order], confidence=conf[order], end_on=ends[order])
+
+
+def _median(a: NDArray[np.float32]) -> float:
+    """``float(np.median(a))`` of a non-empty 1D array, by one partition (several times faster)."""
+    n = a.size
+    k = n // 2
+    part = np.partition(a, k)
+    if n % 2:
+        return float(part[k])
+    # The lower middle value is the largest of the first k after the partition; the mean of
+    # the two as np.median takes it.
+    return float(np.mean(np.array([part[:k].max(), part[k]], dtype=a.dtype)))
 
 
 _SUBSETS: dict[int, tuple[NDArray[np.int64], NDArray[np.int64]]] = {}

@@ -25,15 +25,15 @@ from hand_sog_tracker.core.hand_model import (
     HandModel,
     default_hand_model,
 )
-from hand_sog_tracker.core.initialise import find_hand, initial_hypotheses
+from hand_sog_tracker.core.initialise import INIT_SEARCH, InitFinalists, find_hand, initial_hypotheses
 from hand_sog_tracker.core.kinematics import (
     fingertips,
     gaussian_centres,
     global_rotation,
     skeleton_points,
 )
-from hand_sog_tracker.core.optimizer import OptimizeResult, maximise
-from hand_sog_tracker.core.restarts import ASSIGN_LAMBDA_MM, RestartStrategies
+from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
+from hand_sog_tracker.core.restarts import ASSIGN_LAMBDA_MM, RESTART_COOLDOWN, RestartStrategies
 from hand_sog_tracker.core.salient import Detections, assign_detections, detect_fingertips
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.types import (
@@ -54,50 +54,74 @@ __all__ = ["Tracker", "coverage", "hand_roi"]
 
 #: Velocity extrapolation factor of the start pose (unitless; paper 000 sec. 5.3: alpha = 0.5).
 ALPHA = 0.5
-#: Iterations per hypothesis while initialising, and for the best ones after (chosen here,
-#: commit 9681579; for comparison seed 001 gives its first frame 50 iterations).
-INIT_ITERATIONS = (8, 30)
-#: Best-scoring hypotheses refined fully while initialising (count; chosen here, commit 9681579).
-INIT_FINALISTS = 2
+#: Warm start of the step lengths (unitless; chosen here): a tracked frame starts from the
+#: previous frame's final step lengths times ``WARM_GROW``, kept within ``[WARM_MIN, 1]`` x
+#: the optimiser's initial ones.  Parameters that settled start with small steps (a fresh
+#: start overshot in the first iterations of most frames: the best pose came only in the last
+#: iterations), parameters that keep moving keep theirs.  With it 7 iterations per frame
+#: track better than 10 without (dev renders 7.1 against 7.3 mm mean error).
+WARM_GROW = 2.0
+WARM_MIN = 0.1
+# The initialisation's effort (iterations, hypotheses kept, finalists) is
+# :data:`hand_sog_tracker.core.initialise.INIT_SEARCH`.
 #: Data farther than this beyond the wrist plane are treated as forearm (mm; chosen here: 0,
 #: the model has no forearm).
 WRIST_MARGIN_MM = 0.0
 #: Whether detections of fingers seen end-on (knuckles of a fist look the same) pull
 #: fingertips (chosen here: off; they only seed the curled restart candidates).
 SALIENT_END_ON = False
+_INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 
 
-def gaussian_support(model: HandModel, theta: NDArray[np.float64], data: ImageSoG) -> NDArray[np.float64]:
+def gaussian_support(
+    model: HandModel,
+    theta: NDArray[np.float64],
+    data: ImageSoG,
+    centres: NDArray[np.float64] | None = None,
+) -> NDArray[np.float64]:
     """How well the data explain each model Gaussian at ``theta``, shape (m,), in [0, 1].
 
     For Gaussian ``p`` the depth-weighted overlap with the data,
     ``sum_q Delta_pq D_pq``, divided by its value under a gap-free data tiling
-    at the right depth (``2 pi^2 sigma_p^2``, px), capped at 1.
+    at the right depth (``2 pi^2 sigma_p^2``, px), capped at 1.  ``centres``: the model
+    Gaussians' centres at ``theta`` (m, 3) mm, when already computed.
     """
     if data.n == 0:
         return np.zeros(model.n_gaussians)
     intr = data.intrinsics
-    P = gaussian_centres(model, theta)
+    P = gaussian_centres(model, theta) if centres is None else centres
     z = np.maximum(P[:, 2], 1.0)
-    uv = np.stack([intr.fx * P[:, 0] / z + intr.cx, intr.fy * P[:, 1] / z + intr.cy], 1)
-    sp2 = (model.g_sigmas * np.sqrt(intr.fx * intr.fy) / z)[:, None] ** 2
-    sq2 = data.sigma[None, :] ** 2
-    s2 = sp2 + sq2
-    r2 = ((uv[:, None, :] - data.mu[None, :, :]) ** 2).sum(-1)
-    D = 2 * np.pi * sp2 * sq2 / s2 * np.exp(-0.5 * r2 / s2)
-    dd = np.abs((z - model.g_sigmas)[:, None] - data.depth[None, :])
-    delta = np.clip(1.0 - dd / (2.0 * model.g_sigmas[:, None]), 0.0, None)
-    support = (delta * D).sum(1) / (2 * np.pi**2 * sp2[:, 0])
+    u = intr.fx * P[:, 0] / z + intr.cx
+    v = intr.fy * P[:, 1] / z + intr.cy
+    sp2 = (model.g_sigmas * np.sqrt(intr.fx * intr.fy) / z) ** 2
+    sq2 = data.sigma**2
+    # Only the pairs that can contribute (as in the objective): Delta = 0 beyond two radii
+    # in depth, D < 1.6e-8 of its peak beyond six combined standard deviations.
+    du = u[:, None] - data.mu[:, 0]
+    dv = v[:, None] - data.mu[:, 1]
+    r2 = du * du + dv * dv
+    dd = np.abs((z - model.g_sigmas)[:, None] - data.depth)
+    two_sh = (2.0 * model.g_sigmas)[:, None]
+    p, q = np.nonzero((dd < two_sh) & (r2 < 36.0 * (sp2[:, None] + sq2)))
+    s2 = sp2[p] + sq2[q]
+    D = 2 * np.pi * sp2[p] * sq2[q] / s2 * np.exp(-0.5 * r2[p, q] / s2)
+    delta = 1.0 - dd[p, q] / two_sh[p, 0]
+    support = np.bincount(p, weights=delta * D, minlength=model.n_gaussians) / (2 * np.pi**2 * sp2)
     return np.minimum(support, 1.0)
 
 
-def coverage(model: HandModel, theta: NDArray[np.float64], data: ImageSoG) -> float:
+def coverage(
+    model: HandModel,
+    theta: NDArray[np.float64],
+    data: ImageSoG,
+    centres: NDArray[np.float64] | None = None,
+) -> float:
     """How well the data explain the model at ``theta``, in [0, 1].
 
     The mean :func:`gaussian_support` over the best-supported two thirds of
     the Gaussians (the rest may be legitimately occluded).
     """
-    support = np.sort(gaussian_support(model, theta, data))[::-1]
+    support = np.sort(gaussian_support(model, theta, data, centres))[::-1]
     keep = max(1, (2 * support.size) // 3)
     return float(support[:keep].mean())
 
@@ -127,6 +151,17 @@ def hand_roi(
     return roi, (c[2] - radius_mm, c[2] + radius_mm)
 
 
+def _balanced(ranked: list[tuple], n: int) -> list[tuple]:
+    """The first ``n`` of ``ranked`` (best first, last item: which way the palm faces), half
+    of them from each side while both have enough (the rigid fit's objective prefers the
+    back of a hand to a palm it cannot yet articulate: keep both until articulated)."""
+    chosen: list[int] = []
+    for side in (True, False):
+        chosen += [k for k, a in enumerate(ranked) if a[-1] == side][: (n + 1) // 2 if side else n // 2]
+    chosen += [k for k in range(len(ranked)) if k not in chosen][: max(0, n - len(chosen))]
+    return [ranked[k] for k in sorted(chosen)]
+
+
 class Tracker(RestartStrategies):
     """Tracks one hand through a depth sequence.
 
@@ -142,9 +177,18 @@ class Tracker(RestartStrategies):
         base = model if model is not None else default_hand_model(self._config.right_hand)
         self._model = base.mirrored(self._config.right_hand)
         self._prev: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+        self._steps: NDArray[np.float64] | None = None  # last frame's final step lengths (26,)
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
         self._frame_count = 0
+        self._restart_wait = 0  # frames to skip the detection-triggered restarts
+
+    #: Spread the initialisation over two frames (issue 14): the frame that finds the hand
+    #: runs the search and returns no pose, the next one (or :meth:`finish_initialisation`)
+    #: finishes it and starts the track.  Off: both stages run on the same frame.
+    split_initialisation: bool = False
+    #: Finalists of the first initialisation stage while the second is pending.
+    _pending: InitFinalists | None = None
 
     @property
     def config(self) -> TrackerConfig:
@@ -182,6 +226,7 @@ class Tracker(RestartStrategies):
         self._prev = None
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
+        self._pending = None
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
         """Track the hand in one depth frame.
@@ -205,6 +250,8 @@ class Tracker(RestartStrategies):
         if self._prev is not None:
             result = self._track(pre)
         else:
+            self._steps = None  # a new track starts with fresh step lengths
+            self._restart_wait = 0
             result = self._initialise(pre)
         t2 = time.perf_counter()
         result.timings_ms["preprocess"] = (t1 - t0) * 1e3
@@ -274,11 +321,25 @@ class Tracker(RestartStrategies):
         tq2 = time.perf_counter()
         targets = self._targets(x0, det)
         obj = Objective(self._model, data, cfg, previous=(p1, p2), targets=targets, silhouette=sil)
-        res = self._maximise(obj, x0, iterations=cfg.iterations)
+        base = _INITIAL_STEPS
+        start = base if self._steps is None else np.clip(self._steps * WARM_GROW, base * WARM_MIN, base)
+        res = self._maximise(obj, x0, iterations=cfg.iterations, initial_steps=start)
+        self._steps = res.steps if WARM_GROW > 0 else None
         res = self._finger_restarts(obj, res, data)
-        res = self._shift_restarts(obj, res, det)
-        res = self._detection_restarts(obj, res, det)
-        conf = coverage(self._model, res.x, data)
+        if self._restart_wait > 0:
+            # A detection the model does not explain led to restarts that all lost: not
+            # again for a few frames (it is often a knuckle or a forearm edge).
+            self._restart_wait -= 1
+            self._frame_count += 1
+        else:
+            lonely = self._lonely(res.x, det)
+            before = res
+            res = self._shift_restarts(obj, res, det, lonely=lonely)
+            res = self._detection_restarts(obj, res, det, lonely=lonely if res is before else None)
+            if lonely.size and res is before:
+                self._restart_wait = RESTART_COOLDOWN
+        centres = gaussian_centres(self._model, res.x)
+        conf = coverage(self._model, res.x, data, centres)
         if conf < cfg.lost_confidence:
             self._low_frames += 1
         else:
@@ -290,7 +351,7 @@ class Tracker(RestartStrategies):
             return self._result(None, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3})
         self._prev = (res.x, p1)
         self._status = TrackerStatus.TRACKING
-        return self._result(res.x, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3})
+        return self._result(res.x, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3}, centres)
 
     def _maximise(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> OptimizeResult:
         """:func:`maximise` with the joint angles projected into the model's limits."""
@@ -299,54 +360,147 @@ class Tracker(RestartStrategies):
         hi = np.concatenate([np.full(6, np.inf), m.limits_high])
         return maximise(obj, x0, bounds=(lo, hi), **kwargs)  # type: ignore[arg-type]
 
+    @property
+    def initialising(self) -> bool:
+        """Whether the first initialisation stage has run and the second is pending.
+
+        Only with :attr:`split_initialisation`: the next :meth:`process` (or
+        :meth:`finish_initialisation`) completes it.
+        """
+        return self._pending is not None
+
+    def finish_initialisation(self) -> TrackResult | None:
+        """Run the pending second initialisation stage on the frame the first one saw.
+
+        For a caller that has time before the next frame (e.g. the node when no newer image
+        is waiting, or a single image): the track then starts on this frame.  Returns None
+        when nothing is pending.
+        """
+        if self._pending is None:
+            return None
+        t0 = time.perf_counter()
+        pending, self._pending = self._pending, None
+        result = self._init_finish(pending.pre, pending.poses)
+        result.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
+        return result
+
     def _initialise(self, pre: Preprocessed) -> TrackResult:
-        cfg = self._config
+        """Find the hand when there is no track (first frame, after a loss): two stages.
+
+        The search (:meth:`_init_search`) and the finish (:meth:`_init_finish`) each cost
+        about one tracked frame's budget (issue 14).  Without :attr:`split_initialisation`
+        both run on this frame; with it the search runs now and returns no pose, and the
+        next frame (or :meth:`finish_initialisation`) finishes from the finalists.
+        """
+        pending, self._pending = self._pending, None
+        if pending is not None and pending.model is self._model and pending.config == self._config:
+            return self._init_finish(pre, pending.poses)
+        poses = self._init_search(pre)
+        if poses is None:
+            self._status = TrackerStatus.NO_HAND
+            return self._result(None, 0.0, 0.0, 0, {})
+        if self.split_initialisation:
+            self._pending = InitFinalists(poses=poses, model=self._model, config=self._config, pre=pre)
+            self._status = TrackerStatus.NO_HAND
+            return self._result(None, 0.0, 0.0, 0, {})
+        return self._init_finish(pre, poses)
+
+    def _init_search(self, pre: Preprocessed) -> list[NDArray[np.float64]] | None:
+        """First stage: the finalist poses (26,) for the hand in ``pre``, best first, or None.
+
+        One quadtree (coarse) and one detection pass around the palm serve every start pose;
+        each pose drops the data beyond its own wrist.  No silhouette term while the poses
+        are still far off: it would pull them into the outline before the depth has placed
+        them (a hand flipped palm-for-back has the same outline).
+        """
+        cfg, eff = self._config, INIT_SEARCH
         blob = find_hand(pre, cfg)
         if blob is None:
-            self._status = TrackerStatus.NO_HAND
-            return self._result(None, 0.0, 0.0, 0, {})
-        rigid = np.zeros(self._model.limits_low.size + 6, dtype=bool)
+            return None
+        starts = initial_hypotheses(self._model, blob, cfg.init_hypotheses)
+        roi, window = hand_roi(self._model, starts[0], pre.intrinsics, cfg.roi_radius_mm)
+        coarse = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, max(eff.coarse_quad_px, cfg.min_quad_px))
+        fine = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, cfg.min_quad_px)
+        det = detect_fingertips(pre, roi, window)
+        if det.n:
+            det = det.subset(self._on_hand_side(det.points, starts[0]))
+        rigid = np.zeros(starts[0].size, dtype=bool)
         rigid[:6] = True
-        scored = []
-        det = None
-        for x0 in initial_hypotheses(self._model, blob, cfg.init_hypotheses):
-            data, det_x, _ = self._data_near(pre, x0, detect=det is None, outline=False)
-            det = det_x if det is None else det
+        aligned = []
+        for i, x0 in enumerate(starts):
+            data = self._hand_side(coarse, x0)
             if data.n == 0:
                 continue
-            # No silhouette term while the hypotheses are still far off: it would pull
-            # them into the outline before the depth has placed them (a hand flipped
-            # palm-for-back has the same outline).
-            obj = Objective(self._model, data, cfg)
             # Rigid alignment first, then articulation (seed 004's coarse-to-fine).
-            res = self._maximise(obj, x0, iterations=INIT_ITERATIONS[0], initial_scale=2.0, active=rigid)
-            res = self._maximise(obj, res.x, iterations=INIT_ITERATIONS[0], initial_scale=2.0)
-            score = self._score(obj, res.x, det)
-            scored.append((score, len(scored), res.x))
-        if not scored or det is None:
+            res = self._maximise(
+                Objective(self._model, data, cfg), x0,
+                iterations=eff.rigid_iterations, initial_scale=2.0, active=rigid,
+            )
+            aligned.append((res.fun, -i, res.x, bool(global_rotation(x0)[2, 2] > 0)))
+        scored = []
+        for _, rank, x, _ in _balanced(sorted(aligned, key=lambda a: a[:2], reverse=True), eff.kept):
+            data = self._hand_side(fine, x)
+            if data.n == 0:
+                continue
+            obj = Objective(self._model, data, cfg)
+            res = self._maximise(obj, x, iterations=eff.full_iterations, initial_scale=2.0)
+            # :meth:`_score` without evaluating the objective again (no salient term here).
+            scored.append((res.fun - cfg.w_sal * self._assignment_cost(res.x, det), rank, res.x))
+        if not scored:
+            return None
+        scored.sort(key=lambda s: s[:2], reverse=True)
+        return [x for _, _, x in scored[: eff.finalists]]
+
+    def _init_finish(self, pre: Preprocessed, poses: list[NDArray[np.float64]]) -> TrackResult:
+        """Second stage: refine the finalist ``poses`` on ``pre``; the track starts from the best.
+
+        One data extraction (quadtree, detections, silhouette) around the first finalist
+        serves all; each finalist gets ``final_iterations`` with the full objective, the best
+        by score gets the finger and (forced) finger-shift restarts.  The detection restarts
+        are left to the tracked frames that follow.
+        """
+        cfg = self._config
+        tq = time.perf_counter()
+        data, det, sil = self._data_near(pre, poses[0], detect=True)
+        timings = {"quadtree": (time.perf_counter() - tq) * 1e3}
+        if data.n == 0:
             self._status = TrackerStatus.NO_HAND
-            return self._result(None, 0.0, 0.0, 0, {})
+            return self._result(None, 0.0, 0.0, 0, timings)
         best = None
-        for _, _, x in sorted(scored, reverse=True)[:INIT_FINALISTS]:
-            data_x, _, sil = self._data_near(pre, x)
+        for x in poses:
+            data_x = self._hand_side(data, x)
+            if data_x.n == 0:
+                continue
             obj = Objective(self._model, data_x, cfg, targets=self._targets(x, det), silhouette=sil)
-            cand = self._maximise(obj, x, iterations=INIT_ITERATIONS[1])
-            for _ in range(2):
-                cand = self._finger_restarts(obj, cand, data_x)
-                cand = self._shift_restarts(obj, cand, det, force=True)
-                cand = self._detection_restarts(obj, cand, det)
+            cand = self._maximise(obj, x, iterations=INIT_SEARCH.final_iterations)
             score = self._score(self._plain(obj), cand.x, det)
-            if best is None or score > best[2]:
-                best = (cand, data_x, score)
-        res, data, _ = best
+            if best is None or score > best[0]:
+                best = (score, cand, data_x, obj)
+        if best is None:
+            self._status = TrackerStatus.NO_HAND
+            return self._result(None, 0.0, 0.0, 0, timings)
+        _, res, data, obj = best
+        res = self._finger_restarts(obj, res, data)
+        res = self._shift_restarts(obj, res, det, force=True)
         conf = coverage(self._model, res.x, data)
         if conf < cfg.lost_confidence:
             self._status = TrackerStatus.NO_HAND
-            return self._result(None, conf, res.fun, data.n, {})
+            return self._result(None, conf, res.fun, data.n, timings)
         self._prev = (res.x, res.x)
         self._low_frames = 0
         self._status = TrackerStatus.TRACKING
-        return self._result(res.x, conf, res.fun, data.n, {})
+        return self._result(res.x, conf, res.fun, data.n, timings)
+
+    def _on_hand_side(self, points: NDArray[np.float64], theta: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Which ``points`` (n, 3) mm lie on the hand side of the wrist plane at ``theta``."""
+        return (points - theta[:3]) @ global_rotation(theta)[:, 1] > -WRIST_MARGIN_MM
+
+    def _hand_side(self, data: ImageSoG, theta: NDArray[np.float64]) -> ImageSoG:
+        """``data`` without the Gaussians beyond the wrist at ``theta`` (see :meth:`_data_near`)."""
+        if data.n == 0:
+            return data
+        keep = self._on_hand_side(data.points, theta)
+        return data if keep.all() else data.subset(keep)
 
     def _result(
         self,
@@ -355,6 +509,7 @@ class Tracker(RestartStrategies):
         energy: float,
         n: int,
         timings: dict[str, float],
+        centres: NDArray[np.float64] | None = None,
     ) -> TrackResult:
         if theta is None:
             return TrackResult(
@@ -368,7 +523,8 @@ class Tracker(RestartStrategies):
                 timings_ms=dict(timings),
             )
         # Forward kinematics once: fingertips are the tip Gaussians' centres.
-        centres = gaussian_centres(self._model, theta)
+        if centres is None:
+            centres = gaussian_centres(self._model, theta)
         return TrackResult(
             status=self._status,
             pose=theta.copy(),

@@ -81,7 +81,7 @@ class TrackerConfig:
     min_quad_px: int = 4  #: smallest quadtree leaf side at processing resolution: 2, 4 or 8
     median_kernel: int = 3  #: 0 or 1 disables the median filter; else odd 3 or 5
     max_width_px: int = 320  #: images wider than this are decimated first
-    iterations: int = 10
+    iterations: int = 7
     w_col: float = 1.0
     w_dan: float = 0.1
     w_lim: float = 0.2

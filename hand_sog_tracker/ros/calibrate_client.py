@@ -26,7 +26,7 @@ from std_srvs.srv import Trigger
 
 __all__ = ["service_name", "main"]
 
-#: Seconds added to ``--timeout`` while waiting for the answer (a fit takes 0.5-2 s).
+#: Seconds added to ``--timeout`` while waiting for the answer (a fit takes 1-8 s, more on a busy machine).
 CALL_MARGIN_S = 30.0
 
 

@@ -1,4 +1,4 @@
-"""The node's ``~/calibrate`` service: the recent-frame history and the fit on a worker thread.
+"""The node's ``~/calibrate`` service: the recent-frame history and the fit in a child process.
 
 :class:`CalibrationService` is a mixin of :class:`~hand_sog_tracker.ros.node.TrackerNode`: the
 node creates the service, its callback group and the wake-up guard condition in its
@@ -18,7 +18,13 @@ from numpy.typing import NDArray
 from rclpy.task import Future
 from std_srvs.srv import Trigger
 
-from hand_sog_tracker.core.calibration import CalibrationRejected, CalibrationResult, calibrate, select_frames
+from hand_sog_tracker.core.calibration import (
+    DEFAULT_HOLDOUT_FRAMES,
+    CalibrationRejected,
+    CalibrationResult,
+    calibrate,
+    select_frames,
+)
 from hand_sog_tracker.core.model_io import calibration_metadata, save_hand_shape
 from hand_sog_tracker.core.types import Intrinsics
 from hand_sog_tracker.errors import CalibrationError, HandSogError
@@ -29,13 +35,75 @@ if TYPE_CHECKING:
     from hand_sog_tracker.core.tracker import Tracker
     from hand_sog_tracker.ros.params import NodeSettings
 
-__all__ = ["CALIB_HISTORY", "CALIB_SPACING_S", "CALIB_HOLDOUT", "CalibFrame", "CalibrationService"]
+__all__ = ["CALIB_HISTORY", "CALIB_SPACING_S", "CALIB_HOLDOUT", "FIT_IN_PROCESS", "CalibFrame", "CalibrationService"]
 
 #: Tracked frames kept for ~/calibrate (one at least CALIB_SPACING_S after the previous).
 CALIB_HISTORY = 15
 CALIB_SPACING_S = 0.06
 #: Frames of the history held out of the fit to check it (the guard).
-CALIB_HOLDOUT = 3
+CALIB_HOLDOUT = DEFAULT_HOLDOUT_FRAMES
+
+
+#: Run the fit in a child process (True) or on a thread of the node (False).  A thread shares
+#: the GIL with tracking: at a lower OS priority it is descheduled while holding the GIL when
+#: the cores are busy, and tracking waits for it.  Measured on 2 shared cores (load 6-10), 30 Hz
+#: frames answered during a fit: thread 21% (test_ros_calibration.py) and 67-99% (node in its
+#: own process); child process 87% and 70-100%; 100% without a fit (README).
+FIT_IN_PROCESS = True
+#: OS priority (nice) of the fit: tracking comes first when the cores are busy.
+FIT_NICE = 10
+
+
+def _lower_priority(tid: int = 0) -> None:
+    """Lower the OS priority of thread ``tid`` (0: the calling process) by :data:`FIT_NICE` (Linux)."""
+    try:
+        import os
+
+        os.setpriority(os.PRIO_PROCESS, tid, FIT_NICE)
+    except (AttributeError, OSError):
+        pass
+
+
+def _fit_in_child_process(args: tuple, kwargs: dict) -> CalibrationResult:
+    """:func:`~hand_sog_tracker.core.calibration.calibrate` in a fresh child Python process.
+
+    A plain ``python -c`` child (not ``multiprocessing``: that would fork the node's DDS
+    threads, or re-import the node and rclpy in the child) that lowers its priority by
+    :data:`FIT_NICE` first, imports only the NumPy core, reads the pickled arguments from
+    stdin and writes the pickled result or exception to stdout (0.2-0.5 s of start-up, then
+    the fit).  The exception raised in the child (e.g. :class:`CalibrationRejected`) is
+    raised here.
+    """
+    import os
+    import pickle
+    import subprocess
+    import sys
+
+    import hand_sog_tracker
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(hand_sog_tracker.__file__)))
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        env.setdefault(var, "1")  # one core for the fit: the other is tracking's
+    code = (
+        f"import os; os.nice({int(FIT_NICE)}); "
+        "from hand_sog_tracker.core.calibration import calibrate_pickled_stdio; calibrate_pickled_stdio()"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code],
+        input=pickle.dumps((args, kwargs), protocol=pickle.HIGHEST_PROTOCOL),
+        capture_output=True,
+        env=env,
+        check=False,
+    )
+    if proc.returncode != 0 or not proc.stdout:
+        tail = proc.stderr.decode(errors="replace").strip().splitlines()[-3:]
+        raise RuntimeError(f"calibration process failed (exit {proc.returncode}): {' | '.join(tail)}")
+    ok, value = pickle.loads(proc.stdout)
+    if not ok:
+        raise value
+    return value
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,11 +140,13 @@ class CalibrationService:
         self._calib_history.append(CalibFrame(depth, intr, None if pose is None else pose.copy(), stamp))
 
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        """Fit the hand model to recent frames on a worker thread; tracking goes on meanwhile.
+        """Fit the hand model to recent frames in a child process; tracking goes on meanwhile.
 
-        The callback is a coroutine: it starts the fit on a thread and awaits its result, so
-        the single-threaded executor keeps running the image callbacks in between (the
-        worker triggers a guard condition when done, which wakes the executor).  The fit
+        The callback is a coroutine: it starts a worker thread, which runs the fit in a child
+        process at a lower OS priority (:data:`FIT_IN_PROCESS`; the thread only waits, so it
+        does not hold the GIL) and awaits its result, so the single-threaded executor keeps
+        running the image callbacks in between (the worker triggers a guard condition when
+        done, which wakes the executor).  The fit
         uses ``calibration_frames`` open-hand frames of the last second (the least spread
         ones) and is checked on up to CALIB_HOLDOUT other frames of it (the guard of
         :func:`~hand_sog_tracker.core.calibration.calibrate`); a refused fit changes and
@@ -115,21 +185,18 @@ class CalibrationService:
         )
         future: Future = Future()
 
+        args = ([h.depth for h in fit], intr, settings.tracker, model)
+        kwargs = dict(
+            poses=[h.pose for h in fit], holdout=[h.depth for h in hold], holdout_poses=[h.pose for h in hold]
+        )
+
         def work() -> None:
             try:
-                try:  # Linux: a nicer thread leaves the CPU to tracking when cores are busy
-                    import os
-
-                    os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
-                except (AttributeError, OSError):
-                    pass
-                future.set_result(
-                    calibrate(
-                        [h.depth for h in fit], intr, settings.tracker, model,
-                        poses=[h.pose for h in fit],
-                        holdout=[h.depth for h in hold], holdout_poses=[h.pose for h in hold],
-                    )
-                )
+                if FIT_IN_PROCESS:
+                    future.set_result(_fit_in_child_process(args, kwargs))
+                else:
+                    _lower_priority(threading.get_native_id())
+                    future.set_result(calibrate(*args, **kwargs))
             except BaseException as err:  # noqa: BLE001 - handed to the service callback
                 future.set_exception(err)
             finally:
@@ -167,11 +234,14 @@ class CalibrationService:
                 settings.user_model_path,
                 s,
                 right=settings.tracker.right_hand,
-                extra=calibration_metadata(
-                    res,
-                    fit_stamps_ns=[fit[i].stamp_ns for i in res.used_frames],
-                    holdout_stamps_ns=[h.stamp_ns for h in hold],
-                ),
+                extra={
+                    **calibration_metadata(
+                        res,
+                        fit_stamps_ns=[fit[i].stamp_ns for i in res.used_frames],
+                        holdout_stamps_ns=[h.stamp_ns for h in hold],
+                    ),
+                    **v.metadata(),
+                },
             )
             saved = f"saved to {path}"
         except HandSogError as err:

@@ -229,6 +229,7 @@ class TrackerNode(CalibrationService, Node):
         self._intrinsics_problem = ""
         # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).
         self._tracker = Tracker(self._settings.tracker, self._initial_model())
+        self._tracker.split_initialisation = True  # issue 14: see _process
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
         self._markers_shown = False
@@ -528,6 +529,13 @@ class TrackerNode(CalibrationService, Node):
 
         try:
             result = self._tracker.process(depth, intr)
+            # -- initialisation over two frames (issue 14) -----------------------------------
+            # A frame that finds the hand only runs the search and returns no pose; a newer
+            # image finishes it (tracked from the second frame on).  When none is waiting (a
+            # single image, a slow stream), this frame is finished and answered now.
+            if self._tracker.initialising and not (self._pending is not None or self._take_waiting_image()):
+                result = self._tracker.finish_initialisation() or result
+            # ---------------------------------------------------------------------------------
         except HandSogError as err:
             self._reject(f"tracker rejected the frame: {err}")
             self._warn(f"tracker rejected the frame: {err}")
@@ -545,6 +553,24 @@ class TrackerNode(CalibrationService, Node):
         )
         self._window.processed += 1
         self._window.latency_ms += latency_ms
+        return True
+
+    def _take_waiting_image(self) -> bool:
+        """Hand an image waiting in the image subscription to :meth:`_on_image`; whether there was one.
+
+        The single-threaded executor runs one callback at a time, so an image that arrived
+        while this frame was processed is still in the subscription (issue 14); the executor
+        takes from it the same way and finds it empty afterwards.
+        """
+        sub = self._image_sub
+        try:
+            with sub.handle:
+                taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        except Exception:  # noqa: BLE001 - a destroyed subscription (shutdown): nothing waits
+            return False
+        if taken is None:
+            return False
+        self._on_image(taken[0])
         return True
 
     def _reset_track(self, header: Header) -> None:

@@ -12,10 +12,11 @@ pose the tracker used
 (the last two tracked poses extrapolated), and the model update and the objective alone
 on the last frame.
 
-``--compare REF`` runs this tree's benchmark and the one of another source tree ``REF``
-(e.g. a checkout of the previous commit) as separate processes, alternating, ``--rounds``
-times each, and prints both per-stage medians and their ratio: absolute times on a shared
-machine drift by tens of percent, the ratio of interleaved runs much less.
+``--compare REF`` runs this benchmark (this file) on this tree's tracker and on the tracker of
+another source tree ``REF`` (e.g. a checkout of the previous commit) as separate processes,
+alternating, ``--rounds`` times each, and prints both per-stage medians and their ratio:
+absolute times on a shared machine drift by tens of percent, the ratio of interleaved runs
+much less.  Both sides run the same harness and the same rendered frames.
 """
 
 from __future__ import annotations
@@ -69,8 +70,43 @@ def _stats(values: Sequence[float]) -> dict[str, float]:
     return {"median": float(np.median(a)), "p95": float(np.percentile(a, 95))}
 
 
+#: Seed of the mesh renders (not a seed of bags/mesh_test: benchmarking never looks at test data).
+MESH_SEED = 900
+#: Every this many frames of the last pass, a fresh tracker initialises on that frame.
+INIT_EVERY = 10
+
+
+def _frames(motion: str, frames: int, intr, renderer: str, seed: int) -> list:
+    """The rendered frames (depth in mm) of ``motion``."""
+    if renderer == "mesh":
+        from hand_sog_tracker.synth.mesh import MeshRenderOptions, mesh_sequence
+
+        options = MeshRenderOptions("structured")
+        seq = mesh_sequence(motion, frames, intrinsics=intr, seed=MESH_SEED + seed, options=options)
+    else:
+        seq = synthetic_sequence(motion, frames, intrinsics=intr, seed=seed)
+    return [f.depth_mm for f in seq]
+
+
+def _init_times(config: TrackerConfig, depth_frames: list, intr) -> list[float]:
+    """Milliseconds of each frame in which initialisation runs, for fresh trackers started
+    every ``INIT_EVERY`` frames (with a split initialisation, both of its frames)."""
+    out = []
+    for k in range(0, len(depth_frames) - 1, INIT_EVERY):
+        tracker = Tracker(config)
+        if hasattr(tracker, "split_initialisation"):
+            tracker.split_initialisation = True
+        for depth in depth_frames[k : k + 2]:
+            t0 = time.perf_counter()
+            tracker.process(depth, intr)
+            out.append((time.perf_counter() - t0) * 1e3)
+            if not getattr(tracker, "initialising", False):
+                break
+    return out
+
+
 def run_benchmark(
-    motion: str, frames: int, width: int, height: int, repeat: int, seed: int = 0
+    motion: str, frames: int, width: int, height: int, repeat: int, seed: int = 0, renderer: str = "capsule"
 ) -> dict[str, object]:
     """Track ``frames`` rendered frames ``repeat`` times; return the timing table.
 
@@ -84,13 +120,12 @@ def run_benchmark(
         ``rss_growth_mb`` (peak RSS after the last pass minus after the first).
     """
     intr = default_intrinsics(width, height)
-    seq = list(synthetic_sequence(motion, frames, intrinsics=intr, seed=seed))
-    depth_frames = [f.depth_mm for f in seq]
+    depth_frames = _frames(motion, frames, intr, renderer, seed)
     config = TrackerConfig()
     tracker = Tracker(config)
     stages = (
         "preprocess", "quadtree", "detector", "quadtree_only", "silhouette", "assignment",
-        "model_update", "energy_gradient", "total",
+        "model_update", "energy_gradient", "total", "initialise",
     )
     stage: dict[str, list[float]] = {k: [] for k in stages}
     rss_first = None
@@ -152,9 +187,11 @@ def run_benchmark(
             t2 = time.perf_counter()
             stage["model_update"].append((t1 - t0) * 1e3)
             stage["energy_gradient"].append((t2 - t1) * 1e3)
+    stage["initialise"] = _init_times(config, depth_frames, intr)
     n = max(len(stage["total"]), 1)
     return {
         "motion": motion,
+        "renderer": renderer,
         "resolution": f"{width}x{height}",
         "frames_timed": len(stage["total"]),
         "frames_tracking": n_tracked,
@@ -176,13 +213,15 @@ STAGE_LABELS = {
     "model_update": "model update (FK + J)",
     "energy_gradient": "energy+gradient / iteration",
     "total": "total per frame",
+    "initialise": "initialisation, per frame",
 }
 
 
 def _print_table(r: dict[str, object]) -> None:
     st = r["stages_ms"]
     assert isinstance(st, dict)
-    print(f"\n{r['motion']} at {r['resolution']}: {r['frames_timed']} frames timed, "
+    print(f"\n{r['motion']} ({r.get('renderer', 'capsule')} hand) at {r['resolution']}: "
+          f"{r['frames_timed']} frames timed, "
           f"{r['frames_tracking']} tracking, {r['iterations']} iterations/frame, 1 thread")
     print(f"  {'stage':<30}{'median ms':>10}{'p95 ms':>10}")
     for key, label in STAGE_LABELS.items():
@@ -200,13 +239,14 @@ def _tree_root() -> Path:
 
 
 def _run_child(root: Path, args: list[str]) -> list[dict[str, object]]:
-    """Run the benchmark of the source tree ``root`` in a fresh process; its JSON results."""
+    """Run this benchmark on the package of the source tree ``root`` in a fresh process; its
+    JSON results."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "bench.json"
         env = dict(os.environ)
         env["PYTHONPATH"] = str(root) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         proc = subprocess.run(
-            [sys.executable, "-m", "hand_sog_tracker.tools.benchmark", *args, "--json", str(out)],
+            [sys.executable, str(Path(__file__).resolve()), *args, "--json", str(out)],
             cwd=root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )
         if proc.returncode != 0 or not out.exists():
@@ -262,6 +302,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--motion", default="fingerwave", choices=ALL_MOTIONS,
                         help="synthetic motion (default fingerwave; fistopen is a hard case)")
+    parser.add_argument("--renderer", default="capsule", choices=("capsule", "mesh"),
+                        help="capsule: the tracker's own model shapes (default); mesh: the skinned "
+                        "mesh hand of the evaluation bags, e.g. --renderer mesh --motion fistopen "
+                        "for the hard case")
     parser.add_argument("--frames", type=int, default=120, help="frames in the sequence (default 120)")
     parser.add_argument("--repeat", type=int, default=1,
                         help="passes over the sequence; e.g. --frames 200 --repeat 50 for a 10,000-frame memory check")
@@ -284,6 +328,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.rounds < 1:
             parser.error("--rounds must be >= 1")
         child = ["--motion", args.motion, "--frames", str(args.frames), "--repeat", str(args.repeat)]
+        if args.renderer != "capsule":
+            child += ["--renderer", args.renderer]
         for name in args.resolution or []:
             child += ["--resolution", name]
         try:
@@ -300,7 +346,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     results = []
     for name in args.resolution or list(RESOLUTIONS):
         w, h = RESOLUTIONS[name]
-        r = run_benchmark(args.motion, args.frames, w, h, args.repeat)
+        r = run_benchmark(args.motion, args.frames, w, h, args.repeat, renderer=args.renderer)
         _print_table(r)
         results.append(r)
     if args.json:
