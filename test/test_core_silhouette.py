@@ -13,12 +13,18 @@ from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
 
 
-def test_window_map_gives_the_full_image_values_near_the_hand() -> None:
+def _first_frame(motion: str, seed: int):
+    """A rendered frame, its preprocessed depth, the default model and the hand's ROI and window."""
     intr = default_intrinsics()
-    frame = next(synthetic_sequence("abdadd", 1, intrinsics=intr, seed=2))
+    frame = next(synthetic_sequence(motion, 1, intrinsics=intr, seed=seed))
     pre = preprocess(frame.depth_mm, intr, TrackerConfig())
     model = default_hand_model()
     roi, window = hand_roi(model, frame.pose, pre.intrinsics, 160.0)
+    return frame, pre, model, roi, window
+
+
+def test_window_map_gives_the_full_image_values_near_the_hand() -> None:
+    frame, pre, model, roi, window = _first_frame("abdadd", 2)
     full = silhouette(pre, window)
     part = silhouette(pre, window, roi)
     assert part.distance.size < full.distance.size and part.distance.dtype == np.float32
@@ -36,11 +42,7 @@ def test_window_map_gives_the_full_image_values_near_the_hand() -> None:
 
 
 def test_half_resolution_map_is_close_to_the_exact_one_and_its_gradient_is_exact() -> None:
-    intr = default_intrinsics()
-    frame = next(synthetic_sequence("fingerwave", 1, intrinsics=intr, seed=3))
-    pre = preprocess(frame.depth_mm, intr, TrackerConfig())
-    model = default_hand_model()
-    roi, window = hand_roi(model, frame.pose, pre.intrinsics, 160.0)
+    frame, pre, model, roi, window = _first_frame("fingerwave", 3)
     exact, half = silhouette(pre, window, roi, cell=1), silhouette(pre, window, roi)
     assert half.cell == 2 and half.distance.size * 3 < exact.distance.size
     # Distances at the cell centres within a pixel of the exact map's (interpolated) values.

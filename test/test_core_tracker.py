@@ -121,3 +121,28 @@ def test_hand_in_front_of_a_body_in_range_is_found() -> None:
         assert res.fingertips_mm is not None, res.status
         errs.append(np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).mean())
     assert max(errs) < 15.0, np.round(errs, 1)
+
+
+def test_restart_interval_limits_the_restarts_to_a_rate() -> None:
+    """restart_interval_s (the node's setting for fast cameras) skips the restarts on frames
+    closer than the interval to the last frame that ran them; None runs them every frame."""
+    intr = default_intrinsics()
+    frames = [f.depth_mm for f in synthetic_sequence("fingerwave", 8, intrinsics=intr, seed=3)]
+    runs = {}
+    for interval in (None, 3600.0):
+        tracker = Tracker()
+        tracker.restart_interval_s = interval
+        calls = []
+        finger = tracker._finger_restarts  # the first restart of every frame that runs them
+
+        def counting(*args, _finger=finger, _calls=calls, **kwargs):
+            _calls.append(1)
+            return _finger(*args, **kwargs)
+
+        tracker._finger_restarts = counting
+        assert tracker.process(frames[0], intr).status is TrackerStatus.TRACKING
+        calls.clear()  # (the initialisation's own)
+        assert all(tracker.process(d, intr).status is TrackerStatus.TRACKING for d in frames[1:])
+        runs[interval] = len(calls)
+    assert runs[None] == 7  # every tracked frame
+    assert runs[3600.0] == 1  # the first tracked frame only

@@ -52,3 +52,19 @@ def test_a_single_image_is_answered_on_its_own_frame(ros_context, tmp_path: Path
         assert rig.node.stats.processed == 1 and rig.node.stats.status is TrackerStatus.TRACKING
     finally:
         rig.close()
+
+
+def test_a_fast_camera_gets_the_restarts_at_a_limited_rate(ros_context, tmp_path: Path) -> None:
+    from hand_sog_tracker.ros.node import FAST_CAMERA_RESTART_INTERVAL_S
+
+    th = rest_pose((0.0, 20.0, 430.0))
+    for period_ns, expected in ((10_000_000, FAST_CAMERA_RESTART_INTERVAL_S), (33_333_333, None)):
+        rig = Rig(ros_context, tmp_path)
+        try:
+            rig.send_info()
+            for i in range(3):
+                rig.send(image_msg(hand_depth(th, seed=i), T0_NS + i * period_ns))
+            assert rig.node.stats.processed == 3
+            assert rig.node._tracker.restart_interval_s == expected
+        finally:
+            rig.close()

@@ -193,3 +193,24 @@ def test_cli_mesh_renderer_and_sets(tmp_path: Path, capsys: pytest.CaptureFixtur
         assert exc.value.code == 2
     assert main(["--out", str(tmp_path / "z"), "--renderer", "mesh", "--motions", "juggling"]) == 2
     assert "unknown motion" in capsys.readouterr().err
+
+
+def test_fps_samples_the_motion_and_stamps_at_that_rate(tmp_path: Path) -> None:
+    import json
+
+    fast = write_sample_bag(tmp_path / "fast", "pinch", 4, width=96, height=72, fps=100.0)
+    slow = write_sample_bag(tmp_path / "slow", "pinch", 4, width=96, height=72)
+    with DepthBagReader(fast.path) as r:
+        frames = list(r.frames())
+    assert [f.stamp_ns - BASE_STAMP_NS for f in frames] == [0, 10_000_000, 20_000_000, 30_000_000]
+    # Same seed, finer sampling of the same motion: the first frame agrees, the later ones move less.
+    with DepthBagReader(slow.path) as r:
+        slow_frames = list(r.frames())
+    np.testing.assert_allclose(frames[0].truth_mm, slow_frames[0].truth_mm, atol=1e-9)
+    moved_fast = np.abs(frames[3].truth_mm - frames[0].truth_mm).max()
+    moved_slow = np.abs(slow_frames[3].truth_mm - slow_frames[0].truth_mm).max()
+    assert 0.0 < moved_fast < moved_slow
+    assert json.loads((fast.path / "hand_sog_sample.json").read_text())["fps"] == 100.0
+    assert "fps" not in json.loads((slow.path / "hand_sog_sample.json").read_text())  # 30 fps: as before
+    with pytest.raises(Exception, match="fps"):
+        write_sample_bag(tmp_path / "bad", "pinch", 2, width=96, height=72, fps=0.0)

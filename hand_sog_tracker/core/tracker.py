@@ -189,6 +189,12 @@ class Tracker(RestartStrategies):
     split_initialisation: bool = False
     #: Finalists of the first initialisation stage while the second is pending.
     _pending: InitFinalists | None = None
+    #: Shortest wall time (s) between two frames that run the restarts, or None (the default:
+    #: every frame as scheduled, results independent of timing).  The restarts are optional
+    #: work of 5-20 ms; the node sets this for cameras faster than it can track with them
+    #: every frame, so that it keeps up and runs them a few times a second.
+    restart_interval_s: float | None = None
+    _last_restarts_s: float = -np.inf
 
     @property
     def config(self) -> TrackerConfig:
@@ -325,13 +331,19 @@ class Tracker(RestartStrategies):
         start = base if self._steps is None else np.clip(self._steps * WARM_GROW, base * WARM_MIN, base)
         res = self._maximise(obj, x0, iterations=cfg.iterations, initial_steps=start)
         self._steps = res.steps if WARM_GROW > 0 else None
-        res = self._finger_restarts(obj, res, data)
-        if self._restart_wait > 0:
+        now = time.perf_counter()
+        if self.restart_interval_s is not None and now - self._last_restarts_s < self.restart_interval_s:
+            pass  # restarts ran less than restart_interval_s ago: not on this frame
+        elif self._restart_wait > 0:
+            res = self._finger_restarts(obj, res, data)
             # A detection the model does not explain led to restarts that all lost: not
             # again for a few frames (it is often a knuckle or a forearm edge).
             self._restart_wait -= 1
             self._frame_count += 1
+            self._last_restarts_s = now
         else:
+            res = self._finger_restarts(obj, res, data)
+            self._last_restarts_s = now
             lonely = self._lonely(res.x, det)
             before = res
             res = self._shift_restarts(obj, res, det, lonely=lonely)

@@ -139,6 +139,7 @@ def write_sample_bag(
     shape: MeshShape | None = None,
     right: bool = True,
     split: str | None = None,
+    fps: float = FPS,
 ) -> SampleBag:
     """Render one synthetic sequence and write it as a rosbag2 (plus its sidecar).
 
@@ -149,7 +150,7 @@ def write_sample_bag(
     motion : str
         One of :data:`hand_sog_tracker.synth.motions.ALL_MOTIONS`.
     frames : int
-        Number of frames (30 fps).
+        Number of frames (at ``fps``).
     width, height : int
         Image size (intrinsics: :func:`synth.sequence.default_intrinsics`).
     encoding : {"16UC1", "32FC1"}
@@ -172,6 +173,8 @@ def write_sample_bag(
         Right or left hand.
     split : str, optional
         Sidecar ``split``; default ``capsule`` for the capsule renderer, ``dev`` for the mesh.
+    fps : float
+        Frame rate (Hz): the motion is sampled and the images stamped at this rate (default 30).
 
     Raises
     ------
@@ -187,6 +190,8 @@ def write_sample_bag(
         raise InputError(f"unknown motion {motion!r}; choose from {', '.join(known)}")
     if frames < 1:
         raise InputError(f"frames must be >= 1, got {frames}")
+    if not (1.0 <= fps <= 1000.0):
+        raise InputError(f"fps must be in [1, 1000], got {fps}")
     if renderer == "capsule" and (sensor is not None or shape is not None):
         raise InputError("sensor and shape are options of the mesh renderer")
     if renderer == "mesh":
@@ -214,7 +219,7 @@ def write_sample_bag(
         if renderer == "capsule":
             seq = synthetic_sequence(
                 motion, frames, intrinsics=intr, right=right, seed=seed_used,
-                options=RenderOptions(background_mm=background_mm), fps=FPS,
+                options=RenderOptions(background_mm=background_mm), fps=fps,
             )
             sample = {
                 "renderer": "capsule",
@@ -226,7 +231,7 @@ def write_sample_bag(
             assert shape is not None and sensor is not None
             seq = mesh_sequence(
                 motion, frames, intrinsics=intr, shape=shape, right=right, seed=seed_used,
-                options=MeshRenderOptions(sensor=sensor, background_mm=background_mm), fps=FPS,
+                options=MeshRenderOptions(sensor=sensor, background_mm=background_mm), fps=fps,
             )
             sample = {
                 "renderer": "mesh",
@@ -234,7 +239,7 @@ def write_sample_bag(
                 "sensor": sensor,
                 "shape": {"length": shape.length, "palm_width": shape.palm_width, "thickness": shape.thickness},
             }
-        _write_frames(tmp, seq, intr, encoding, storage)
+        _write_frames(tmp, seq, intr, encoding, storage, fps)
         sample.update(
             motion=motion,
             seed=seed_used,
@@ -245,6 +250,8 @@ def write_sample_bag(
             frames=int(frames),
             background_mm=background_mm,
         )
+        if fps != FPS:  # (the 30 fps bags' sidecars stay as they were)
+            sample["fps"] = float(fps)
         (tmp / SIDECAR).write_text(json.dumps(sample, indent=2, sort_keys=True) + "\n", encoding="utf-8")
         if out.exists():
             shutil.rmtree(out)
@@ -269,10 +276,11 @@ def _write_frames(
     intr: Intrinsics,
     encoding: Literal["16UC1", "32FC1"],
     storage: StorageName,
+    fps: float = FPS,
 ) -> None:
     samples = (
         DepthSample(
-            stamp_ns=BASE_STAMP_NS + int(round(f.index * 1e9 / FPS)),
+            stamp_ns=BASE_STAMP_NS + int(round(f.index * 1e9 / fps)),
             depth_mm=f.depth_mm,
             intrinsics=intr,
             truth_mm=f.fingertips_mm,
@@ -310,6 +318,7 @@ def make_sample_bags(
     on_written: Callable[[SampleBag], None] | None = None,
     renderer: Renderer = "capsule",
     sensor: str | None = None,
+    fps: float = FPS,
 ) -> list[SampleBag]:
     """Write one bag per motion (plus the optional 640x480 32FC1 one) into ``out``.
 
@@ -335,6 +344,8 @@ def make_sample_bags(
         the default set stays :data:`MOTIONS` (without ``fistopen``, ``rotate``).
     sensor : str, optional
         Mesh renderer's sensor model (default ``tof``).
+    fps : float
+        See :func:`write_sample_bag`.
 
     Returns
     -------
@@ -355,7 +366,7 @@ def make_sample_bags(
     for path, motion, n, w, h, enc in jobs:
         bag = write_sample_bag(
             path, motion, n, w, h, enc, storage=storage, force=force, background_mm=background_mm,
-            renderer=renderer, sensor=sensor,
+            renderer=renderer, sensor=sensor, fps=fps,
         )
         written.append(bag)
         if on_written is not None:
@@ -492,7 +503,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     p.add_argument("--out", default=None, help="output directory (default bags, with --set bags/<set>)")
     p.add_argument("--frames", type=int, default=None,
-                   help="frames per bag at 30 fps (default 90; with --set 60 per 320x240 bag, "
+                   help="frames per bag (default 90; with --set 60 per 320x240 bag, "
                    "a third of it per 640x480 bag)")
     p.add_argument("--motions", nargs="+", metavar="M",
                    help=f"motions to write (default: {' '.join(MOTIONS)}; also known: "
@@ -506,6 +517,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (default mcap)")
     p.add_argument("--no-hires", action="store_true", help="skip the 640x480 32FC1 bag")
     p.add_argument("--no-force", action="store_true", help="fail instead of replacing existing bags")
+    p.add_argument("--fps", type=float, default=FPS,
+                   help="frame rate of the motion and the image stamps (default 30; e.g. 100 to "
+                   "feed the node like a fast camera; not with --set)")
     p.add_argument("--background-mm", type=float, default=None, metavar="MM",
                    help="render a noisy wall at this depth behind the hand (default: none, i.e. no return; "
                    "a wall makes each 90-frame bag ~5 MB instead of ~0.7 MB)")
@@ -516,6 +530,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         p.error("--sensor needs --renderer mesh")
     if args.protocol_set is not None and (args.motions or args.sensor or args.background_mm is not None):
         p.error("--set fixes motions, sensors and background; drop --motions/--sensor/--background-mm")
+    if args.protocol_set is not None and args.fps != FPS:
+        p.error("--set bags are 30 fps; drop --fps")
+    if not (1.0 <= args.fps <= 1000.0):
+        p.error("--fps must be in [1, 1000]")
     if args.background_mm is not None and not args.background_mm > 0:
         p.error("--background-mm must be > 0")
     try:
@@ -542,6 +560,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 on_written=_report,
                 renderer=args.renderer,
                 sensor=args.sensor,
+                fps=args.fps,
             )
     except HandSogError as err:
         print(f"error: {err}", file=sys.stderr)
