@@ -244,3 +244,56 @@ def test_sparse_data_terms_equal_the_dense_definition(seed: int) -> None:
         assert terms.dan == pytest.approx(dan, rel=1e-9, abs=1e-12)
         if shift == 30.0:
             assert terms.dan > 0
+
+
+def test_call_and_evaluate_agree_with_and_without_gradient() -> None:
+    # __call__ (the optimiser's path, no EnergyTerms) and evaluate share one body: the same
+    # value and gradient, and the value-only path gives the same value.
+    rng = np.random.default_rng(4)
+    model = default_hand_model()
+    truth = rest_pose((0.0, 60.0, 400.0))
+    data = data_near(model, truth, rng)
+    targets = TipTargets(points=fingertips(model, truth) + 5.0, weights=np.array([1.0, 0.0, 0.5, 1.0, 0.2]))
+    obj = Objective(
+        model, data, TrackerConfig(w_sil=1.0), previous=(truth, truth), targets=targets,
+        silhouette=silhouette_of(model, truth, skip_chain=3),
+    )
+    theta = truth + rng.normal(0.0, 0.05, N_PARAMS)
+    terms, grad = obj.evaluate(theta)
+    value, grad2 = obj(theta)
+    assert value == terms.total
+    np.testing.assert_array_equal(grad, grad2)
+    assert obj(theta, gradient=False) == (terms.total, None)
+    assert obj.evaluate(theta, gradient=False)[0] == terms
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_candidate_product_keeps_exactly_the_pairs_of_the_definition(seed: int) -> None:
+    # The candidate tests are one matrix product of expanded squares; E_sim over the pairs it
+    # keeps equals the sum over the pairs of the plain tests (|dd| < 2 sigma_h, r^2 < 36 s^2)
+    # to rounding, and its exact differences give the plain per-pair values.
+    model = default_hand_model()
+    rng = np.random.default_rng(10 + seed)
+    truth = rest_pose((0.0, 60.0, 400.0))
+    data = data_near(model, truth, rng, n=400)
+    obj = Objective(model, data, TrackerConfig())
+    intr = data.intrinsics
+    f = np.sqrt(intr.fx * intr.fy)
+    for _ in range(4):
+        theta = truth + rng.normal(0.0, 0.1, N_PARAMS) * np.r_[50.0, 50.0, 50.0, np.ones(23)]
+        P = gaussian_centres(model, theta)
+        sh = model.g_sigmas
+        z = P[:, 2]
+        u = intr.fx * P[:, 0] / z + intr.cx
+        v = intr.fy * P[:, 1] / z + intr.cy
+        sp = sh * f / z
+        du = u[:, None] - data.mu[None, :, 0]
+        dv = v[:, None] - data.mu[None, :, 1]
+        r2 = du * du + dv * dv
+        dd = (z - sh)[:, None] - data.depth[None, :]
+        keep = (np.abs(dd) < 2.0 * sh[:, None]) & (r2 < (36.0 * sp * sp)[:, None] + 36.0 * data.sigma**2)
+        s2 = (sp * sp)[:, None] + data.sigma**2
+        D = 2 * np.pi * (sp * sp)[:, None] * data.sigma**2 / s2 * np.exp(-0.5 * r2 / s2)
+        sim = float(((1.0 - np.abs(dd) / (2.0 * sh[:, None])) * D)[keep].sum() / data.norm)
+        assert 0.2 < keep.mean() < 0.9  # both tests decide
+        assert obj._data_terms(P, None, 0.0)[0] == pytest.approx(sim, rel=1e-12)

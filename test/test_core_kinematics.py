@@ -16,6 +16,7 @@ from hand_sog_tracker.core.hand_model import (
 from hand_sog_tracker.core.initialise import euler_from_matrix
 from hand_sog_tracker.core.kinematics import (
     attached_points,
+    centres_with_pullback,
     fingertips,
     gaussian_centres,
     global_rotation,
@@ -158,3 +159,38 @@ def test_point_index_cache_follows_the_arrays_contents() -> None:
         pk, jk = attached_points(model, theta, chain[k : k + 1], segment[k : k + 1], offsets[k : k + 1], jacobian=True)
         np.testing.assert_allclose(pk[0], p2[k], atol=1e-12)
         np.testing.assert_allclose(jk[0], j2[k], atol=1e-12)
+
+
+@pytest.mark.parametrize("right", [True, False])
+def test_pullback_equals_the_jacobian_transpose_product(right: bool) -> None:
+    # centres_with_pullback: the same centres as gaussian_centres (bit for bit) and, for any
+    # gradient g3 with respect to the centres, J^T g3 without building J (up to rounding);
+    # rows of g3 that are zero (points nothing pulls) leave their joints' entries exactly 0.
+    model = default_hand_model(right)
+    rng = np.random.default_rng(21 if right else 22)
+    for _ in range(10):
+        theta = random_pose(rng)
+        P, J = gaussian_centres(model, theta, jacobian=True)
+        P2, pullback = centres_with_pullback(model, theta)
+        np.testing.assert_array_equal(P2, P)
+        np.testing.assert_array_equal(gaussian_centres(model, theta), P)
+        g3 = rng.normal(0.0, 1.0, P.shape)
+        g3[model.g_chain == 2] = 0.0  # the middle finger: no pull
+        expected = np.einsum("mk,mkj->j", g3, J)
+        got = pullback(g3)
+        np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+        middle = slice(6 + 4 * 2, 6 + 4 * 3)
+        assert np.all(got[middle] == 0.0) and np.all(expected[middle] == 0.0)
+
+
+def test_global_rotation_derivatives_match_central_differences() -> None:
+    rng = np.random.default_rng(8)
+    for _ in range(5):
+        theta = random_pose(rng)
+        R, dR = global_rotation(theta, derivatives=True)
+        np.testing.assert_array_equal(R, global_rotation(theta))
+        for a in range(3):
+            e = np.zeros(N_PARAMS)
+            e[3 + a] = 1e-6
+            num = (global_rotation(theta + e) - global_rotation(theta - e)) / 2e-6
+            np.testing.assert_allclose(dR[a], num, atol=1e-8)

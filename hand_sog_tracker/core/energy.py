@@ -56,7 +56,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.hand_model import FINGER_ABD, JOINTS, N_PARAMS, HandModel, rest_pose
-from hand_sog_tracker.core.kinematics import gaussian_centres
+from hand_sog_tracker.core.kinematics import centres_with_pullback, gaussian_centres
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette_term
 from hand_sog_tracker.core.types import TrackerConfig
 
@@ -89,6 +89,7 @@ SALIENT_SOFT_MM = 8.0
 #: The salient cost is measured in units of this distance (mm; chosen here).
 SALIENT_SCALE_MM = 100.0
 _TWO_PI = 2.0 * np.pi
+_UNSET = object()
 _INV_SQRT2 = 1.0 / np.sqrt(2.0)
 
 
@@ -199,6 +200,54 @@ def model_constants(model: HandModel) -> _ModelConstants:
     return const
 
 
+_DATA_CACHE: list = [(None, 0, None)]  # (data, m, constants) of the last data: one tuple
+
+
+def _data_constants(data: ImageSoG, m: int) -> tuple:
+    """Constants of the data terms for a frame's data and ``m`` model Gaussians (cached for
+    the last data: a frame builds several objectives on the same data).
+
+    Returns ``mu_u, mu_v, sigma^2, 36 sigma^2, half side`` (n,) each, the candidate matrix
+    (5, 6, n) of :meth:`Objective._data_terms`, the flat offsets (3, 1) of its difference
+    blocks, the first flat index of each model Gaussian's row (m + 1,) and the per-pair data
+    values (5, n).
+    """
+    hit = _DATA_CACHE[0]
+    if hit[0] is data and hit[1] == m:
+        return hit[2]
+    n = data.n
+    mu_u = np.ascontiguousarray(data.mu[:, 0], dtype=np.float64)
+    mu_v = np.ascontiguousarray(data.mu[:, 1], dtype=np.float64)
+    sq2 = data.sigma**2
+    sq2_36 = 36.0 * sq2
+    half = data.sigma * _INV_SQRT2  # half a quad's side, px
+    depth = np.asarray(data.depth, dtype=np.float64)
+    # The candidate tests of every (model, data) pair are one matrix product: six values per
+    # model Gaussian times five (6, n) blocks, the two tests (expanded squares, see
+    # _data_terms), then u - mu_u, v - mu_v, dp - depth exactly (one product by 1 and one by
+    # 1 or 0 per entry: the single rounding of the subtraction).
+    cand = np.zeros((5, 6, n))
+    cand[0, 0] = 1.0
+    cand[0, 2] = mu_u * mu_u + mu_v * mu_v - sq2_36
+    cand[0, 3] = -2.0 * mu_u
+    cand[0, 4] = -2.0 * mu_v
+    cand[1, 1] = 1.0
+    cand[1, 2] = depth * depth
+    cand[1, 5] = -2.0 * depth
+    for k, q_value in enumerate((mu_u, mu_v, depth)):
+        cand[2 + k, 3 + k] = 1.0
+        cand[2 + k, 2] = -q_value
+    const = (
+        mu_u, mu_v, sq2, sq2_36, half, cand,
+        (np.arange(2, 5) * (m * n))[:, None],
+        np.arange(m + 1) * n,
+        # Per-data values read per pair: mu_u, mu_v, depth, sigma^2, half side.
+        np.stack([mu_u, mu_v, depth, sq2, half]),
+    )
+    _DATA_CACHE[0] = (data, m, const)
+    return const
+
+
 @lru_cache(maxsize=1)
 def _smooth_scale() -> NDArray[np.float64]:
     s = np.ones(N_PARAMS)
@@ -243,32 +292,53 @@ class Objective:
         self._const = model_constants(model)
         intr = data.intrinsics
         self._f = float(np.sqrt(intr.fx * intr.fy))
-        # Per-frame constants of the data terms.
-        self._mu_u = np.ascontiguousarray(data.mu[:, 0])
-        self._mu_v = np.ascontiguousarray(data.mu[:, 1])
-        self._sq2 = data.sigma**2
-        self._sq2_36 = 36.0 * self._sq2
-        self._half = data.sigma * _INV_SQRT2  # half a quad's side, px
-        self._two_sh = (2.0 * model.g_sigmas)[:, None]
+        # Per-frame constants of the data terms (shared by the frame's objectives).
+        (
+            self._mu_u, self._mu_v, self._sq2, self._sq2_36, self._half,
+            self._cand, self._diff_offsets, self._row_starts, self._per_q,
+        ) = _data_constants(data, model.n_gaussians)
         self._row_of, self._col_of = _flat_rows_cols(model.n_gaussians, data.n)
+        sh = model.g_sigmas
+        self._shf = sh * self._f
+        self._fxy = np.array([[intr.fx], [intr.fy]], dtype=np.float64)
+        self._two_sh = 2.0 * sh
+        self._four_sh2 = self._two_sh * self._two_sh
+        # (targets, their constants or None) of the last targets seen by _salient.
+        self._sal: tuple[object, tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None] = (
+            _UNSET, None
+        )
 
     def __call__(
         self, theta: NDArray[np.float64], gradient: bool = True
     ) -> tuple[float, NDArray[np.float64] | None]:
         """Return ``E(theta)`` and, with ``gradient``, ``dE/dtheta`` of shape (26,)."""
-        terms, grad = self.evaluate(theta, gradient)
-        return terms.total, grad
+        values, grad = self._evaluate(theta, gradient)
+        return values[0], grad
 
     def evaluate(
         self, theta: NDArray[np.float64], gradient: bool = True
     ) -> tuple[EnergyTerms, NDArray[np.float64] | None]:
         """Return every term of ``E(theta)`` and optionally the gradient, shape (26,)."""
+        v, grad = self._evaluate(theta, gradient)
+        terms = EnergyTerms(
+            total=v[0], sim=v[1], col=v[2], dan=v[3], lim=v[4], smo=v[5], ord=v[6], sal=v[7], sil=v[8]
+        )
+        return terms, grad
+
+    def _evaluate(
+        self, theta: NDArray[np.float64], gradient: bool
+    ) -> tuple[tuple[float, ...], NDArray[np.float64] | None]:
+        """``(total, sim, col, dan, lim, smo, ord, sal, sil)`` and the gradient (or None).
+
+        The shared body of :meth:`__call__` (the optimiser's path: no :class:`EnergyTerms`)
+        and :meth:`evaluate`.
+        """
         cfg = self.config
         if gradient:
-            P, J = gaussian_centres(self.model, theta, jacobian=True)
+            P, pullback = centres_with_pullback(self.model, theta)
+            g3 = np.zeros_like(P)
         else:
-            P, J = gaussian_centres(self.model, theta), None
-        g3 = np.zeros_like(P) if gradient else None
+            P, pullback, g3 = gaussian_centres(self.model, theta), None, None
         sim, dan = self._data_terms(P, g3, cfg.w_dan)
         col = self._collision(P, g3, cfg.w_col)
         lim, g_lim = self._limits(theta)
@@ -288,14 +358,14 @@ class Objective:
             - cfg.w_sal * sal
             - cfg.w_sil * sil
         )
-        terms = EnergyTerms(
-            total=total, sim=sim, col=col, dan=dan, lim=lim, smo=smo, ord=ordv, sal=sal, sil=sil
-        )
-        if not gradient:
-            return terms, None
-        grad = np.einsum("mk,mkj->j", g3, J)
-        grad -= cfg.w_lim * g_lim + cfg.w_smo * g_smo + cfg.w_ord * g_ord
-        return terms, grad
+        values = (total, sim, col, dan, lim, smo, ordv, sal, sil)
+        if pullback is None:
+            return values, None
+        grad = pullback(g3)  # = einsum("mk,mkj->j", g3, J) up to rounding
+        grad -= cfg.w_lim * g_lim + cfg.w_smo * g_smo
+        if ordv > 0.0:  # (else g_ord is 0)
+            grad -= cfg.w_ord * g_ord
+        return values, grad
 
     # -- terms ---------------------------------------------------------------
     def _data_terms(
@@ -307,137 +377,162 @@ class Objective:
         under ``2 sigma_h`` (else ``Delta = 0`` exactly) and image distance under
         6 combined standard deviations (else ``D_pq < 1.6e-8 D_pq^0``).
         ``E_dan`` is evaluated on the rows of dangling Gaussians only.
+
+        Both candidate tests of all m x n pairs are one matrix product (expanded squares:
+        ``r^2 - 36 (s_p^2 + s_q^2) = (u_p^2 + v_p^2 - 36 s_p^2) + (mu_q^2 - 36 s_q^2)
+        - 2 u_p mu_uq - 2 v_p mu_vq`` and ``dd^2 - (2 sigma_h)^2`` likewise); the values of
+        the pairs that pass are then computed exactly as their definitions (the expansion
+        can only decide pairs within rounding of a test's boundary, where both the overlap
+        and ``Delta`` vanish).
         """
         data = self.data
-        if data.n == 0 or data.norm <= 0:
+        n = data.n
+        if n == 0 or data.norm <= 0:
             return 0.0, 0.0
         intr = data.intrinsics
         m = P.shape[0]
         sh = self.model.g_sigmas
         x, y, z = P[:, 0], P[:, 1], np.maximum(P[:, 2], 1.0)
-        u = intr.fx * x / z + intr.cx
-        v = intr.fy * y / z + intr.cy
-        sp = sh * self._f / z
-        dp = z - sh
-        sq2_all = self._sq2
-        # Candidate pairs (dense tests, sparse arithmetic).
-        du_d = u[:, None] - self._mu_u
-        dv_d = v[:, None] - self._mu_v
-        r2_d = du_d * du_d + dv_d * dv_d
-        dd_d = dp[:, None] - data.depth
-        mask = (np.abs(dd_d) < self._two_sh) & (r2_d < (36.0 * sp * sp)[:, None] + self._sq2_36)
-        flat = np.flatnonzero(mask)
-        pi, qi = self._row_of.take(flat), self._col_of.take(flat)
-        du, dv, r2, dd = du_d.take(flat), dv_d.take(flat), r2_d.take(flat), dd_d.take(flat)
-        sp_sq = sp * sp
-        sp2 = sp_sq.take(pi)
-        sq2 = sq2_all.take(qi)
-        s2 = sp2 + sq2
+        # Per model Gaussian (rows): 0-2 and u, v, dp enter the candidate product, the others
+        # are read per pair (contiguous 1-d gathers: strided columns would slow down exp).
+        rows = np.empty((11, m))
+        u, v, dp, sp, sp_sq = rows[3], rows[4], rows[5], rows[6], rows[7]
+        np.add(intr.fx * x / z, intr.cx, out=u)
+        np.add(intr.fy * y / z, intr.cy, out=v)
+        np.subtract(z, sh, out=dp)
+        np.divide(self._shf, z, out=sp)
+        np.multiply(sp, sp, out=sp_sq)
+        np.multiply(_TWO_PI, sp_sq, out=rows[8])
+        scale = z / self._f  # mm per px at the model's depth
+        rows[9] = self._two_sh
+        np.multiply(scale, scale, out=rows[10])
+        # rows 0-2: u^2 + v^2 - 36 sp^2, dp^2 - (2 sigma_h)^2, 1
+        np.subtract(u * u + v * v, 36.0 * sp * sp, out=rows[0])
+        np.subtract(dp * dp, self._four_sh2, out=rows[1])
+        rows[2] = 1.0
+        prod = np.matmul(rows[:6].T, self._cand)  # (5, m, n): both tests (< 0: pass), du, dv, dd
+        neg = prod[:2] < 0.0
+        flat = np.flatnonzero(np.logical_and(neg[0], neg[1], out=neg[0]))
+        # Pairs per model Gaussian (the pairs come sorted by it): where each row's run starts.
+        bounds = np.searchsorted(flat, self._row_starts)
+        per_row = bounds[1:] - bounds[:-1]
+        qi = self._col_of.take(flat)
+        # sp^2, 2 pi sp^2, 2 sigma_h, (mm per px)^2 of each pair's model Gaussian: its row's
+        # values repeated over its run (one call instead of a gather per value).
+        sp_sq_p, tpsp_p, two_sh_p, scale2_p = np.repeat(rows[7:], per_row, axis=1)
+        pq = self._per_q
+        du, dv, dd = prod.reshape(-1).take(flat + self._diff_offsets)  # the exact differences
+        r2 = du * du + dv * dv
+        sq2 = pq[3].take(qi)
+        s2 = sp_sq_p + sq2
         inv_s2 = 1.0 / s2
-        e = np.exp(-0.5 * r2 * inv_s2)
-        D = (_TWO_PI * sp_sq).take(pi) * sq2 * inv_s2 * e
-        two_shp = (2.0 * sh).take(pi)
-        delta = 1.0 - np.abs(dd) / two_shp
+        r2_s2 = r2 * inv_s2
+        e = np.exp(np.multiply(r2_s2, -0.5))  # = exp(-0.5 r2 inv_s2) exactly (0.5: exact scaling)
+        D = tpsp_p * sq2 * inv_s2 * e
+        delta = 1.0 - np.abs(dd) / two_sh_p
         inv_norm = 1.0 / data.norm
-        sim = float((delta * D).sum() * inv_norm)
+        delta_D = delta * D
+        sim = float(delta_D.sum() * inv_norm)
         # Dangling Gaussians (eq. 7): distance from each model Gaussian to the data,
         # occlusion-aware (see the module docstring), dmin its minimum over the data.  A
         # candidate pair within TAU1 settles dmin <= TAU1 (weight 0); only the other rows
         # (typically none to a few) need the distances to all data Gaussians.
-        scale = z / self._f  # mm per px at the model's depth
-        lat_c = np.maximum(np.sqrt(r2) - self._half.take(qi), 0.0)
-        beh_c = np.maximum(-dd, 0.0)
-        near_c = lat_c * lat_c * (scale * scale).take(pi) + beh_c * beh_c <= TAU1_MM * TAU1_MM
+        lat_c = np.maximum(np.sqrt(r2) - pq[4].take(qi), 0.0)
+        beh_c = np.minimum(dd, 0.0)  # minus how far the data lie behind: squared below
+        near_c = lat_c * lat_c * scale2_p + beh_c * beh_c <= TAU1_MM * TAU1_MM
+        nz = per_row > 0
+        starts = bounds[:-1][nz]
         settled = np.zeros(m, dtype=bool)
-        settled[pi[near_c]] = True
+        if flat.size:
+            settled[nz] = np.logical_or.reduceat(near_c, starts)
         U = np.flatnonzero(~settled)
         dan = 0.0
         sel = U[:0]
         if U.size:
-            du_U, dv_U, r2_U = du_d[U], dv_d[U], r2_d[U]
+            du_U = u[U][:, None] - self._mu_u
+            dv_U = v[U][:, None] - self._mu_v
+            r2_U = du_U * du_U + dv_U * dv_U
             r_U = np.sqrt(r2_U)
             lat_U = np.maximum(r_U - self._half, 0.0)
             scale_U = scale[U][:, None]
-            behind_U = np.maximum(-dd_d[U], 0.0)  # data farther than the model's surface
-            dist2_U = lat_U * lat_U * (scale_U * scale_U) + behind_U * behind_U
+            # minus how far the data lie behind the model's surface (data in front: 0)
+            nbeh_U = np.minimum(dp[U][:, None] - data.depth, 0.0)
+            dist2_U = lat_U * lat_U * (scale_U * scale_U) + nbeh_U * nbeh_U
             nearest_U = dist2_U.argmin(axis=1)
             dmin_U = np.sqrt(dist2_U[np.arange(U.size), nearest_U])
-            wdang_U = np.clip((dmin_U - TAU1_MM) / TAU1_MM, 0.0, 1.0)
+            # (minimum of maximum: np.clip, several times cheaper on small arrays)
+            wdang_U = np.minimum(np.maximum((dmin_U - TAU1_MM) / TAU1_MM, 0.0), 1.0)
             sel = np.flatnonzero(wdang_U > 0.0)
-        rows = U[sel]
-        if rows.size:
+        drows = U[sel]
+        if drows.size:
             dist_r = np.sqrt(dist2_U[sel])
-            phi = np.clip((dist_r - TAU1_MM) / (TAU2_MM - TAU1_MM), 0.0, 1.0)
-            s2r = (sp[rows] ** 2)[:, None] + sq2_all[None, :]
+            phi = np.minimum(np.maximum((dist_r - TAU1_MM) / (TAU2_MM - TAU1_MM), 0.0), 1.0)
+            s2r = (sp[drows] ** 2)[:, None] + self._sq2[None, :]
             r2_r = r2_U[sel]
             er = np.exp(-0.5 * r2_r / s2r)
-            per_p = (phi * (1.0 - er)).sum(1) / data.n
-            dan = float((wdang_U[sel] * per_p).sum())
+            per_row_dan = (phi * (1.0 - er)).sum(1) / n
+            dan = float((wdang_U[sel] * per_row_dan).sum())
         if g3 is None:
             return sim, dan
         # d/d(u, v, sigma_p, d_p) of E_sim, accumulated per model Gaussian.
-        # The pairs come sorted by model Gaussian (row-major order of the mask): the four
-        # per-Gaussian sums are one segmented sum over the columns of W.
-        wD = delta * D * inv_norm
+        # The pairs come sorted by model Gaussian (row-major order of the mask): the sums per
+        # Gaussian are one segmented sum over the rows of W.  Factors of a model Gaussian alone
+        # are taken out of its sums: with wD = Delta D / norm,
+        # dE/dsp = sum wD (2 / sp - 2 sp / s2 + r2 sp / s2^2)
+        #        = 2 / sp sum wD + sp sum wD / s2 (r2 / s2 - 2).
+        wD = delta_D * inv_norm
         a = wD * inv_s2
-        spp = sp.take(pi)
-        W = np.empty((pi.size, 4))
-        np.multiply(a, du, out=W[:, 0])
-        np.multiply(a, dv, out=W[:, 1])
-        # wD (2 / sp - 2 sp / s2 + r2 sp / s2^2)
-        np.add(2.0 * wD / spp, spp * (a * (r2 * inv_s2 - 2.0)), out=W[:, 2])
-        np.multiply(D, np.sign(dd) / two_shp, out=W[:, 3])
-        per_row = mask.sum(axis=1)
-        acc = np.zeros((m, 4))
-        if pi.size:
-            nz = per_row > 0
-            acc[nz] = np.add.reduceat(W, (np.cumsum(per_row) - per_row)[nz], axis=0)
-        g_u = -acc[:, 0]
-        g_v = -acc[:, 1]
-        g_sp = acc[:, 2]
-        g_dp = acc[:, 3] * -inv_norm
-        g_z = np.zeros(m)  # explicit z-dependence of the dangle distances
-        if rows.size and w_dan > 0:
-            wn = (w_dan * wdang_U[sel] / data.n)[:, None]
+        W = np.empty((5, flat.size))
+        np.multiply(a, du, out=W[0])
+        np.multiply(a, dv, out=W[1])
+        W[2] = wD
+        np.multiply(a, r2_s2 - 2.0, out=W[3])
+        np.copysign(D, dd, out=W[4])  # D sign(dd)
+        acc = np.zeros((5, m))
+        if flat.size:
+            acc[:, nz] = np.add.reduceat(W, starts, axis=1)
+        # g[0:2] = -dE/d(u, v), then dE/dsp, dE/dp, and the explicit z-dependence of the
+        # dangle distances.
+        g = np.empty((5, m))
+        g[:2] = acc[:2]
+        g[2] = 2.0 * acc[2] / sp + sp * acc[3]
+        g[3] = acc[4] / self._two_sh * -inv_norm
+        g[4] = 0.0
+        if drows.size and w_dan > 0:
+            wn = (w_dan * wdang_U[sel] / n)[:, None]
             pe = wn * phi * er
             inv_s2r = 1.0 / s2r
-            spr = sp[rows][:, None]
+            spr = sp[drows][:, None]
             du_r, dv_r = du_U[sel], dv_U[sel]
             # d(1 - e)/du = e du / s2 ; d(1 - e)/dsp = -e r2 sp / s2^2
-            g_u[rows] -= (pe * du_r * inv_s2r).sum(1)
-            g_v[rows] -= (pe * dv_r * inv_s2r).sum(1)
-            g_sp[rows] += (pe * r2_r * spr * inv_s2r * inv_s2r).sum(1)
-            # Derivatives of the distance: lat = max(r - half, 0) z / f, behind = max(dq - dp, 0).
+            pe_s2 = pe * inv_s2r
+            # Derivatives of the distance: lat = max(r - half, 0) z / f, behind = max(dq - dp, 0)
+            # (both terms vanish off the lateral part, where lat = 0).
             lat_px_r, scale_r = lat_U[sel], scale_U[sel]
             lat_r = lat_px_r * scale_r
-            beh_r, r_r = behind_U[sel], np.maximum(r_U[sel], 1e-9)
+            r_r = np.maximum(r_U[sel], 1e-9)
             inv_dist = 1.0 / np.maximum(dist_r, 1e-9)
-            on_lat = lat_px_r > 0.0
-            k_u = np.where(on_lat, lat_r * scale_r / r_r, 0.0) * inv_dist  # d dist / du per du
-            k_z = np.where(on_lat, lat_r * lat_px_r / self._f, 0.0) * inv_dist
-            k_dp = -beh_r * inv_dist  # d dist / d dp
+            k_u = lat_r * scale_r / r_r * inv_dist  # d dist / du per du
+            k_z = lat_r * lat_px_r / self._f * inv_dist
+            k_dp = nbeh_U[sel] * inv_dist  # d dist / d dp
             ramp = (dist_r > TAU1_MM) & (dist_r < TAU2_MM)
-            c_phi = wn * np.where(ramp, 1.0 / (TAU2_MM - TAU1_MM), 0.0) * (1.0 - er)
+            c = wn * (ramp * (1.0 / (TAU2_MM - TAU1_MM))) * (1.0 - er)
             # Through the dangling weight: d dmin / d(.) at the nearest data Gaussian.
             dmin_r = dmin_U[sel]
             on_ramp = (dmin_r > TAU1_MM) & (dmin_r < 2.0 * TAU1_MM)
-            c_min = np.zeros_like(c_phi)
-            c_min[np.arange(rows.size), nearest_U[sel]] = w_dan * on_ramp * per_p / TAU1_MM
-            c = c_phi + c_min
-            g_u[rows] -= (c * k_u * du_r).sum(1)
-            g_v[rows] -= (c * k_u * dv_r).sum(1)
-            g_z[rows] -= (c * k_z).sum(1)
-            g_dp[rows] -= (c * k_dp).sum(1)
-        f = self._f
-        g3[:, 0] += g_u * intr.fx / z
-        g3[:, 1] += g_v * intr.fy / z
-        g3[:, 2] += (
-            -g_u * intr.fx * x / (z * z)
-            - g_v * intr.fy * y / (z * z)
-            - g_sp * sh * f / (z * z)
-            + g_dp
-            + g_z
-        )
+            c[np.arange(drows.size), nearest_U[sel]] += w_dan * on_ramp * per_row_dan / TAU1_MM
+            k_uv = pe_s2 + c * k_u
+            rows_sums = np.empty((5, drows.size))
+            (k_uv * du_r).sum(1, out=rows_sums[0])
+            (k_uv * dv_r).sum(1, out=rows_sums[1])
+            (pe_s2 * r2_r * spr * inv_s2r).sum(1, out=rows_sums[2])
+            np.negative((c * k_dp).sum(1), out=rows_sums[3])
+            np.negative((c * k_z).sum(1), out=rows_sums[4])
+            g[:, drows] += rows_sums
+        # Through u = fx x / z + cx, v = fy y / z + cy, sp = sh f / z, dp = z - sh.
+        t_uv = g[:2] * self._fxy / z  # (2, m): dE/d(x, y) at fixed z, negated
+        g3[:, :2] -= t_uv.T
+        g3[:, 2] += (t_uv[0] * x + t_uv[1] * y - g[2] * self._shf / z) / z + g[3] + g[4]
         return sim, dan
 
     def _collision(
@@ -446,16 +541,17 @@ class Objective:
         """``E_col`` (eq. 6); adds ``-w_col dE_col/dP`` into ``g3``."""
         c = self._const
         diff = P.take(c.pair_i, axis=0) - P.take(c.pair_j, axis=0)  # (faster than P[idx])
-        r2 = (diff * diff).sum(1)
+        sq = diff * diff
+        r2 = sq[:, 0] + sq[:, 1] + sq[:, 2]  # = sq.sum(1), several times cheaper
         D = c.pair_amp * np.exp(-0.5 * r2 / c.pair_s2)
         col = float(D.sum() / c.norm_h)
         if g3 is not None and w_col > 0:
-            g = (-(D / c.pair_s2)[:, None] * diff) / c.norm_h  # dE_col/dP_i (pairs, 3)
+            g = (D * (w_col / c.norm_h) / c.pair_s2)[:, None] * diff  # -w_col dE_col/dP_i (pairs, 3)
             # incidence @ g: + g at each pair's i, - g at its j.
             g_all = np.bincount(
                 c.scatter, weights=np.concatenate([g.ravel(), -g.ravel()]), minlength=3 * P.shape[0]
             )
-            g3 -= w_col * g_all.reshape(-1, 3)
+            g3 += g_all.reshape(-1, 3)
         return col
 
     def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
@@ -488,12 +584,18 @@ class Objective:
     ) -> float:
         """``E_sal``; adds ``-w_sal dE_sal/dP`` into ``g3`` at the fingertip Gaussians."""
         t = self.targets
-        if t is None or w_sal <= 0 or not np.any(t.weights > 0):
+        key, const = self._sal
+        if t is not key:  # the targets' constants, once per targets object
+            const = None
+            if t is not None and np.any(t.weights > 0):
+                const = (self.model.tip_index, np.asarray(t.points), t.weights / SALIENT_SCALE_MM)
+            self._sal = (t, const)
+        if const is None or w_sal <= 0:
             return 0.0
-        tips = self.model.tip_index
-        diff = P[tips] - t.points
-        root = np.sqrt((diff * diff).sum(1) + SALIENT_SOFT_MM**2)
-        w = t.weights / SALIENT_SCALE_MM
+        tips, points, w = const
+        diff = P.take(tips, axis=0) - points
+        sq = diff * diff
+        root = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2] + SALIENT_SOFT_MM**2)
         val = float((w * (root - SALIENT_SOFT_MM)).sum())
         if g3 is not None:
             g3[tips] -= w_sal * (w / root)[:, None] * diff

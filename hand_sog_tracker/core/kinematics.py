@@ -1,5 +1,10 @@
 """Forward kinematics of the 26-DOF hand and the analytic Jacobian of attached points.
 
+One job: the skeleton's forward kinematics and its derivatives; kept together because the
+objective's per-evaluation path (:func:`centres_with_pullback`, ``J^T g`` without building
+``J``) and the general one (:func:`attached_points`) share the chain frames and must give the
+same centres bit for bit.
+
 All positions are millimetres in the camera optical frame (x right, y down,
 z forward) unless a docstring says "hand frame".  See
 :mod:`hand_sog_tracker.core.hand_model` for the frames and the pose vector.
@@ -13,11 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, FIRST_JOINT, JOINTS, N_PARAMS, HandModel
+from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, FIRST_JOINT, N_PARAMS, HandModel
 from hand_sog_tracker.errors import InputError
 
 __all__ = [
     "ChainFrames",
+    "CentresPullback",
+    "centres_with_pullback",
     "check_pose",
     "global_rotation",
     "chain_frames",
@@ -72,30 +79,37 @@ def global_rotation(theta: NDArray[np.float64], derivatives: bool = False):
     cz, sz = math.cos(theta[5]), math.sin(theta[5])
     if not derivatives:
         Rx, Ry, Rz = np.array(
-            (
-                ((1.0, 0.0, 0.0), (0.0, cx, -sx), (0.0, sx, cx)),
-                ((cy, 0.0, sy), (0.0, 1.0, 0.0), (-sy, 0.0, cy)),
-                ((cz, -sz, 0.0), (sz, cz, 0.0), (0.0, 0.0, 1.0)),
-            )
-        )
+            (1.0, 0.0, 0.0, 0.0, cx, -sx, 0.0, sx, cx,
+             cy, 0.0, sy, 0.0, 1.0, 0.0, -sy, 0.0, cy,
+             cz, -sz, 0.0, sz, cz, 0.0, 0.0, 0.0, 1.0)
+        ).reshape(3, 3, 3)
         return (Rz @ Rx) @ Ry
-    # One array for all six factors: building small arrays dominates the cost.
-    Rx, Ry, Rz, dRx, dRy, dRz = np.array(
+    # R from the same matrix products as without derivatives (bit-identical); dR in closed
+    # form, one array build (building small arrays dominates the cost; a flat tuple converts
+    # several times faster than a nested one).
+    Rx, Ry, Rz = np.array(
+        (1.0, 0.0, 0.0, 0.0, cx, -sx, 0.0, sx, cx,
+         cy, 0.0, sy, 0.0, 1.0, 0.0, -sy, 0.0, cy,
+         cz, -sz, 0.0, sz, cz, 0.0, 0.0, 0.0, 1.0)
+    ).reshape(3, 3, 3)
+    R = (Rz @ Rx) @ Ry
+    sxsy, sxcy = sx * sy, sx * cy
+    dR = np.array(
         (
-            ((1.0, 0.0, 0.0), (0.0, cx, -sx), (0.0, sx, cx)),
-            ((cy, 0.0, sy), (0.0, 1.0, 0.0), (-sy, 0.0, cy)),
-            ((cz, -sz, 0.0), (sz, cz, 0.0), (0.0, 0.0, 1.0)),
-            ((0.0, 0.0, 0.0), (0.0, -sx, -cx), (0.0, cx, -sx)),
-            ((-sy, 0.0, cy), (0.0, 0.0, 0.0), (-cy, 0.0, -sy)),
-            ((-sz, -cz, 0.0), (cz, -sz, 0.0), (0.0, 0.0, 0.0)),
+            # d/drx = Rz dRx Ry
+            -sz * cx * sy, sz * sx, sz * cx * cy,
+            cz * cx * sy, -cz * sx, -cz * cx * cy,
+            sxsy, cx, -sxcy,
+            # d/dry = Rz Rx dRy
+            -cz * sy - sz * sxcy, 0.0, cz * cy - sz * sxsy,
+            -sz * sy + cz * sxcy, 0.0, sz * cy + cz * sxsy,
+            -cx * cy, 0.0, -cx * sy,
+            # d/drz = dRz Rx Ry
+            -sz * cy - cz * sxsy, -cz * cx, -sz * sy + cz * sxcy,
+            cz * cy - sz * sxsy, -sz * cx, cz * sy + sz * sxcy,
+            0.0, 0.0, 0.0,
         )
-    )
-    RzRx = Rz @ Rx
-    R = RzRx @ Ry
-    dR = np.empty((3, 3, 3))
-    dR[0] = Rz @ dRx @ Ry
-    dR[1] = RzRx @ dRy
-    dR[2] = dRz @ Rx @ Ry
+    ).reshape(3, 3, 3)
     return R, dR
 
 
@@ -124,22 +138,108 @@ def chain_frames(model: HandModel, theta: NDArray[np.float64]) -> ChainFrames:
     Within a chain all flexion axes coincide (the first segment's x axis), so
     segment ``s`` is ``B @ Rx(f1 + ... + f_{s+1})`` with ``B = R0 @ Rz(abd)``.
     """
-    q = theta[JOINTS].reshape(5, CHAIN_JOINTS)
-    r0 = model.rest_rotations
-    ca, sa = np.cos(q[:, 1])[:, None], np.sin(q[:, 1])[:, None]
-    bx = ca * r0[:, :, 0] + sa * r0[:, :, 1]  # (5, 3)
-    by = -sa * r0[:, :, 0] + ca * r0[:, :, 1]
-    bz = r0[:, :, 2]
-    phi = np.cumsum(q[:, [0, 2, 3]], axis=1)  # (5, 3)
+    rots, o, bz = _frames(_model_kinematics(model), theta)
+    return ChainFrames(origins=o, rotations=rots, abd_axes=bz)
+
+
+def _frames(
+    mk: _ModelKinematics, theta: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Rotations (5, 3, 3, 3), origins (5, 4, 3) and abduction axes (5, 3) of all chains."""
+    qa = theta.take(mk.abd_idx)
+    ca, sa = np.cos(qa)[:, None], np.sin(qa)[:, None]
+    bx = ca * mk.r0x + sa * mk.r0y  # (5, 3)
+    by = ca * mk.r0y - sa * mk.r0x  # (= -sa r0x + ca r0y exactly)
+    bz = mk.r0z
+    phi = np.cumsum(theta.take(mk.flex_idx), axis=1)  # (5, 3)
     cp, sp = np.cos(phi)[:, :, None], np.sin(phi)[:, :, None]
+    by3, bz3 = by[:, None, :], bz[:, None, :]
     rots = np.empty((5, 3, 3, 3))
     rots[:, :, :, 0] = bx[:, None, :]
-    rots[:, :, :, 1] = cp * by[:, None, :] + sp * bz[:, None, :]
-    rots[:, :, :, 2] = -sp * by[:, None, :] + cp * bz[:, None, :]
+    y_axes = np.multiply(cp, by3, out=rots[:, :, :, 1])
+    y_axes += sp * bz3
+    z_axes = np.multiply(cp, bz3, out=rots[:, :, :, 2])
+    z_axes -= sp * by3  # (= -sp by + cp bz exactly)
     o = np.empty((5, 4, 3))
-    o[:, 0] = model.bases
-    o[:, 1:] = model.bases[:, None, :] + np.cumsum(rots[:, :, :, 1] * model.lengths[:, :, None], axis=1)
-    return ChainFrames(origins=o, rotations=rots, abd_axes=bz)
+    o[:, 0] = mk.bases
+    tail = np.cumsum(y_axes * mk.lengths3, axis=1, out=o[:, 1:])
+    tail += mk.bases3
+    return rots, o, bz
+
+
+@dataclass(frozen=True, eq=False)
+class _ModelKinematics:
+    """Per-model constants of the kinematics (cached per model object, see below)."""
+
+    abd_idx: NDArray[np.int64]  # (5,) pose index of each chain's abduction
+    flex_idx: NDArray[np.int64]  # (5, 3) pose index of each chain's three flexions
+    r0x: NDArray[np.float64]  # (5, 3) columns of the rest rotations
+    r0y: NDArray[np.float64]
+    r0z: NDArray[np.float64]
+    bases: NDArray[np.float64]  # (5, 3)
+    bases3: NDArray[np.float64]  # (5, 1, 3)
+    lengths3: NDArray[np.float64]  # (5, 3, 1)
+    # The model Gaussians (see attached_points): index into rotations (15, 9) / origins (20, 3).
+    g_rot: NDArray[np.int64]  # (m,)
+    g_org: NDArray[np.int64]  # (m,)
+    g_finger: NDArray[np.bool_]  # (m, 1)
+    g_offsets: NDArray[np.float64]  # (m, 3)
+    # groups[4 c + j, i] = 1 when joint j of chain c moves Gaussian i (joint columns of J).
+    groups: NDArray[np.float64]  # (20, m)
+    pivot: NDArray[np.int64]  # (20,) index into origins (20, 3) of each joint's pivot
+    axis_row: NDArray[np.int64]  # (20,) row of each joint's axis in concatenate((bx, bz))
+    M: NDArray[np.float64]  # (3, 3) mirror
+    right: bool
+
+
+_KIN_CACHE: dict[int, tuple[HandModel, _ModelKinematics]] = {}
+
+
+def _model_kinematics(model: HandModel) -> _ModelKinematics:
+    """The :class:`_ModelKinematics` of a model (cached per model object, like
+    :func:`hand_sog_tracker.core.energy.model_constants`: models are frozen)."""
+    hit = _KIN_CACHE.get(id(model))
+    if hit is not None and hit[0] is model:
+        return hit[1]
+    first = FIRST_JOINT + CHAIN_JOINTS * np.arange(5)
+    r0 = np.asarray(model.rest_rotations, dtype=np.float64)
+    chain = np.asarray(model.g_chain)
+    segment = np.asarray(model.g_segment)
+    m = chain.shape[0]
+    finger = chain >= 0
+    c = np.where(finger, chain, 0).astype(np.int64)
+    s = np.where(finger, segment, 0).astype(np.int64)
+    first_seg = np.array([0, 0, 1, 2])
+    groups = np.zeros((20, m))
+    for cc in range(5):
+        for j in range(CHAIN_JOINTS):
+            groups[CHAIN_JOINTS * cc + j] = finger & (c == cc) & (s >= first_seg[j])
+    mk = _ModelKinematics(
+        abd_idx=first + 1,
+        flex_idx=first[:, None] + np.array([0, 2, 3])[None, :],
+        r0x=np.ascontiguousarray(r0[:, :, 0]),
+        r0y=np.ascontiguousarray(r0[:, :, 1]),
+        r0z=np.ascontiguousarray(r0[:, :, 2]),
+        bases=np.array(model.bases, dtype=np.float64),
+        bases3=np.array(model.bases, dtype=np.float64)[:, None, :],
+        lengths3=np.array(model.lengths, dtype=np.float64)[:, :, None],
+        g_rot=3 * c + s,
+        g_org=4 * c + s,
+        g_finger=finger[:, None],
+        g_offsets=np.array(model.g_offsets, dtype=np.float64),
+        groups=groups,
+        pivot=(4 * np.arange(5)[:, None] + first_seg[None, :]).ravel(),
+        axis_row=(np.arange(5)[:, None] + np.array([0, 5, 0, 0])[None, :]).ravel(),
+        M=_mirror(model),
+        right=bool(model.right),
+    )
+    for arr in vars(mk).values():
+        if isinstance(arr, np.ndarray):
+            arr.setflags(write=False)
+    if len(_KIN_CACHE) > 32:
+        _KIN_CACHE.clear()
+    _KIN_CACHE[id(model)] = (model, mk)
+    return mk
 
 
 _MIRROR = {True: np.diag([1.0, 1.0, 1.0]), False: np.diag([-1.0, 1.0, 1.0])}
@@ -294,9 +394,107 @@ def attached_points(
 
 def gaussian_centres(model: HandModel, theta: NDArray[np.float64], jacobian: bool = False):
     """Centres of the model Gaussians, shape (m, 3) mm, and optionally J (m, 3, 26)."""
+    if not jacobian:  # the per-evaluation path: the model's index arrays cached
+        theta = check_pose(theta)
+        mk = _model_kinematics(model)
+        p_hand = _centres_hand(mk, theta)[0]
+        return p_hand @ (global_rotation(theta) @ mk.M).T + theta[:3]
     return attached_points(
         model, theta, model.g_chain, model.g_segment, model.g_offsets, jacobian=jacobian
     )
+
+
+class CentresPullback:
+    """What :func:`centres_with_pullback` keeps of a pose to map ``dE/dP`` to ``dE/dtheta``.
+
+    A plain class with slots (built once per objective evaluation: cheaper than a frozen
+    dataclass).  Attributes: ``mk`` the model's constants, ``p_hand`` (m, 3) the centres in
+    the hand frame (mm), ``pm`` the same mirrored (``p_hand @ M.T``), ``G`` (3, 3) the global
+    rotation times the mirror, ``dR`` (3, 3, 3) the rotation's derivatives, ``org20`` (20, 3)
+    the joint origins (hand frame, mm), ``axes`` (20, 3) the joint axes (hand frame).
+    """
+
+    __slots__ = ("mk", "p_hand", "pm", "G", "dR", "org20", "axes")
+
+    def __init__(
+        self,
+        mk: _ModelKinematics,
+        p_hand: NDArray[np.float64],
+        pm: NDArray[np.float64],
+        G: NDArray[np.float64],
+        dR: NDArray[np.float64],
+        org20: NDArray[np.float64],
+        axes: NDArray[np.float64],
+    ) -> None:
+        self.mk, self.p_hand, self.pm, self.G, self.dR, self.org20, self.axes = mk, p_hand, pm, G, dR, org20, axes
+
+    def __call__(self, g3: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``g3 (m, 3) -> J^T g3`` summed per parameter, shape (26,): the gradient of a
+        function of the centres, from its gradient ``g3`` with respect to the centres.
+
+        Equals ``np.einsum("mk,mkj->j", g3, J)`` with ``J`` of :func:`gaussian_centres` (up to
+        float rounding) without building ``J``: for a joint with axis ``a`` and pivot ``o``,
+        ``sum_i g3_i . G (a x (p_i - o)) = a . sum_i (p_i - o) x h_i`` with ``h_i = G^T g3_i``,
+        and the sums over the points a joint moves are one product with a constant matrix.
+        """
+        mk = self.mk
+        p = self.p_hand
+        grad = np.empty(N_PARAMS)
+        grad[:3] = g3.sum(axis=0)
+        # Rotation columns: sum_i g3_i . dR_a M p_i = <dR_a, g3^T (p M^T)>.
+        grad[3:6] = self.dR.reshape(3, 9) @ (g3.T @ self.pm).reshape(9)
+        h = g3 @ self.G  # (m, 3), h_i = G^T g3_i (hand frame)
+        m = p.shape[0]
+        Q = np.empty((m, 12))
+        np.multiply(p[:, :, None], h[:, None, :], out=Q[:, :9].reshape(m, 3, 3))
+        Q[:, 9:] = h
+        T = mk.groups @ Q  # (20, 12): sum p h^T (9) and sum h (3) per joint
+        outer = T[:, :9].reshape(20, 3, 3) - self.org20.take(mk.pivot, axis=0)[:, :, None] * T[:, None, 9:]
+        outer = outer.reshape(20, 9)  # sum (p - o) h^T per joint
+        X = outer.take(_CROSS_A, axis=1) - outer.take(_CROSS_B, axis=1)  # sum (p - o) x h per joint
+        grad[FIRST_JOINT:] = np.einsum("ij,ij->i", self.axes, X)
+        return grad
+
+
+#: ``(p x h)_k = O[a_k] - O[b_k]`` for ``O = p h^T`` flattened (9,).
+_CROSS_A = np.array([5, 6, 1])
+_CROSS_B = np.array([7, 2, 3])
+
+
+def centres_with_pullback(
+    model: HandModel, theta: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], CentresPullback]:
+    """Centres of the model Gaussians (m, 3) mm and a :class:`CentresPullback`.
+
+    The per-evaluation form of ``gaussian_centres(model, theta, jacobian=True)`` followed by
+    ``einsum("mk,mkj->j", g3, J)``: the same centres (bit-identical), the same gradient up to
+    float rounding, several times cheaper (no Jacobian is built).
+    """
+    theta = check_pose(theta)
+    mk = _model_kinematics(model)
+    p_hand, org20, bx = _centres_hand(mk, theta)
+    R, dR = global_rotation(theta, derivatives=True)
+    G = R @ mk.M
+    pts = p_hand @ G.T + theta[:3]
+    pm = p_hand if mk.right else p_hand @ mk.M.T
+    # Joint axes (20, 3): flexions about the chain's bx, abductions about its (fixed) bz.
+    axes = np.concatenate((bx, mk.r0z)).take(mk.axis_row, axis=0)
+    return pts, CentresPullback(mk, p_hand, pm, G, dR, org20, axes)
+
+
+def _centres_hand(
+    mk: _ModelKinematics, theta: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Model Gaussian centres in the hand frame (m, 3), joint origins (20, 3), flexion axes (5, 3).
+
+    The same arithmetic as :func:`attached_points` (bit-identical), with the model's index
+    arrays cached.
+    """
+    rots, o, _ = _frames(mk, theta)
+    org20 = o.reshape(20, 3)
+    local = np.einsum("kij,kj->ki", rots.reshape(15, 3, 3).take(mk.g_rot, axis=0), mk.g_offsets)
+    local += org20.take(mk.g_org, axis=0)
+    return np.where(mk.g_finger, local, mk.g_offsets), org20, rots[:, 0, :, 0]
 
 
 def fingertips(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:
