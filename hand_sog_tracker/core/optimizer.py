@@ -86,14 +86,16 @@ def maximise(
     initial_scale: float = 1.0,
     bounds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     initial_steps: NDArray[np.float64] | None = None,
+    extra_iterations: int = 0,
+    extra_gain: float = 0.0,
 ) -> OptimizeResult:
     """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps.
 
     Parameters
     ----------
     fun : callable
-        ``fun(theta, gradient=True) -> (value, gradient)``.  The last iterate is evaluated
-        with ``gradient=False``: only its value is used.
+        ``fun(theta, gradient=True) -> (value, gradient)``.  The last possible iterate is
+        evaluated with ``gradient=False``: only its value is used.
     x0 : array, shape (26,)
         Start pose.
     iterations : int
@@ -109,6 +111,12 @@ def maximise(
     initial_steps : array, shape (26,), optional
         Start step lengths per parameter (mm / rad), e.g. the ``steps`` of the previous
         frame's result; overrides ``steps.initial`` and ``initial_scale``.
+    extra_iterations : int
+        Up to this many iterations more, one at a time, while the last one still raised the
+        objective by more than ``extra_gain * |fun(x0)|`` (a fit still climbing, e.g. a fast
+        motion, continues; a converged one stops at ``iterations``).
+    extra_gain : float
+        See ``extra_iterations`` (unitless).
     """
     x = np.array(x0, dtype=np.float64)
     step = steps.expand(steps.initial) * initial_scale
@@ -123,8 +131,9 @@ def maximise(
     best_x, best_val = x.copy(), val
     history = [val]
     prev_sign = np.zeros(N_PARAMS)
-    status, nit = 0, 0
-    for nit in range(1, iterations + 1):
+    status, nit, limit = 0, 0, iterations
+    while nit < limit:
+        nit += 1
         sign = np.sign(grad) * mask
         agree = sign * prev_sign
         step = np.where(agree > 0, np.minimum(step * steps.grow, hi), step)
@@ -134,12 +143,14 @@ def maximise(
         if bounds is not None:
             x = np.clip(x, bounds[0], bounds[1])
         prev_sign = sign
-        if nit < iterations:
+        if nit < iterations + extra_iterations:
             val, grad = fun(x)
             assert grad is not None
-        else:
+        else:  # the last possible iterate: only its value is used
             val = fun(x, gradient=False)[0]
         history.append(val)
+        if nit == limit < iterations + extra_iterations and val - history[-2] > extra_gain * abs(history[0]):
+            limit += 1
         if val > best_val:
             best_x, best_val = x.copy(), val
         if np.all((step <= lo * 1.0001) | ~mask):

@@ -149,6 +149,7 @@ def run_benchmark(
             n_tracked += res.status is TrackerStatus.TRACKING
         if rep == 0:
             rss_first = _rss_mb()
+    rss_last = _rss_mb()  # (before the stage timings and the fresh trackers below)
     # The data stage's parts alone, on the frames of the last pass, at the start pose the
     # tracker used there (the two previous poses extrapolated, as in Tracker._track).
     for k in range(2, len(depth_frames)):
@@ -199,7 +200,7 @@ def run_benchmark(
         "stages_ms": {k: _stats(v) for k, v in stage.items()},
         "fps": n / wall if wall > 0 else float("nan"),
         "peak_rss_mb": _rss_mb(),
-        "rss_growth_mb": _rss_mb() - (rss_first or _rss_mb()),
+        "rss_growth_mb": rss_last - (rss_first or rss_last),
     }
 
 

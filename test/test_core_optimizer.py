@@ -1,0 +1,43 @@
+"""The adaptive gradient ascent: extra iterations while still climbing, warm-started steps."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hand_sog_tracker.core.hand_model import N_PARAMS
+from hand_sog_tracker.core.optimizer import StepSizes, maximise
+
+
+class Bowl:
+    """``-|theta - peak|^2`` (a concave bowl) with its gradient; counts the gradient calls."""
+
+    def __init__(self, peak: np.ndarray) -> None:
+        self.peak = peak
+        self.gradients = 0
+
+    def __call__(self, theta: np.ndarray, gradient: bool = True):
+        d = theta - self.peak
+        self.gradients += gradient
+        return -float(d @ d), (-2.0 * d if gradient else None)
+
+
+def test_extra_iterations_run_only_while_the_fit_still_climbs() -> None:
+    peak = np.linspace(-1.0, 1.0, N_PARAMS)
+    far = maximise(Bowl(peak), peak + 20.0, iterations=4, extra_iterations=3, extra_gain=1e-3)
+    assert far.nit == 7 and far.fun > far.history[4]  # still climbing after 4: all 3 more
+    flat = maximise(lambda theta, gradient=True: (1.0, np.zeros(N_PARAMS) if gradient else None),
+                    peak, iterations=4, extra_iterations=3, extra_gain=1e-3)
+    assert flat.nit == 4  # nothing to gain: stops at 4
+    plain = maximise(Bowl(peak), peak + 20.0, iterations=4)
+    assert plain.nit == 4 and np.array_equal(plain.history, far.history[:5])
+
+
+def test_only_the_last_possible_iterate_goes_without_gradient_and_steps_warm_start() -> None:
+    peak = np.zeros(N_PARAMS)
+    fun = Bowl(peak)
+    res = maximise(fun, peak + 5.0, iterations=6)
+    assert fun.gradients == 6  # the start and iterates 1..5; the 6th only needs its value
+    assert res.steps is not None and res.steps.shape == (N_PARAMS,)
+    warm = maximise(Bowl(peak), res.x, iterations=3, initial_steps=res.steps)
+    cold = maximise(Bowl(peak), res.x, iterations=3, initial_steps=StepSizes().expand(StepSizes().initial))
+    assert warm.fun >= cold.fun  # near the optimum, small remembered steps do not overshoot
