@@ -116,7 +116,7 @@ _TRACKER_META: dict[str, tuple[str, float | None, float | None]] = {
     "max_width_px": ("Wider images are decimated to at most this width first (px).", 80, 4096),
     "iterations": ("Gradient-ascent iterations per frame.", 1, 200),
     "w_col": ("Weight of the self-collision term.", 0.0, 100.0),
-    "w_dan": ("Weight of the dominant-angle (pose prior) term.", 0.0, 100.0),
+    "w_dan": ("Weight of the dangling-Gaussian term (model parts far from any data).", 0.0, 100.0),
     "w_lim": ("Weight of the joint-limit term.", 0.0, 100.0),
     "w_smo": ("Weight of the temporal smoothness term.", 0.0, 100.0),
     "w_ord": ("Weight of the finger-order term (neighbouring fingers may not cross).", 0.0, 100.0),
