@@ -1,5 +1,8 @@
 """Decode (and encode) ``compressed_depth_image_transport`` depth images; no ROS imports.
 
+One job: the compressedDepth wire format; kept together because the decoder and the encoder
+(used by the tests and the bag tools) must agree byte for byte.
+
 A ``sensor_msgs/CompressedImage`` published by image_transport's ``compressedDepth``
 plugin (topic ``<image topic>/compressedDepth``) holds:
 

@@ -1,5 +1,8 @@
 """Depth image to a 2D Sum of Gaussians (paper 000, sec. 4.1 and 5.1).
 
+One job: a frame's depth to the data the objective sees; kept together because the
+preprocessing, the shared hand window and the quadtree read the same arrays in one pass.
+
 Pipeline: validate, decimate wide images, near/far range filter, median filter
 against flying pixels, optional region of interest, then a quadtree over an
 image pyramid: a block becomes a leaf when all of its pixels are valid and the

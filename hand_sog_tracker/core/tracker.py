@@ -1,5 +1,9 @@
 """Frame-to-frame hand tracker: depth in, 26-DOF pose and fingertips out.
 
+One job: one frame's tracking (data near the hand, fit, restarts, loss) and the two-stage
+initialisation; kept together because both share the track's state (last poses, step lengths,
+the pending search); the restarts are in :mod:`.restarts`, the start poses in :mod:`.initialise`.
+
 Units: depth images and every position in millimetres, camera optical frame
 (x right, y down, z forward); angles in radians.
 

@@ -1,5 +1,8 @@
 """A reusable harness: ``tracker_node`` as a child process on loopback DDS, driven from here.
 
+One job: drive a running node (start, publish, collect, stop); kept together because the
+process, its DDS participant and the collected outputs share one lifetime.
+
 Used by ``evaluate_bag --through-node`` (:mod:`hand_sog_tracker.tools.node_eval`),
 node tests and demos::
 

@@ -1,5 +1,8 @@
 """Evaluation records: per-frame outcomes, one bag's evaluation, pooled totals, progress bar.
 
+One job: the values of an evaluation; kept together because every evaluation mode fills and
+pools the same records.
+
 The values the evaluation tools pass around (see :mod:`hand_sog_tracker.tools.evaluation`
 for the core-mode evaluation, :mod:`hand_sog_tracker.tools.node_eval` for the node,
 :mod:`hand_sog_tracker.tools.report` for their output).  Scoring follows
