@@ -77,7 +77,7 @@ from hand_sog_tracker.core.hand_model import (
 )
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.optimizer import maximise
-from hand_sog_tracker.core.salient import Detections, assign_detections, detect_fingertips
+from hand_sog_tracker.core.salient import Detections, assign_detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.skin import SCORE_TOLERANCE_MM, ScoreData, overlap_score, score_data, shape_score
 from hand_sog_tracker.core.tracker import Tracker, coverage, hand_roi
@@ -515,14 +515,11 @@ def validate(
 
 
 def _tip_targets(model: HandModel, theta: NDArray[np.float64], det: Detections) -> TipTargets | None:
-    """The detections assigned to the fingertips at ``theta`` (as the tracker's salient term)."""
+    """The detections assigned to the fingertips at ``theta`` (as the tracker's salient term, but
+    detections of fingers seen end-on count here)."""
     if det.n == 0:
         return None
-    assigned = assign_detections(fingertips(model, theta), det, GUARD_TIP_LAMBDA_MM)
-    has = assigned >= 0
-    points = np.zeros((5, 3))
-    points[has] = det.points[assigned[has]]
-    return TipTargets(points=points, weights=np.where(has, det.confidence[np.maximum(assigned, 0)], 0.0))
+    return assigned_targets(fingertips(model, theta), det, GUARD_TIP_LAMBDA_MM, end_on=True)
 
 
 def _tip_distance(model: HandModel, theta: NDArray[np.float64], det: Detections) -> float:

@@ -1,7 +1,8 @@
 """The tracker's restart strategies (seeds 001 and 004): ways out of local optima after a frame's fit.
 
 :class:`RestartStrategies` is a mixin of :class:`hand_sog_tracker.core.tracker.Tracker`
-(it uses the tracker's ``_model``, ``_config``, ``_frame_count`` and ``_maximise``):
+(it uses the tracker's ``_model``, ``_config``, ``_frame_count``, ``_restart_wait`` and
+``_maximise``); :meth:`~RestartStrategies._restarts` runs them for a tracked frame:
 
 - :meth:`~RestartStrategies._finger_restarts`: a finger hanging in empty space is restarted
   extended, curled and like the other fingers;
@@ -72,7 +73,30 @@ class RestartStrategies:
     _model: HandModel
     _config: TrackerConfig
     _frame_count: int
+    _restart_wait: int
     _maximise: Callable[..., OptimizeResult]
+
+    def _restarts(
+        self, obj: Objective, res: OptimizeResult, data: ImageSoG, det: Detections
+    ) -> OptimizeResult:
+        """A tracked frame's restarts: finger, then shift, then detection restarts.
+
+        When the restarts set off by an unexplained detection all lost, the shift and detection
+        restarts wait ``RESTART_COOLDOWN`` frames (such a detection is often a knuckle or a
+        forearm edge); the finger restarts run every time.
+        """
+        res = self._finger_restarts(obj, res, data)
+        if self._restart_wait > 0:
+            self._restart_wait -= 1
+            self._frame_count += 1  # (the shift restarts' schedule goes on)
+            return res
+        lonely = self._lonely(res.x, det)
+        before = res
+        res = self._shift_restarts(obj, res, det, lonely=lonely)
+        res = self._detection_restarts(obj, res, det, lonely=lonely if res is before else None)
+        if lonely.size and res is before:
+            self._restart_wait = RESTART_COOLDOWN
+        return res
 
     def _finger_restarts(self, obj: Objective, res: OptimizeResult, data: ImageSoG) -> OptimizeResult:
         """Restart a dangling finger from other configurations (seed 004).

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import SHARED_MARGIN_PX, Preprocessed, _in_window, hand_window
+from hand_sog_tracker.core.energy import TipTargets
 
 # The detector is this package's own (seed 001 trains one): every constant below is chosen
 # here from the default hand's sizes, the reason beside it.
@@ -29,6 +30,7 @@ __all__ = [
     "RING_RADIUS_MM",
     "detect_fingertips",
     "assign_detections",
+    "assigned_targets",
 ]
 
 #: Radius of the sampling ring around a candidate pixel (mm at the hand's depth): larger than a
@@ -325,3 +327,20 @@ def assign_detections(
         if s >= 0:
             mask &= ~(1 << s)
     return out
+
+
+def assigned_targets(
+    tips_mm: NDArray[np.float64], det: Detections, lam_mm: float, end_on: bool
+) -> TipTargets | None:
+    """The detections :func:`assign_detections` gives the fingertips, as the salient term's
+    targets (weight = the detection's confidence, 0 for a fingertip without one); None
+    without detections.  ``end_on``: whether detections of fingers seen end-on count."""
+    if det.n == 0:
+        return None
+    assigned = assign_detections(tips_mm, det, lam_mm)
+    has = assigned >= 0
+    if not end_on:
+        has &= ~det.end_on[np.maximum(assigned, 0)]
+    points = np.zeros((5, 3))
+    points[has] = det.points[assigned[has]]
+    return TipTargets(points=points, weights=np.where(has, det.confidence[np.maximum(assigned, 0)], 0.0))

@@ -37,8 +37,8 @@ from hand_sog_tracker.core.kinematics import (
     skeleton_points,
 )
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
-from hand_sog_tracker.core.restarts import ASSIGN_LAMBDA_MM, RESTART_COOLDOWN, RestartStrategies
-from hand_sog_tracker.core.salient import Detections, assign_detections, detect_fingertips
+from hand_sog_tracker.core.restarts import ASSIGN_LAMBDA_MM, RestartStrategies
+from hand_sog_tracker.core.salient import Detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.types import (
     Intrinsics,
@@ -316,14 +316,7 @@ class Tracker(RestartStrategies):
         """Detections assigned to the fingertips at ``theta`` (seed 001, Table 1)."""
         if det.n == 0:
             return None
-        assigned = assign_detections(fingertips(self._model, theta), det, ASSIGN_LAMBDA_MM)
-        has = assigned >= 0
-        if not SALIENT_END_ON:
-            has &= ~det.end_on[np.maximum(assigned, 0)]
-        points = np.zeros((5, 3))
-        points[has] = det.points[assigned[has]]
-        weights = np.where(has, det.confidence[np.maximum(assigned, 0)], 0.0)
-        return TipTargets(points=points, weights=weights)
+        return assigned_targets(fingertips(self._model, theta), det, ASSIGN_LAMBDA_MM, SALIENT_END_ON)
 
     def _track(self, pre: Preprocessed) -> TrackResult:
         cfg = self._config
@@ -345,24 +338,9 @@ class Tracker(RestartStrategies):
         )
         self._steps = res.steps if WARM_GROW > 0 else None
         now = time.perf_counter()
-        if self.restart_interval_s is not None and now - self._last_restarts_s < self.restart_interval_s:
-            pass  # restarts ran less than restart_interval_s ago: not on this frame
-        elif self._restart_wait > 0:
-            res = self._finger_restarts(obj, res, data)
-            # A detection the model does not explain led to restarts that all lost: not
-            # again for a few frames (it is often a knuckle or a forearm edge).
-            self._restart_wait -= 1
-            self._frame_count += 1
+        if self.restart_interval_s is None or now - self._last_restarts_s >= self.restart_interval_s:
+            res = self._restarts(obj, res, data, det)
             self._last_restarts_s = now
-        else:
-            res = self._finger_restarts(obj, res, data)
-            self._last_restarts_s = now
-            lonely = self._lonely(res.x, det)
-            before = res
-            res = self._shift_restarts(obj, res, det, lonely=lonely)
-            res = self._detection_restarts(obj, res, det, lonely=lonely if res is before else None)
-            if lonely.size and res is before:
-                self._restart_wait = RESTART_COOLDOWN
         centres = gaussian_centres(self._model, res.x)
         conf = coverage(self._model, res.x, data, centres)
         if conf < cfg.lost_confidence:
