@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
-from hand_sog_tracker.core.energy import ORDER_MIN_GAP_RAD, Objective, TipTargets
+from hand_sog_tracker.core.energy import ORDER_MIN_GAP_RAD, Objective, TipTargets, gaussian_support
 from hand_sog_tracker.core.hand_model import N_PARAMS, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres
 from hand_sog_tracker.core.optimizer import maximise
@@ -297,3 +297,37 @@ def test_candidate_product_keeps_exactly_the_pairs_of_the_definition(seed: int) 
         sim = float(((1.0 - np.abs(dd) / (2.0 * sh[:, None])) * D)[keep].sum() / data.norm)
         assert 0.2 < keep.mean() < 0.9  # both tests decide
         assert obj._data_terms(P, None, 0.0)[0] == pytest.approx(sim, rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_gaussian_support_equals_the_dense_definition(seed: int) -> None:
+    # gaussian_support tests only the candidates of the expanded-square product (with slack)
+    # exactly: bit for bit the support computed from all m x n pairs.
+    model = default_hand_model()
+    rng = np.random.default_rng(20 + seed)
+    truth = rest_pose((0.0, 60.0, 400.0))
+    data = data_near(model, truth, rng, n=400, skip_chain=seed + 2)
+    intr = data.intrinsics
+    for k in range(6):
+        theta = truth + rng.normal(0.0, 0.08, N_PARAMS) * np.r_[60.0, 60.0, 60.0, np.ones(23)] * (k > 0)
+        P = gaussian_centres(model, theta)
+        sh = model.g_sigmas
+        z = np.maximum(P[:, 2], 1.0)
+        u = intr.fx * P[:, 0] / z + intr.cx
+        v = intr.fy * P[:, 1] / z + intr.cy
+        sp2 = (sh * np.sqrt(intr.fx * intr.fy) / z) ** 2
+        sq2 = data.sigma**2
+        du = u[:, None] - data.mu[:, 0]
+        dv = v[:, None] - data.mu[:, 1]
+        r2 = du * du + dv * dv
+        dd = np.abs((z - sh)[:, None] - data.depth)
+        p, q = np.nonzero((dd < (2.0 * sh)[:, None]) & (r2 < 36.0 * (sp2[:, None] + sq2)))
+        s2 = sp2[p] + sq2[q]
+        D = 2 * np.pi * sp2[p] * sq2[q] / s2 * np.exp(-0.5 * r2[p, q] / s2)
+        delta = 1.0 - dd[p, q] / (2.0 * sh)[p]
+        dense = np.minimum(np.bincount(p, weights=delta * D, minlength=sh.size) / (2 * np.pi**2 * sp2), 1.0)
+        assert 0 < p.size < r2.size // 2
+        np.testing.assert_array_equal(gaussian_support(model, theta, data), dense)
+        np.testing.assert_array_equal(gaussian_support(model, theta, data, centres=P), dense)
+    empty = ImageSoG(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)), intr, 0.0)
+    np.testing.assert_array_equal(gaussian_support(model, truth, empty), np.zeros(model.n_gaussians))

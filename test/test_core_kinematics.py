@@ -17,6 +17,7 @@ from hand_sog_tracker.core.initialise import euler_from_matrix
 from hand_sog_tracker.core.kinematics import (
     attached_points,
     centres_with_pullback,
+    chain_frames,
     fingertips,
     gaussian_centres,
     global_rotation,
@@ -194,3 +195,38 @@ def test_global_rotation_derivatives_match_central_differences() -> None:
             e[3 + a] = 1e-6
             num = (global_rotation(theta + e) - global_rotation(theta - e)) / 2e-6
             np.testing.assert_allclose(dR[a], num, atol=1e-8)
+
+
+def test_repeated_poses_give_fresh_equal_results() -> None:
+    # The centres of the last few poses are kept (a frame asks for the same poses several
+    # times): every call must still equal a fresh computation (attached_points, not cached),
+    # for each model and hand at the same pose, after the pose array changed in place, after
+    # the kept poses were replaced by others, and callers get arrays of their own.
+    rng = np.random.default_rng(31)
+    right, left = default_hand_model(True), default_hand_model(False)
+    models = [right, left, right.scaled(HandShape(length=1.1))]
+
+    def check(model, th) -> None:
+        fresh = attached_points(model, th, model.g_chain, model.g_segment, model.g_offsets)
+        got = gaussian_centres(model, th)
+        np.testing.assert_array_equal(got, fresh)
+        np.testing.assert_array_equal(fingertips(model, th), fresh[model.tip_index])
+        np.testing.assert_array_equal(centres_with_pullback(model, th)[0], fresh)
+        got += 1.0  # the caller's own array
+        np.testing.assert_array_equal(gaussian_centres(model, th), fresh)
+
+    theta = random_pose(rng)
+    poses = [theta] + [random_pose(rng) for _ in range(12)]
+    for _ in range(2):
+        for th in poses:
+            for model in models:
+                check(model, th)
+        for model in models:
+            theta[6:] += 0.05  # the same array object, new contents
+            check(model, theta)
+    # The skeleton from the kept joint origins equals the one from the chain frames.
+    model = models[1]
+    fr = chain_frames(model, theta)
+    p_hand = np.concatenate([np.zeros((1, 3)), fr.origins.reshape(20, 3)])
+    expected = p_hand @ (global_rotation(theta) * np.array([-1.0, 1.0, 1.0])).T + theta[:3]
+    np.testing.assert_array_equal(skeleton_points(model, theta), expected)

@@ -41,3 +41,23 @@ def test_only_the_last_possible_iterate_goes_without_gradient_and_steps_warm_sta
     warm = maximise(Bowl(peak), res.x, iterations=3, initial_steps=res.steps)
     cold = maximise(Bowl(peak), res.x, iterations=3, initial_steps=StepSizes().expand(StepSizes().initial))
     assert warm.fun >= cold.fun  # near the optimum, small remembered steps do not overshoot
+
+
+def test_inactive_parameters_stay_and_settle_and_all_active_is_no_mask() -> None:
+    # An active mask freezes the other parameters (and they count as settled for the early
+    # stop); a mask with every parameter active gives the very same run as none.
+    peak = np.linspace(-2.0, 2.0, N_PARAMS)
+    start = peak + 3.0
+    rigid = np.zeros(N_PARAMS, dtype=bool)
+    rigid[:6] = True
+    res = maximise(Bowl(peak), start, iterations=200, active=rigid)
+    np.testing.assert_array_equal(res.x[6:], start[6:])
+    assert res.status == 1 and res.nit < 200  # the rigid part settled, the rest is ignored
+    np.testing.assert_allclose(res.x[:6], peak[:6], atol=0.05)
+    lo, hi = np.full(N_PARAMS, -np.inf), np.full(N_PARAMS, np.inf)
+    hi[6:] = peak[6:] + 1.0  # bounds: the joints stop short of the peak
+    a = maximise(Bowl(peak), start, iterations=30, bounds=(lo, hi))
+    b = maximise(Bowl(peak), start, iterations=30, bounds=(lo, hi), active=np.ones(N_PARAMS, dtype=bool))
+    np.testing.assert_array_equal(a.history, b.history)
+    np.testing.assert_array_equal(a.x, b.x)
+    assert np.all(a.x[6:] <= hi[6:])

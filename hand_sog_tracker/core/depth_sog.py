@@ -218,9 +218,11 @@ def preprocess(
             # Both images are 0 or in (near, far), so where exactly one of them is 0 they
             # differ by more than near >= thr: "agree" alone decides (bit-identical to the
             # expression below, by OpenCV: about five times faster).
-            diff = cv2.absdiff(med, depth)
-            agree = cv2.threshold(diff, _largest_below(thr), 1.0, cv2.THRESH_BINARY_INV)[1]
-            depth = cv2.multiply(med, agree)
+            # (In place: the windowed depth becomes the difference, then the agreement, and
+            # the median the result; fewer depth-sized temporaries.)
+            diff = cv2.absdiff(med, depth, dst=depth)
+            agree = cv2.threshold(diff, _largest_below(thr), 1.0, cv2.THRESH_BINARY_INV, dst=diff)[1]
+            depth = cv2.multiply(med, agree, dst=med)
         else:
             if in_range is None:
                 in_range = depth > 0
@@ -301,8 +303,9 @@ def hand_window(
         arr[cv1 - bv0 :] = -1.0
         arr[cv0 - bv0 : cv1 - bv0, : cu0 - bu0] = -1.0
         arr[cv0 - bv0 : cv1 - bv0, cu1 - bu0 :] = -1.0
-        arr[cv0 - bv0 : cv1 - bv0, cu0 - bu0 : cu1 - bu0] = _in_window(
-            pre.depth_mm[cv0:cv1, cu0:cu1], lo, hi, nan_free=True
+        _in_window(
+            pre.depth_mm[cv0:cv1, cu0:cu1], lo, hi, nan_free=True,
+            out=arr[cv0 - bv0 : cv1 - bv0, cu0 - bu0 : cu1 - bu0],
         )
     else:
         arr.fill(-1.0)
@@ -349,7 +352,9 @@ def _largest_below(hi: float) -> float:
     return float(cand[cand < hi].max())
 
 
-def _in_window(a: NDArray, lo: float, hi: float, nan_free: bool = False) -> NDArray:
+def _in_window(
+    a: NDArray, lo: float, hi: float, nan_free: bool = False, out: NDArray | None = None
+) -> NDArray:
     """``np.where((a > lo) & (a < hi), a, 0)``, for float32 images by two OpenCV thresholds.
 
     The float32 thresholds are chosen with NumPy's own comparison (so its promotion rules
@@ -357,7 +362,8 @@ def _in_window(a: NDArray, lo: float, hi: float, nan_free: bool = False) -> NDAr
     ``t_hi`` the largest that is ``< hi``; then for every float32 pixel ``x``,
     ``x > t_lo <=> x > lo`` and ``x > t_hi <=> not x < hi``.  Bit-identical to the NumPy
     expression and about ten times faster.  ``nan_free`` skips the NaN test (the caller
-    knows there is none).
+    knows there is none).  ``out``: a float32 array (or view) of ``a``'s shape to write
+    the result into (returned).
     """
     r_lo, r_hi = np.float32(lo), np.float32(hi)
     if (
@@ -367,13 +373,22 @@ def _in_window(a: NDArray, lo: float, hi: float, nan_free: bool = False) -> NDAr
         or not (np.isfinite(r_lo) and np.isfinite(r_hi))
         or (not nan_free and np.isnan(a).any())
     ):
-        return np.where((a > lo) & (a < hi), a, np.float32(0.0))
+        res = np.where((a > lo) & (a < hi), a, np.float32(0.0))
+        if out is None:
+            return res
+        out[...] = res
+        return out
     down, up = np.float32(-np.inf), np.float32(np.inf)
     cand = np.array([np.nextafter(r_lo, down), r_lo, np.nextafter(r_lo, up)], dtype=np.float32)
     t_lo = float(cand[~(cand > lo)].max())
     t_hi = _largest_below(hi)
-    out = cv2.threshold(np.ascontiguousarray(a), t_lo, 0.0, cv2.THRESH_TOZERO)[1]
-    return cv2.threshold(out, t_hi, 0.0, cv2.THRESH_TOZERO_INV)[1]
+    # (OpenCV reads and writes rows of strided views in place: no copies.)
+    res = cv2.threshold(a, t_lo, 0.0, cv2.THRESH_TOZERO, dst=out)[1]
+    res = cv2.threshold(res, t_hi, 0.0, cv2.THRESH_TOZERO_INV, dst=res)[1]
+    if out is not None and res is not out:  # (not expected: OpenCV allocated another array)
+        out[...] = res
+        return out
+    return res
 
 
 def _block_reduce(
@@ -468,7 +483,8 @@ def quadtree_sog(
     # pixel never becomes a leaf).
     levels = []
     if img.dtype == np.float32:
-        vmin = img + cv2.threshold(img, 0.0, np.inf, cv2.THRESH_BINARY_INV)[1]
+        vmin = cv2.threshold(img, 0.0, np.inf, cv2.THRESH_BINARY_INV)[1]
+        vmin += img  # (in place: one depth-sized temporary fewer)
     else:
         vmin = np.where(valid, img, np.inf)
     vmax = img
@@ -501,13 +517,16 @@ def quadtree_sog(
         else:
             leaf = homog
             taken_parent = leaf
-        bv, bu = np.nonzero(leaf)
-        if bv.size:
-            mus.append(
-                np.stack([u0 + (bu + 0.5) * size - 0.5, v0 + (bv + 0.5) * size - 0.5], axis=1)
-            )
-            sigmas.append(np.full(bv.size, size / np.sqrt(2.0)))
-            depths.append(vsum[bv, bu].astype(np.float64) / cnt[bv, bu])
+        cells = leaf.ravel().nonzero()[0]  # (row, column by division: cheaper than 2-d nonzero)
+        if cells.size:
+            bv = cells // leaf.shape[1]
+            bu = cells - bv * leaf.shape[1]
+            mu = np.empty((cells.size, 2))
+            mu[:, 0] = u0 + (bu + 0.5) * size - 0.5
+            mu[:, 1] = v0 + (bv + 0.5) * size - 0.5
+            mus.append(mu)
+            sigmas.append(np.full(cells.size, size / np.sqrt(2.0)))
+            depths.append(vsum.ravel().take(cells).astype(np.float64) / cnt.ravel().take(cells))
     if not mus:
         return _empty(pre.intrinsics)
     mu = np.concatenate(mus)

@@ -62,6 +62,7 @@ from hand_sog_tracker.core.types import TrackerConfig
 
 __all__ = [
     "EnergyTerms",
+    "gaussian_support",
     "Objective",
     "TipTargets",
     "TAU1_MM",
@@ -91,6 +92,9 @@ SALIENT_SCALE_MM = 100.0
 _TWO_PI = 2.0 * np.pi
 _UNSET = object()
 _INV_SQRT2 = 1.0 / np.sqrt(2.0)
+#: ``x.sum(axis)`` without the method's Python layer (it calls exactly this): the objective
+#: runs a few dozen NumPy calls on small arrays per evaluation, where that layer counts.
+_sum = np.add.reduce
 
 
 def _accumulate(index: NDArray[np.int64], weights: NDArray[np.float64], size: int) -> NDArray[np.float64]:
@@ -98,17 +102,18 @@ def _accumulate(index: NDArray[np.int64], weights: NDArray[np.float64], size: in
     return np.bincount(index, weights=weights, minlength=size).astype(np.float64, copy=False)
 
 
-_ROWS_COLS: dict[tuple[int, int], tuple[NDArray[np.int64], NDArray[np.int64]]] = {}
+_FLAT_COLS: dict[tuple[int, int], NDArray[np.int64]] = {}
 
 
-def _flat_rows_cols(m: int, n: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Row and column of every flat index of an (m, n) array (cached: divmod is slow)."""
-    hit = _ROWS_COLS.get((m, n))
+def _flat_cols(m: int, n: int) -> NDArray[np.int64]:
+    """Column of every flat index of an (m, n) array, shape (m n,) (cached: divmod is slow)."""
+    hit = _FLAT_COLS.get((m, n))
     if hit is None:
-        if len(_ROWS_COLS) >= 4:  # n changes from frame to frame: keep only the latest few
-            _ROWS_COLS.clear()
-        hit = (np.repeat(np.arange(m), n), np.tile(np.arange(n), m))
-        _ROWS_COLS[(m, n)] = hit
+        if len(_FLAT_COLS) >= 4:  # n changes from frame to frame: keep only the latest few
+            _FLAT_COLS.clear()
+        hit = np.empty((m, n), dtype=np.int64)
+        hit[:] = np.arange(n)  # (= np.tile(np.arange(n), m), several times cheaper)
+        hit = _FLAT_COLS[(m, n)] = hit.reshape(-1)
     return hit
 
 
@@ -207,10 +212,9 @@ def _data_constants(data: ImageSoG, m: int) -> tuple:
     """Constants of the data terms for a frame's data and ``m`` model Gaussians (cached for
     the last data: a frame builds several objectives on the same data).
 
-    Returns ``mu_u, mu_v, sigma^2, 36 sigma^2, half side`` (n,) each, the candidate matrix
-    (5, 6, n) of :meth:`Objective._data_terms`, the flat offsets (3, 1) of its difference
-    blocks, the first flat index of each model Gaussian's row (m + 1,) and the per-pair data
-    values (5, n).
+    Returns ``mu_u, mu_v, sigma^2, half side`` (n,) each, the candidate matrix (2, 6, n) of
+    :meth:`Objective._data_terms`, the first flat index of each model Gaussian's row (m + 1,)
+    and the per-data values read per pair (5, n): ``mu_u, mu_v, depth, sigma^2, half side``.
     """
     hit = _DATA_CACHE[0]
     if hit[0] is data and hit[1] == m:
@@ -219,33 +223,82 @@ def _data_constants(data: ImageSoG, m: int) -> tuple:
     mu_u = np.ascontiguousarray(data.mu[:, 0], dtype=np.float64)
     mu_v = np.ascontiguousarray(data.mu[:, 1], dtype=np.float64)
     sq2 = data.sigma**2
-    sq2_36 = 36.0 * sq2
     half = data.sigma * _INV_SQRT2  # half a quad's side, px
     depth = np.asarray(data.depth, dtype=np.float64)
-    # The candidate tests of every (model, data) pair are one matrix product: six values per
-    # model Gaussian times five (6, n) blocks, the two tests (expanded squares, see
-    # _data_terms), then u - mu_u, v - mu_v, dp - depth exactly (one product by 1 and one by
-    # 1 or 0 per entry: the single rounding of the subtraction).
-    cand = np.zeros((5, 6, n))
+    # Both candidate tests of every (model, data) pair are one matrix product: six values per
+    # model Gaussian times two (6, n) blocks (expanded squares, see _data_terms).
+    cand = np.zeros((2, 6, n))
     cand[0, 0] = 1.0
-    cand[0, 2] = mu_u * mu_u + mu_v * mu_v - sq2_36
+    cand[0, 2] = mu_u * mu_u + mu_v * mu_v - 36.0 * sq2
     cand[0, 3] = -2.0 * mu_u
     cand[0, 4] = -2.0 * mu_v
     cand[1, 1] = 1.0
     cand[1, 2] = depth * depth
     cand[1, 5] = -2.0 * depth
-    for k, q_value in enumerate((mu_u, mu_v, depth)):
-        cand[2 + k, 3 + k] = 1.0
-        cand[2 + k, 2] = -q_value
-    const = (
-        mu_u, mu_v, sq2, sq2_36, half, cand,
-        (np.arange(2, 5) * (m * n))[:, None],
-        np.arange(m + 1) * n,
-        # Per-data values read per pair: mu_u, mu_v, depth, sigma^2, half side.
-        np.stack([mu_u, mu_v, depth, sq2, half]),
-    )
+    const = (mu_u, mu_v, sq2, half, cand, np.arange(m + 1) * n, np.array([mu_u, mu_v, depth, sq2, half]))
     _DATA_CACHE[0] = (data, m, const)
     return const
+
+
+#: Slack (px^2 and mm^2) of the expanded-square candidate tests in :func:`gaussian_support`:
+#: far above their rounding (below 1e-7 for images up to 4096 px and depths up to 10 m), so
+#: that every pair the exact tests pass is a candidate.
+_SUPPORT_SLACK = 1e-3
+
+
+def gaussian_support(
+    model: HandModel,
+    theta: NDArray[np.float64],
+    data: ImageSoG,
+    centres: NDArray[np.float64] | None = None,
+) -> NDArray[np.float64]:
+    """How well the data explain each model Gaussian at ``theta``, shape (m,), in [0, 1].
+
+    For Gaussian ``p`` the depth-weighted overlap with the data, ``sum_q Delta_pq D_pq``,
+    divided by its value under a gap-free data tiling at the right depth (``2 pi^2 sp^2``,
+    px), capped at 1.  ``centres``: the model Gaussians' centres at ``theta`` (m, 3) mm, when
+    already computed.  Only the pairs that can contribute count (as in the objective):
+    ``Delta = 0`` beyond two radii in depth, ``D`` is below 1.6e-8 of its peak beyond six
+    combined standard deviations.
+
+    The pairs are found as in :meth:`Objective._data_terms` (both tests as one matrix
+    product, here with a slack that keeps every pair the exact tests pass), and the exact
+    tests and values are then computed on those candidates only: bit-identical to computing
+    them on all ``m x n`` pairs, several times cheaper.
+    """
+    m = model.n_gaussians
+    n = data.n
+    if n == 0:
+        return np.zeros(m)
+    intr = data.intrinsics
+    P = gaussian_centres(model, theta) if centres is None else centres
+    sh = model.g_sigmas
+    z = np.maximum(P[:, 2], 1.0)
+    u = intr.fx * P[:, 0] / z + intr.cx
+    v = intr.fy * P[:, 1] / z + intr.cy
+    sp2 = (sh * np.sqrt(intr.fx * intr.fy) / z) ** 2
+    dp = z - sh
+    two_sh = 2.0 * sh
+    cand, row_starts, per_q = _data_constants(data, m)[4:]
+    rows = np.array([u * u + v * v - 36.0 * sp2, dp * dp - two_sh * two_sh, np.ones(m), u, v, dp, sp2, two_sh])
+    near = np.matmul(rows[:6].T, cand) < _SUPPORT_SLACK  # (2, m, n): candidates of both tests
+    flat = np.logical_and(near[0], near[1], out=near[0]).ravel().nonzero()[0]
+    bounds = flat.searchsorted(row_starts)
+    per_row = bounds[1:] - bounds[:-1]
+    p = np.arange(m).repeat(per_row)
+    u_p, v_p, dp_p, sp2_p, two_sh_p = rows[3:].repeat(per_row, axis=1)
+    mu_u, mu_v, depth, sq2_q = per_q[:4].take(_flat_cols(m, n).take(flat), axis=1)
+    du = u_p - mu_u
+    dv = v_p - mu_v
+    r2 = du * du + dv * dv
+    dd = np.abs(dp_p - depth)
+    s2 = sp2_p + sq2_q
+    D = 2 * np.pi * sp2_p * sq2_q / s2 * np.exp(-0.5 * r2 / s2)
+    delta = 1.0 - dd / two_sh_p
+    # The exact tests; a candidate failing them adds an exact 0 (the sums are unchanged).
+    passed = (dd < two_sh_p) & (r2 < 36.0 * s2)
+    support = np.bincount(p, weights=np.where(passed, delta * D, 0.0), minlength=m) / (2 * np.pi**2 * sp2)
+    return np.minimum(support, 1.0)
 
 
 @lru_cache(maxsize=1)
@@ -294,15 +347,26 @@ class Objective:
         self._f = float(np.sqrt(intr.fx * intr.fy))
         # Per-frame constants of the data terms (shared by the frame's objectives).
         (
-            self._mu_u, self._mu_v, self._sq2, self._sq2_36, self._half,
-            self._cand, self._diff_offsets, self._row_starts, self._per_q,
+            self._mu_u, self._mu_v, self._sq2, self._half, self._cand, self._row_starts, self._per_q,
         ) = _data_constants(data, model.n_gaussians)
-        self._row_of, self._col_of = _flat_rows_cols(model.n_gaussians, data.n)
+        self._col_of = _flat_cols(model.n_gaussians, data.n)
         sh = model.g_sigmas
         self._shf = sh * self._f
         self._fxy = np.array([[intr.fx], [intr.fy]], dtype=np.float64)
+        self._cxy = np.array([[intr.cx], [intr.cy]], dtype=np.float64)
         self._two_sh = 2.0 * sh
         self._four_sh2 = self._two_sh * self._two_sh
+        # Per model Gaussian values of one evaluation of _data_terms, rows 2 (ones) and 8
+        # (2 sigma_h) set once (see there).
+        unlimited = np.full(N_PARAMS - model.limits_low.size, np.inf)
+        self._limits_low = np.concatenate([-unlimited, model.limits_low])  # (26,) rad
+        self._limits_high = np.concatenate([unlimited, model.limits_high])
+        self._rows = np.empty((11, model.n_gaussians))
+        self._rows[2] = 1.0
+        self._rows[8] = self._two_sh
+        # The candidate tests of all pairs and their outcome (filled by every evaluation).
+        self._tests = np.empty((2, model.n_gaussians, data.n))
+        self._neg = np.empty((2, model.n_gaussians, data.n), dtype=bool)
         # (targets, their constants or None) of the last targets seen by _salient.
         self._sal: tuple[object, tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None] = (
             _UNSET, None
@@ -336,7 +400,7 @@ class Objective:
         cfg = self.config
         if gradient:
             P, pullback = centres_with_pullback(self.model, theta)
-            g3 = np.zeros_like(P)
+            g3 = np.zeros(P.shape)
         else:
             P, pullback, g3 = gaussian_centres(self.model, theta), None, None
         sim, dan = self._data_terms(P, g3, cfg.w_dan)
@@ -389,63 +453,83 @@ class Objective:
         n = data.n
         if n == 0 or data.norm <= 0:
             return 0.0, 0.0
-        intr = data.intrinsics
         m = P.shape[0]
-        sh = self.model.g_sigmas
-        x, y, z = P[:, 0], P[:, 1], np.maximum(P[:, 2], 1.0)
-        # Per model Gaussian (rows): 0-2 and u, v, dp enter the candidate product, the others
-        # are read per pair (contiguous 1-d gathers: strided columns would slow down exp).
-        rows = np.empty((11, m))
-        u, v, dp, sp, sp_sq = rows[3], rows[4], rows[5], rows[6], rows[7]
-        np.add(intr.fx * x / z, intr.cx, out=u)
-        np.add(intr.fy * y / z, intr.cy, out=v)
-        np.subtract(z, sh, out=dp)
+        z = np.maximum(P[:, 2], 1.0)
+        # Per model Gaussian (rows): 0 and 1 the tests' own terms, 2 ones, 3-5 u, v, dp (rows
+        # 0-5 enter the candidate product), 6-9 sp^2, 2 pi sp^2, 2 sigma_h, (mm per px)^2
+        # (rows 3-9 are read per pair: contiguous rows, strided columns would slow down exp),
+        # 10 sp.  Rows 2 and 8 are constant.  u, v as one (2, m) array: NumPy's per-call cost
+        # dominates at this size.
+        rows = self._rows
+        uv, dp, sp_sq, sp = rows[3:5], rows[5], rows[6], rows[10]
+        u, v = uv
+        np.multiply(self._fxy, P[:, :2].T, out=uv)
+        uv /= z
+        uv += self._cxy  # u = fx x / z + cx, v = fy y / z + cy
+        np.subtract(z, self.model.g_sigmas, out=dp)
         np.divide(self._shf, z, out=sp)
         np.multiply(sp, sp, out=sp_sq)
-        np.multiply(_TWO_PI, sp_sq, out=rows[8])
+        np.multiply(_TWO_PI, sp_sq, out=rows[7])
         scale = z / self._f  # mm per px at the model's depth
-        rows[9] = self._two_sh
-        np.multiply(scale, scale, out=rows[10])
-        # rows 0-2: u^2 + v^2 - 36 sp^2, dp^2 - (2 sigma_h)^2, 1
-        np.subtract(u * u + v * v, 36.0 * sp * sp, out=rows[0])
-        np.subtract(dp * dp, self._four_sh2, out=rows[1])
-        rows[2] = 1.0
-        prod = np.matmul(rows[:6].T, self._cand)  # (5, m, n): both tests (< 0: pass), du, dv, dd
-        neg = prod[:2] < 0.0
-        flat = np.flatnonzero(np.logical_and(neg[0], neg[1], out=neg[0]))
+        np.multiply(scale, scale, out=rows[9])
+        # rows 0-1: u^2 + v^2 - 36 sp^2, dp^2 - (2 sigma_h)^2
+        uv2 = uv * uv
+        np.add(uv2[0], uv2[1], out=rows[0])
+        rows[0] -= 36.0 * sp * sp
+        np.multiply(dp, dp, out=rows[1])
+        rows[1] -= self._four_sh2
+        tests = np.matmul(rows[:6].T, self._cand, out=self._tests)  # (2, m, n): < 0: pass
+        neg = np.less(tests, 0.0, out=self._neg)
+        flat = np.logical_and(neg[0], neg[1], out=neg[0]).ravel().nonzero()[0]
         # Pairs per model Gaussian (the pairs come sorted by it): where each row's run starts.
-        bounds = np.searchsorted(flat, self._row_starts)
+        bounds = flat.searchsorted(self._row_starts)
         per_row = bounds[1:] - bounds[:-1]
         qi = self._col_of.take(flat)
-        # sp^2, 2 pi sp^2, 2 sigma_h, (mm per px)^2 of each pair's model Gaussian: its row's
-        # values repeated over its run (one call instead of a gather per value).
-        sp_sq_p, tpsp_p, two_sh_p, scale2_p = np.repeat(rows[7:], per_row, axis=1)
-        pq = self._per_q
-        du, dv, dd = prod.reshape(-1).take(flat + self._diff_offsets)  # the exact differences
-        r2 = du * du + dv * dv
-        sq2 = pq[3].take(qi)
-        s2 = sp_sq_p + sq2
-        inv_s2 = 1.0 / s2
+        # Rows 3-9 of each pair's model Gaussian: its values repeated over its run (one call
+        # instead of a gather per value); its data Gaussian's values, one gather.
+        per_p = rows[3:10].repeat(per_row, axis=1)
+        sp_sq_p, tpsp_p, two_sh_p, scale2_p = per_p[3:]
+        per_q = self._per_q.take(qi, axis=1)  # mu_u, mu_v, depth, sigma^2, half side
+        diffs = np.subtract(per_p[:3], per_q[:3], out=per_q[:3])
+        du, dv, dd = diffs  # u - mu_u, v - mu_v, dp - depth
+        # Per pair, in place where a value is not needed again (the same operations, fewer
+        # temporary arrays).
+        sq = diffs[:2] * diffs[:2]
+        r2 = np.add(sq[0], sq[1], out=sq[0])  # du^2 + dv^2
+        sq2 = per_q[3]
+        inv_s2 = np.add(sp_sq_p, sq2, out=sp_sq_p)  # s2 = sp^2 + sq^2 ...
+        np.divide(1.0, inv_s2, out=inv_s2)  # ... inverted
         r2_s2 = r2 * inv_s2
-        e = np.exp(np.multiply(r2_s2, -0.5))  # = exp(-0.5 r2 inv_s2) exactly (0.5: exact scaling)
-        D = tpsp_p * sq2 * inv_s2 * e
-        delta = 1.0 - np.abs(dd) / two_sh_p
+        e = np.multiply(r2_s2, -0.5, out=sq[1])
+        np.exp(e, out=e)  # = exp(-0.5 r2 inv_s2) exactly (0.5: exact scaling)
+        D = np.multiply(tpsp_p, sq2, out=tpsp_p)
+        D *= inv_s2
+        D *= e  # 2 pi sp^2 sq^2 / s2 e
+        delta_D = np.abs(dd)
+        delta_D /= two_sh_p
+        np.subtract(1.0, delta_D, out=delta_D)  # Delta = 1 - |dd| / (2 sigma_h) ...
+        delta_D *= D  # ... times D
         inv_norm = 1.0 / data.norm
-        delta_D = delta * D
-        sim = float(delta_D.sum() * inv_norm)
+        sim = float(_sum(delta_D) * inv_norm)
         # Dangling Gaussians (eq. 7): distance from each model Gaussian to the data,
         # occlusion-aware (see the module docstring), dmin its minimum over the data.  A
         # candidate pair within TAU1 settles dmin <= TAU1 (weight 0); only the other rows
         # (typically none to a few) need the distances to all data Gaussians.
-        lat_c = np.maximum(np.sqrt(r2) - pq[4].take(qi), 0.0)
-        beh_c = np.minimum(dd, 0.0)  # minus how far the data lie behind: squared below
-        near_c = lat_c * lat_c * scale2_p + beh_c * beh_c <= TAU1_MM * TAU1_MM
+        lat_c = np.sqrt(r2)
+        lat_c -= per_q[4]
+        np.maximum(lat_c, 0.0, out=lat_c)
+        beh_c = np.minimum(dd, 0.0, out=e)  # minus how far the data lie behind: squared below
+        lat_c *= lat_c
+        lat_c *= scale2_p
+        beh_c *= beh_c
+        lat_c += beh_c
+        near_c = lat_c <= TAU1_MM * TAU1_MM
         nz = per_row > 0
         starts = bounds[:-1][nz]
         settled = np.zeros(m, dtype=bool)
         if flat.size:
             settled[nz] = np.logical_or.reduceat(near_c, starts)
-        U = np.flatnonzero(~settled)
+        U = (~settled).nonzero()[0]
         dan = 0.0
         sel = U[:0]
         if U.size:
@@ -462,7 +546,7 @@ class Objective:
             dmin_U = np.sqrt(dist2_U[np.arange(U.size), nearest_U])
             # (minimum of maximum: np.clip, several times cheaper on small arrays)
             wdang_U = np.minimum(np.maximum((dmin_U - TAU1_MM) / TAU1_MM, 0.0), 1.0)
-            sel = np.flatnonzero(wdang_U > 0.0)
+            sel = (wdang_U > 0.0).nonzero()[0]
         drows = U[sel]
         if drows.size:
             dist_r = np.sqrt(dist2_U[sel])
@@ -470,8 +554,8 @@ class Objective:
             s2r = (sp[drows] ** 2)[:, None] + self._sq2[None, :]
             r2_r = r2_U[sel]
             er = np.exp(-0.5 * r2_r / s2r)
-            per_row_dan = (phi * (1.0 - er)).sum(1) / n
-            dan = float((wdang_U[sel] * per_row_dan).sum())
+            per_row_dan = _sum(phi * (1.0 - er), axis=1) / n
+            dan = float(_sum(wdang_U[sel] * per_row_dan))
         if g3 is None:
             return sim, dan
         # d/d(u, v, sigma_p, d_p) of E_sim, accumulated per model Gaussian.
@@ -480,25 +564,24 @@ class Objective:
         # are taken out of its sums: with wD = Delta D / norm,
         # dE/dsp = sum wD (2 / sp - 2 sp / s2 + r2 sp / s2^2)
         #        = 2 / sp sum wD + sp sum wD / s2 (r2 / s2 - 2).
-        wD = delta_D * inv_norm
-        a = wD * inv_s2
         W = np.empty((5, flat.size))
+        wD = np.multiply(delta_D, inv_norm, out=W[2])
+        a = np.multiply(wD, inv_s2, out=inv_s2)
         np.multiply(a, du, out=W[0])
         np.multiply(a, dv, out=W[1])
-        W[2] = wD
-        np.multiply(a, r2_s2 - 2.0, out=W[3])
+        np.subtract(r2_s2, 2.0, out=r2_s2)
+        np.multiply(a, r2_s2, out=W[3])
         np.copysign(D, dd, out=W[4])  # D sign(dd)
-        acc = np.zeros((5, m))
+        g = np.zeros((5, m))
         if flat.size:
-            acc[:, nz] = np.add.reduceat(W, starts, axis=1)
+            g[:, nz] = np.add.reduceat(W, starts, axis=1)
         # g[0:2] = -dE/d(u, v), then dE/dsp, dE/dp, and the explicit z-dependence of the
-        # dangle distances.
-        g = np.empty((5, m))
-        g[:2] = acc[:2]
-        g[2] = 2.0 * acc[2] / sp + sp * acc[3]
-        g[3] = acc[4] / self._two_sh * -inv_norm
-        g[4] = 0.0
-        if drows.size and w_dan > 0:
+        # dangle distances (rows 2-4 replaced in place by what they are made of).
+        g[2] = 2.0 * g[2] / sp + sp * g[3]
+        g[3] = g[4] / self._two_sh * -inv_norm
+        dangling = drows.size > 0 and w_dan > 0
+        if dangling:
+            g[4] = 0.0
             wn = (w_dan * wdang_U[sel] / n)[:, None]
             pe = wn * phi * er
             inv_s2r = 1.0 / s2r
@@ -523,16 +606,19 @@ class Objective:
             c[np.arange(drows.size), nearest_U[sel]] += w_dan * on_ramp * per_row_dan / TAU1_MM
             k_uv = pe_s2 + c * k_u
             rows_sums = np.empty((5, drows.size))
-            (k_uv * du_r).sum(1, out=rows_sums[0])
-            (k_uv * dv_r).sum(1, out=rows_sums[1])
-            (pe_s2 * r2_r * spr * inv_s2r).sum(1, out=rows_sums[2])
-            np.negative((c * k_dp).sum(1), out=rows_sums[3])
-            np.negative((c * k_z).sum(1), out=rows_sums[4])
+            _sum(k_uv * du_r, axis=1, out=rows_sums[0])
+            _sum(k_uv * dv_r, axis=1, out=rows_sums[1])
+            _sum(pe_s2 * r2_r * spr * inv_s2r, axis=1, out=rows_sums[2])
+            np.negative(_sum(c * k_dp, axis=1), out=rows_sums[3])
+            np.negative(_sum(c * k_z, axis=1), out=rows_sums[4])
             g[:, drows] += rows_sums
         # Through u = fx x / z + cx, v = fy y / z + cy, sp = sh f / z, dp = z - sh.
         t_uv = g[:2] * self._fxy / z  # (2, m): dE/d(x, y) at fixed z, negated
         g3[:, :2] -= t_uv.T
-        g3[:, 2] += (t_uv[0] * x + t_uv[1] * y - g[2] * self._shf / z) / z + g[3] + g[4]
+        g_z = (t_uv[0] * P[:, 0] + t_uv[1] * P[:, 1] - g[2] * self._shf / z) / z + g[3]
+        if dangling:  # (else g[4] is 0: g3, zeros before this first term, gets the same bits)
+            g_z += g[4]
+        g3[:, 2] += g_z
         return sim, dan
 
     def _collision(
@@ -540,28 +626,36 @@ class Objective:
     ) -> float:
         """``E_col`` (eq. 6); adds ``-w_col dE_col/dP`` into ``g3``."""
         c = self._const
-        diff = P.take(c.pair_i, axis=0) - P.take(c.pair_j, axis=0)  # (faster than P[idx])
+        # (In place where a value is not needed again: the same operations, fewer temporaries.)
+        diff = P.take(c.pair_i, axis=0)  # (faster than P[idx])
+        diff -= P.take(c.pair_j, axis=0)
         sq = diff * diff
-        r2 = sq[:, 0] + sq[:, 1] + sq[:, 2]  # = sq.sum(1), several times cheaper
-        D = c.pair_amp * np.exp(-0.5 * r2 / c.pair_s2)
-        col = float(D.sum() / c.norm_h)
+        r2 = sq[:, 0] + sq[:, 1]
+        r2 += sq[:, 2]  # = sq.sum(1), several times cheaper
+        D = np.multiply(r2, -0.5, out=r2)
+        D /= c.pair_s2
+        np.exp(D, out=D)
+        D *= c.pair_amp  # pair_amp exp(-0.5 r2 / s2)
+        col = float(_sum(D) / c.norm_h)
         if g3 is not None and w_col > 0:
-            g = (D * (w_col / c.norm_h) / c.pair_s2)[:, None] * diff  # -w_col dE_col/dP_i (pairs, 3)
-            # incidence @ g: + g at each pair's i, - g at its j.
-            g_all = np.bincount(
-                c.scatter, weights=np.concatenate([g.ravel(), -g.ravel()]), minlength=3 * P.shape[0]
-            )
-            g3 += g_all.reshape(-1, 3)
+            D *= w_col / c.norm_h
+            D /= c.pair_s2
+            # -w_col dE_col/dP_i (pairs, 3), then its negative: the weights of the incidence
+            # product (+ g at each pair's i, - g at its j) as one bincount.
+            k = diff.size
+            weights = np.empty(2 * k)
+            np.multiply(D[:, None], diff, out=weights[:k].reshape(diff.shape))
+            np.negative(weights[:k], out=weights[k:])
+            g3 += np.bincount(c.scatter, weights=weights, minlength=3 * P.shape[0]).reshape(-1, 3)
         return col
 
     def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         """``E_lim`` (eq. 8) and its gradient, shape (26,)."""
-        q = theta[JOINTS]
-        lo = np.minimum(q - self.model.limits_low, 0.0)
-        hi = np.maximum(q - self.model.limits_high, 0.0)
-        g = np.zeros(N_PARAMS)
-        g[JOINTS] = 2.0 * (lo + hi)
-        return float((lo * lo).sum() + (hi * hi).sum()), g
+        # On all 26 parameters, the global ones unlimited (their lo, hi and gradient are 0).
+        lo = np.minimum(theta - self._limits_low, 0.0)
+        hi = np.maximum(theta - self._limits_high, 0.0)
+        g = 2.0 * (lo + hi)
+        return float(_sum((lo * lo)[JOINTS]) + _sum((hi * hi)[JOINTS])), g
 
     def _order(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         """``E_ord`` and its gradient, shape (26,): neighbouring fingers may not cross."""
@@ -577,7 +671,7 @@ class Objective:
         g_abd[1:] += 2.0 * short
         g_abd[:-1] -= 2.0 * short
         g[FINGER_ABD] = g_abd
-        return float((short * short).sum()), g
+        return float(_sum(short * short)), g
 
     def _salient(
         self, P: NDArray[np.float64], g3: NDArray[np.float64] | None, w_sal: float
@@ -596,7 +690,7 @@ class Objective:
         diff = P.take(tips, axis=0) - points
         sq = diff * diff
         root = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2] + SALIENT_SOFT_MM**2)
-        val = float((w * (root - SALIENT_SOFT_MM)).sum())
+        val = float(_sum(w * (root - SALIENT_SOFT_MM)))
         if g3 is not None:
             g3[tips] -= w_sal * (w / root)[:, None] * diff
         return val
@@ -608,4 +702,4 @@ class Objective:
         p1, p2 = self.previous
         s = _smooth_scale()
         r = s * (0.5 * (p2 + theta) - p1)
-        return float((r * r).sum()), r * s
+        return float(_sum(r * r)), r * s

@@ -42,7 +42,7 @@ def check_pose(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     if arr.shape != (N_PARAMS,):
         raise InputError(f"pose must have shape ({N_PARAMS},), got {arr.shape}")
     # A finite sum proves every entry finite (one reduction instead of two).
-    if not math.isfinite(arr.sum()) and not np.all(np.isfinite(arr)):
+    if not math.isfinite(np.add.reduce(arr)) and not np.all(np.isfinite(arr)):
         raise InputError("pose contains NaN or Inf")
     return arr
 
@@ -146,13 +146,18 @@ def _frames(
     mk: _ModelKinematics, theta: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Rotations (5, 3, 3, 3), origins (5, 4, 3) and abduction axes (5, 3) of all chains."""
-    qa = theta.take(mk.abd_idx)
-    ca, sa = np.cos(qa)[:, None], np.sin(qa)[:, None]
-    bx = ca * mk.r0x + sa * mk.r0y  # (5, 3)
-    by = ca * mk.r0y - sa * mk.r0x  # (= -sa r0x + ca r0y exactly)
+    # Each chain's abduction, then its flexions summed along the chain (phi): one cos and
+    # one sin for all 20 angles.
+    ang = theta.take(mk.angle_idx)  # (5, 4)
+    np.add(ang[:, 1], ang[:, 2], out=ang[:, 2])  # (= np.cumsum(ang[:, 1:], axis=1), cheaper)
+    np.add(ang[:, 2], ang[:, 3], out=ang[:, 3])
+    cos, sin = np.cos(ang), np.sin(ang)
+    # (bx, by) = (ca r0x + sa r0y, ca r0y - sa r0x) from two products of (5, 1) by (2, 5, 3).
+    ca_r0, sa_r0 = cos[:, :1] * mk.r0xy, sin[:, :1] * mk.r0yx
+    bx = ca_r0[0] + sa_r0[0]
+    by = ca_r0[1] - sa_r0[1]  # (= -sa r0x + ca r0y exactly)
     bz = mk.r0z
-    phi = np.cumsum(theta.take(mk.flex_idx), axis=1)  # (5, 3)
-    cp, sp = np.cos(phi)[:, :, None], np.sin(phi)[:, :, None]
+    cp, sp = cos[:, 1:, None], sin[:, 1:, None]
     by3, bz3 = by[:, None, :], bz[:, None, :]
     rots = np.empty((5, 3, 3, 3))
     rots[:, :, :, 0] = bx[:, None, :]
@@ -162,7 +167,7 @@ def _frames(
     z_axes -= sp * by3  # (= -sp by + cp bz exactly)
     o = np.empty((5, 4, 3))
     o[:, 0] = mk.bases
-    tail = np.cumsum(y_axes * mk.lengths3, axis=1, out=o[:, 1:])
+    tail = (y_axes * mk.lengths3).cumsum(axis=1, out=o[:, 1:])  # (the method: no wrapper)
     tail += mk.bases3
     return rots, o, bz
 
@@ -171,11 +176,10 @@ def _frames(
 class _ModelKinematics:
     """Per-model constants of the kinematics (cached per model object, see below)."""
 
-    abd_idx: NDArray[np.int64]  # (5,) pose index of each chain's abduction
-    flex_idx: NDArray[np.int64]  # (5, 3) pose index of each chain's three flexions
-    r0x: NDArray[np.float64]  # (5, 3) columns of the rest rotations
-    r0y: NDArray[np.float64]
-    r0z: NDArray[np.float64]
+    angle_idx: NDArray[np.int64]  # (5, 4) pose index of each chain's abduction and flexions
+    r0xy: NDArray[np.float64]  # (2, 5, 3) columns x and y of the rest rotations
+    r0yx: NDArray[np.float64]  # (2, 5, 3) columns y and x
+    r0z: NDArray[np.float64]  # (5, 3) column z
     bases: NDArray[np.float64]  # (5, 3)
     bases3: NDArray[np.float64]  # (5, 1, 3)
     lengths3: NDArray[np.float64]  # (5, 3, 1)
@@ -188,7 +192,7 @@ class _ModelKinematics:
     groups: NDArray[np.float64]  # (20, m)
     pivot: NDArray[np.int64]  # (20,) index into origins (20, 3) of each joint's pivot
     axis_row: NDArray[np.int64]  # (20,) row of each joint's axis in concatenate((bx, bz))
-    M: NDArray[np.float64]  # (3, 3) mirror
+    M: NDArray[np.float64]  # (3,) diagonal of the mirror (see _MIRROR)
     right: bool
 
 
@@ -215,10 +219,9 @@ def _model_kinematics(model: HandModel) -> _ModelKinematics:
         for j in range(CHAIN_JOINTS):
             groups[CHAIN_JOINTS * cc + j] = finger & (c == cc) & (s >= first_seg[j])
     mk = _ModelKinematics(
-        abd_idx=first + 1,
-        flex_idx=first[:, None] + np.array([0, 2, 3])[None, :],
-        r0x=np.ascontiguousarray(r0[:, :, 0]),
-        r0y=np.ascontiguousarray(r0[:, :, 1]),
+        angle_idx=first[:, None] + np.array([1, 0, 2, 3])[None, :],
+        r0xy=np.ascontiguousarray(r0[:, :, :2].transpose(2, 0, 1)),
+        r0yx=np.ascontiguousarray(r0[:, :, 1::-1].transpose(2, 0, 1)),
         r0z=np.ascontiguousarray(r0[:, :, 2]),
         bases=np.array(model.bases, dtype=np.float64),
         bases3=np.array(model.bases, dtype=np.float64)[:, None, :],
@@ -242,12 +245,15 @@ def _model_kinematics(model: HandModel) -> _ModelKinematics:
     return mk
 
 
-_MIRROR = {True: np.diag([1.0, 1.0, 1.0]), False: np.diag([-1.0, 1.0, 1.0])}
+#: The mirror ``M`` of a right (identity) and a left hand (x negated) as its diagonal, shape
+#: (3,): ``R @ M`` is ``R * diagonal`` and ``p @ M.T`` is ``p * diagonal`` (exact, one product).
+_MIRROR = {True: np.array([1.0, 1.0, 1.0]), False: np.array([-1.0, 1.0, 1.0])}
 for _m in _MIRROR.values():
     _m.setflags(write=False)
 
 
 def _mirror(model: HandModel) -> NDArray[np.float64]:
+    """The diagonal (3,) of the model's mirror ``M`` (see :data:`_MIRROR`)."""
     return _MIRROR[bool(model.right)]
 
 
@@ -371,12 +377,12 @@ def attached_points(
     M = _mirror(model)
     if not jacobian:
         R = global_rotation(theta)
-        return p_hand @ (R @ M).T + theta[:3]
+        return p_hand @ (R * M).T + theta[:3]
     R, dR = global_rotation(theta, derivatives=True)
-    G = R @ M
+    G = R * M
     pts = p_hand @ G.T + theta[:3]
     J = ix.j_template.copy() if ix.j_template is not None else _j_template(ix.c.shape[0])
-    pm = p_hand @ M.T
+    pm = p_hand * M
     for a in range(3):
         J[:, :, 3 + a] = pm @ dR[a].T
     # Joint columns, computed in the hand frame then rotated by G (which may
@@ -395,10 +401,7 @@ def attached_points(
 def gaussian_centres(model: HandModel, theta: NDArray[np.float64], jacobian: bool = False):
     """Centres of the model Gaussians, shape (m, 3) mm, and optionally J (m, 3, 26)."""
     if not jacobian:  # the per-evaluation path: the model's index arrays cached
-        theta = check_pose(theta)
-        mk = _model_kinematics(model)
-        p_hand = _centres_hand(mk, theta)[0]
-        return p_hand @ (global_rotation(theta) @ mk.M).T + theta[:3]
+        return _posed(model, theta).pts.copy()
     return attached_points(
         model, theta, model.g_chain, model.g_segment, model.g_offsets, jacobian=jacobian
     )
@@ -440,14 +443,13 @@ class CentresPullback:
         mk = self.mk
         p = self.p_hand
         grad = np.empty(N_PARAMS)
-        grad[:3] = g3.sum(axis=0)
+        grad[:3] = np.add.reduce(g3, axis=0)  # (= g3.sum(axis=0) without the method's Python layer)
         # Rotation columns: sum_i g3_i . dR_a M p_i = <dR_a, g3^T (p M^T)>.
         grad[3:6] = self.dR.reshape(3, 9) @ (g3.T @ self.pm).reshape(9)
-        h = g3 @ self.G  # (m, 3), h_i = G^T g3_i (hand frame)
         m = p.shape[0]
         Q = np.empty((m, 12))
+        h = np.matmul(g3, self.G, out=Q[:, 9:])  # (m, 3), h_i = G^T g3_i (hand frame)
         np.multiply(p[:, :, None], h[:, None, :], out=Q[:, :9].reshape(m, 3, 3))
-        Q[:, 9:] = h
         T = mk.groups @ Q  # (20, 12): sum p h^T (9) and sum h (3) per joint
         outer = T[:, :9].reshape(20, 3, 3) - self.org20.take(mk.pivot, axis=0)[:, :, None] * T[:, None, 9:]
         outer = outer.reshape(20, 9)  # sum (p - o) h^T per joint
@@ -470,16 +472,62 @@ def centres_with_pullback(
     ``einsum("mk,mkj->j", g3, J)``: the same centres (bit-identical), the same gradient up to
     float rounding, several times cheaper (no Jacobian is built).
     """
+    posed = _posed(model, theta, pullback=True)
+    return posed.pts, posed.pullback
+
+
+class _Posed:
+    """The model at one pose: centres (m, 3) mm (read-only), centres in the hand frame (m, 3),
+    joint origins (20, 3) mm, flexion axes (5, 3), ``G`` (3, 3) and, once asked for, the
+    :class:`CentresPullback` (a plain class with slots: built on every evaluation)."""
+
+    __slots__ = ("mk", "key", "pts", "p_hand", "org20", "bx", "G", "pullback")
+
+    def __init__(self, mk: _ModelKinematics, key: bytes, theta: NDArray[np.float64], pullback: bool) -> None:
+        self.mk, self.key = mk, key
+        self.p_hand, self.org20, self.bx = _centres_hand(mk, theta)
+        if pullback:
+            R, dR = global_rotation(theta, derivatives=True)
+        else:
+            R, dR = global_rotation(theta), None
+        self.G = R * mk.M
+        self.pts = self.p_hand @ self.G.T + theta[:3]
+        self.pts.setflags(write=False)
+        self.pullback: CentresPullback | None = None
+        if dR is not None:
+            self._add_pullback(dR)
+
+    def _add_pullback(self, dR: NDArray[np.float64]) -> None:
+        mk = self.mk
+        pm = self.p_hand if mk.right else self.p_hand * mk.M
+        # Joint axes (20, 3): flexions about the chain's bx, abductions about its (fixed) bz.
+        axes = np.concatenate((self.bx, mk.r0z)).take(mk.axis_row, axis=0)
+        self.pullback = CentresPullback(mk, self.p_hand, pm, self.G, dR, self.org20, axes)
+
+
+#: The last few posed models (:class:`_Posed`), newest last.  A tracked frame asks for the
+#: centres, fingertips and skeleton of the same poses several times (the fit's best pose, the
+#: restarts' start poses, the result): each is computed once.
+_POSED: list[_Posed] = []
+_POSED_SIZE = 8
+
+
+def _posed(model: HandModel, theta: NDArray[np.float64], pullback: bool = False) -> _Posed:
+    """``model`` at ``theta`` (cached for the last :data:`_POSED_SIZE` poses); with
+    ``pullback`` its :class:`CentresPullback` is set."""
     theta = check_pose(theta)
     mk = _model_kinematics(model)
-    p_hand, org20, bx = _centres_hand(mk, theta)
-    R, dR = global_rotation(theta, derivatives=True)
-    G = R @ mk.M
-    pts = p_hand @ G.T + theta[:3]
-    pm = p_hand if mk.right else p_hand @ mk.M.T
-    # Joint axes (20, 3): flexions about the chain's bx, abductions about its (fixed) bz.
-    axes = np.concatenate((bx, mk.r0z)).take(mk.axis_row, axis=0)
-    return pts, CentresPullback(mk, p_hand, pm, G, dR, org20, axes)
+    key = theta.tobytes()
+    for posed in reversed(_POSED):
+        if posed.mk is mk and posed.key == key:
+            if pullback and posed.pullback is None:
+                posed._add_pullback(global_rotation(theta, derivatives=True)[1])
+            return posed
+    posed = _Posed(mk, key, theta, pullback)
+    if len(_POSED) >= _POSED_SIZE:
+        del _POSED[0]
+    _POSED.append(posed)
+    return posed
 
 
 def _centres_hand(
@@ -499,7 +547,7 @@ def _centres_hand(
 
 def fingertips(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:
     """Fingertip positions, shape (5, 3), mm, camera frame (thumb .. little)."""
-    return gaussian_centres(model, theta)[model.tip_index]
+    return _posed(model, theta).pts[model.tip_index]  # (a new array)
 
 
 #: Indices into :func:`skeleton_points` of the wrist and each chain's four points
@@ -516,7 +564,6 @@ def skeleton_points(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.
     second joint, third joint and segment end (the very tip of the bone).
     """
     theta = check_pose(theta)
-    fr = chain_frames(model, theta)
-    p_hand = np.concatenate([np.zeros((1, 3)), fr.origins.reshape(20, 3)])
-    G = global_rotation(theta) @ _mirror(model)
-    return p_hand @ G.T + theta[:3]
+    posed = _posed(model, theta)
+    p_hand = np.concatenate([np.zeros((1, 3)), posed.org20])
+    return p_hand @ posed.G.T + theta[:3]

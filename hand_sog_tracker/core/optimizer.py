@@ -123,9 +123,14 @@ def maximise(
     if initial_steps is not None:
         step = np.array(initial_steps, dtype=np.float64)
     lo, hi = steps.expand(steps.minimum), steps.expand(steps.maximum)
-    mask = np.ones(N_PARAMS, bool) if active is None else np.asarray(active, bool)
+    mask = None if active is None else np.asarray(active, bool)
+    # Loop invariants (the loop body is a few dozen tiny NumPy calls: each one counts).
+    lo_settled = lo * 1.0001
+    if mask is not None:  # inactive parameters count as settled
+        lo_settled = np.where(mask, lo_settled, np.inf)
+    low, high = (None, None) if bounds is None else (np.asarray(bounds[0]), np.asarray(bounds[1]))
     if bounds is not None:
-        x = np.clip(x, bounds[0], bounds[1])
+        x = np.minimum(np.maximum(x, low), high)  # = np.clip, cheaper
     val, grad = fun(x)
     assert grad is not None
     best_x, best_val = x.copy(), val
@@ -134,14 +139,17 @@ def maximise(
     status, nit, limit = 0, 0, iterations
     while nit < limit:
         nit += 1
-        sign = np.sign(grad) * mask
+        sign = np.sign(grad)
+        if mask is not None:
+            sign *= mask
         agree = sign * prev_sign
-        step = np.where(agree > 0, np.minimum(step * steps.grow, hi), step)
-        step = np.where(agree < 0, np.maximum(step * steps.shrink, lo), step)
-        sign = np.where(agree < 0, 0.0, sign)
+        grows, shrinks = agree > 0, agree < 0
+        step = np.where(grows, np.minimum(step * steps.grow, hi), step)
+        step = np.where(shrinks, np.maximum(step * steps.shrink, lo), step)
+        sign[shrinks] = 0.0
         x = x + step * sign
         if bounds is not None:
-            x = np.clip(x, bounds[0], bounds[1])
+            x = np.minimum(np.maximum(x, low), high)
         prev_sign = sign
         if nit < iterations + extra_iterations:
             val, grad = fun(x)
@@ -153,7 +161,7 @@ def maximise(
             limit += 1
         if val > best_val:
             best_x, best_val = x.copy(), val
-        if np.all((step <= lo * 1.0001) | ~mask):
+        if (step <= lo_settled).all():
             status = 1
             break
     start = history[0]

@@ -88,18 +88,32 @@ class Detections:
 
 _QUARTER = RING_SAMPLES // 4
 _RING_ANGLES = 2.0 * np.pi * np.arange(_QUARTER + 1) / RING_SAMPLES  # first quadrant
+_RING_COS = np.cos(_RING_ANGLES)
+
+
+def _reflected(q: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The ring offsets (du, dv), shape (RING_SAMPLES, 2), from their first-quadrant values
+    ``q`` (QUARTER + 1,): reflected into the other quadrants, counter-clockwise from +u."""
+    du = np.concatenate([q, -q[-2::-1], -q[1:], q[-2:0:-1]])
+    dv = np.concatenate([q[::-1], q[1:], -q[-2::-1], -q[1:-1]])
+    return np.stack([du, dv], 1)
+
+
+# The reflection as a gather: offsets = _RING_SIGN * q[_RING_INDEX] (from 1-based q, whose
+# signs survive the reflection).
+_RING_CODE = _reflected(np.arange(1, _QUARTER + 2))
+_RING_INDEX, _RING_SIGN = np.abs(_RING_CODE) - 1, np.sign(_RING_CODE)
 
 
 def _ring_offsets(radius_px: float) -> NDArray[np.int64]:
     """Ring sample offsets (du, dv), shape (RING_SAMPLES, 2), px, counter-clockwise from +u.
 
-    Rounded in the first quadrant and reflected into the others, so that the ring is exactly
-    symmetric under u -> -u, v -> -v and u <-> v (a mirrored image sees the mirrored ring).
+    Rounded in the first quadrant and reflected into the others (:func:`_reflected`), so that
+    the ring is exactly symmetric under u -> -u, v -> -v and u <-> v (a mirrored image sees
+    the mirrored ring).
     """
-    q = np.round(np.cos(_RING_ANGLES) * radius_px).astype(np.int64)  # du of angles 0..90 deg
-    du = np.concatenate([q, -q[-2::-1], -q[1:], q[-2:0:-1]])
-    dv = np.concatenate([q[::-1], q[1:], -q[-2::-1], -q[1:-1]])
-    return np.stack([du, dv], 1)
+    q = np.round(_RING_COS * radius_px).astype(np.int64)  # du of angles 0..90 deg
+    return q.take(_RING_INDEX) * _RING_SIGN  # (= _reflected(q), one gather)
 
 
 def detect_fingertips(
@@ -153,7 +167,9 @@ def detect_fingertips(
     cv = int(np.floor(intr.cy + 0.5) - v0) % 2
     grid_valid = valid[cv::2, cu::2]
     gw = grid_valid.shape[1]
-    vv, uu = np.divmod(np.flatnonzero(grid_valid), gw)
+    cell = grid_valid.ravel().nonzero()[0]
+    vv = cell // gw  # (row and column of the grid cells: cheaper than np.divmod and 2-d nonzero)
+    uu = cell - vv * gw
     vv, uu = vv * 2 + cv, uu * 2 + cu
     # The candidates' depths, gathered from the shared window (flat indices ``centre``).
     stride = hw.depth.shape[1]
@@ -210,12 +226,13 @@ def detect_fingertips(
         return Detections.empty()
     sel = cand[keep]  # increasing, like the candidates
     grid = np.zeros(grid_valid.shape, np.uint8)
+    gcell = cell[sel]  # flat index in the grid (of row gv, column gu)
     gv, gu = vv[sel] // 2, uu[sel] // 2
-    grid[gv, gu] = 1
+    grid.reshape(-1)[gcell] = 1
     # Labels only (the statistics of connectedComponentsWithStats cost several times more);
     # areas and centroids from the candidate cells, each cell once: integer sums, exact.
     n_lab, labels = cv2.connectedComponents(grid, connectivity=8)
-    lab = labels[gv, gu] - 1
+    lab = labels.reshape(-1).take(gcell) - 1
     n_reg = n_lab - 1
     cnt = np.bincount(lab, minlength=n_reg)
     expected = np.pi * (0.5 * r_px) ** 2 / 4.0  # in grid cells
@@ -226,10 +243,10 @@ def detect_fingertips(
     # Per region: mean depth and share of end-on cells, from the candidate cells' labels.
     z_sum = np.bincount(lab, weights=dcc[keep], minlength=n_reg)
     end_sum = np.bincount(lab, weights=end_on[keep].astype(np.float64), minlength=n_reg)
-    cents = np.stack(
-        [np.bincount(lab, weights=gu.astype(np.float64), minlength=n_reg),
-         np.bincount(lab, weights=gv.astype(np.float64), minlength=n_reg)], axis=1,
-    ) / area[:, None]
+    cents = np.empty((n_reg, 2))
+    cents[:, 0] = np.bincount(lab, weights=gu.astype(np.float64), minlength=n_reg)
+    cents[:, 1] = np.bincount(lab, weights=gv.astype(np.float64), minlength=n_reg)
+    cents /= area[:, None]
     cnt = np.maximum(cnt, 1)
     uv_all = 2.0 * cents + np.array([u0 + cu, v0 + cv], dtype=np.float64)
     z_all = z_sum / cnt + TIP_DEPTH_OFFSET_MM
@@ -302,7 +319,8 @@ def assign_detections(
         return out
     if S > 10:
         raise ValueError(f"at most 10 detections can be assigned, got {S}")
-    cost = np.linalg.norm(tips_mm[:, None, :] - det.points[None, :, :], axis=-1)  # (T, S)
+    diff = tips_mm[:, None, :] - det.points[None, :, :]
+    cost = np.sqrt(np.add.reduce(diff * diff, axis=-1))  # (T, S), = np.linalg.norm(diff, axis=-1)
     bits, prev = _subset_tables(S)
     n_masks = 1 << S
     best = np.full((T + 1, n_masks), np.inf)
@@ -313,8 +331,8 @@ def assign_detections(
         # Set D of used detections after fingertip t: fingertip t without a detection
         # (column 0), or with detection s of D (column s + 1) after the set D - {s}.  The
         # first minimum wins, as "none" and then s = 0, 1, ... would in a sequential update.
-        cand[:, 0] = best[t] + lam_mm
-        cand[:, 1:] = np.where(bits, best[t][prev] + cost[t], np.inf)
+        np.add(best[t], lam_mm, out=cand[:, 0])
+        cand[:, 1:] = np.where(bits, best[t].take(prev) + cost[t], np.inf)
         pick = cand.argmin(axis=1)
         best[t + 1] = cand[np.arange(n_masks), pick]
         choice[t + 1] = pick - 1

@@ -151,7 +151,8 @@ _TERM_CACHE: list = [(None, None)]
 def _term_constants(sil: Silhouette) -> tuple:
     """Constants of :func:`silhouette_term` for one map (cached for the last map: a frame's
     objective evaluates the same map many times): ``(fx, fy)``, the offsets of ``(u, v)``,
-    the clamp limits, the flat offsets of a cell's four corners and the map as float64."""
+    the clamp limits, the flat offsets of a cell's four corners, ``(1, w)`` (a cell's flat
+    index from its column and row) and the map as float64."""
     hit = _TERM_CACHE[0]
     if hit[0] is sil:
         return hit[1]
@@ -163,6 +164,7 @@ def _term_constants(sil: Silhouette) -> tuple:
         np.array((intr.cx - sil.origin[0] - half, intr.cy - sil.origin[1] - half)),
         np.array((w - 1.000001, h - 1.000001)),
         np.array((0, 1, w, w + 1)),
+        np.array((1.0, w)),
         sil.distance.astype(np.float64).reshape(-1),
     )
     _TERM_CACHE[0] = (sil, const)
@@ -174,20 +176,22 @@ def silhouette_term(
 ) -> float:
     """``E_sil`` at the model Gaussian centres ``P`` (m, 3) mm; adds ``-weight dE/dP`` into ``g3``."""
     intr = sil.intrinsics
-    k_fxy, k_off, top, corners, flat_map = _term_constants(sil)
+    k_fxy, k_off, top, corners, flat_of, flat_map = _term_constants(sil)
     z = np.maximum(P[:, 2], 1.0)
     zc = z[:, None]
     # Map coordinates (cells, from the first cell's centre), u and v as the columns of one
     # (m, 2) array: every step below does both at once (the per-call cost of NumPy dominates).
     cell = sil.cell
-    uv = (k_fxy * P[:, :2] / zc + k_off) / cell
+    uv = k_fxy * P[:, :2]
+    uv /= zc
+    uv += k_off
+    uv /= cell  # (fx x / z + offset) / cell
     # Bilinear interpolation between cell centres (clamped to the map).
     uvc = np.minimum(np.maximum(uv, 0.0), top)  # = np.clip, several times cheaper
-    uv0 = np.floor(uvc)
-    ab = uvc - uv0  # (m, 2): a, b
+    ab, uv0 = np.modf(uvc)  # (m, 2): a, b and the cell (uvc >= 0: = uvc - floor, floor)
     one_ab = 1 - ab  # (m, 2): 1 - a, 1 - b
     # The four corners of every cell square in one gather: d[:, i, j] = d_ij (row i, column j).
-    corner = (uv0[:, 1] * sil.distance.shape[1] + uv0[:, 0]).astype(np.int64)[:, None] + corners
+    corner = (uv0 @ flat_of).astype(np.int64)[:, None] + corners  # (integers: exact)
     d = flat_map.take(corner).reshape(-1, 2, 2)
     # Both rows interpolated along u, then along v.
     along_u = one_ab[:, :1] * d[:, :, 0] + ab[:, :1] * d[:, :, 1]  # (m, 2)
@@ -197,15 +201,16 @@ def silhouette_term(
     k = 1.0 / (f * SILHOUETTE_SCALE_MM)
     s = over * z * k  # (m,)
     m = P.shape[0]
-    val = float((s * s).sum() / m)
+    val = float(np.add.reduce(s * s) / m)  # (= (s * s).sum(), without the method's Python layer)
     if g3 is not None and weight > 0 and val > 0:
         # dD/du = (1 - b)(d01 - d00) + b (d11 - d10), dD/dv = (1 - a)(d10 - d00) + a (d11 - d01),
-        # zero where the coordinate is clamped.
-        du = d[:, :, 1] - d[:, :, 0]  # (m, 2): d01 - d00, d11 - d10
-        dv = d[:, 1, :] - d[:, 0, :]  # (m, 2): d10 - d00, d11 - d01
-        dD = np.empty((m, 2))
-        np.add(one_ab[:, 1] * du[:, 0], ab[:, 1] * du[:, 1], out=dD[:, 0])
-        np.add(one_ab[:, 0] * dv[:, 0], ab[:, 0] * dv[:, 1], out=dD[:, 1])
+        # zero where the coordinate is clamped.  With steps[:, 0] = (d01 - d00, d11 - d10)
+        # and steps[:, 1] = (d10 - d00, d11 - d01): dD = (1 - (b, a)) steps[.., 0] + (b, a) steps[.., 1].
+        steps = np.empty((m, 2, 2))
+        np.subtract(d[:, :, 1], d[:, :, 0], out=steps[:, 0])
+        np.subtract(d[:, 1, :], d[:, 0, :], out=steps[:, 1])
+        dD = one_ab[:, ::-1] * steps[:, :, 0]
+        dD += ab[:, ::-1] * steps[:, :, 1]
         dD *= (uv > 0.0) & (uv < top)
         # dE/dD is 2 / m s z k (zero off the margin, where s = 0); per mm of P through (u, v):
         c = (2.0 / m * k) * s  # (m,)

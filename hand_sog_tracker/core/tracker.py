@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess, quadtree_sog
-from hand_sog_tracker.core.energy import Objective, TipTargets
+from hand_sog_tracker.core.energy import Objective, TipTargets, gaussian_support
 from hand_sog_tracker.core.hand_model import (
     HandModel,
     default_hand_model,
@@ -81,43 +81,6 @@ WRIST_MARGIN_MM = 0.0
 #: fingertips (chosen here: off; they only seed the curled restart candidates).
 SALIENT_END_ON = False
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
-
-
-def gaussian_support(
-    model: HandModel,
-    theta: NDArray[np.float64],
-    data: ImageSoG,
-    centres: NDArray[np.float64] | None = None,
-) -> NDArray[np.float64]:
-    """How well the data explain each model Gaussian at ``theta``, shape (m,), in [0, 1].
-
-    For Gaussian ``p`` the depth-weighted overlap with the data,
-    ``sum_q Delta_pq D_pq``, divided by its value under a gap-free data tiling
-    at the right depth (``2 pi^2 sigma_p^2``, px), capped at 1.  ``centres``: the model
-    Gaussians' centres at ``theta`` (m, 3) mm, when already computed.
-    """
-    if data.n == 0:
-        return np.zeros(model.n_gaussians)
-    intr = data.intrinsics
-    P = gaussian_centres(model, theta) if centres is None else centres
-    z = np.maximum(P[:, 2], 1.0)
-    u = intr.fx * P[:, 0] / z + intr.cx
-    v = intr.fy * P[:, 1] / z + intr.cy
-    sp2 = (model.g_sigmas * np.sqrt(intr.fx * intr.fy) / z) ** 2
-    sq2 = data.sigma**2
-    # Only the pairs that can contribute (as in the objective): Delta = 0 beyond two radii
-    # in depth, D < 1.6e-8 of its peak beyond six combined standard deviations.
-    du = u[:, None] - data.mu[:, 0]
-    dv = v[:, None] - data.mu[:, 1]
-    r2 = du * du + dv * dv
-    dd = np.abs((z - model.g_sigmas)[:, None] - data.depth)
-    two_sh = (2.0 * model.g_sigmas)[:, None]
-    p, q = np.nonzero((dd < two_sh) & (r2 < 36.0 * (sp2[:, None] + sq2)))
-    s2 = sp2[p] + sq2[q]
-    D = 2 * np.pi * sp2[p] * sq2[q] / s2 * np.exp(-0.5 * r2[p, q] / s2)
-    delta = 1.0 - dd[p, q] / two_sh[p, 0]
-    support = np.bincount(p, weights=delta * D, minlength=model.n_gaussians) / (2 * np.pi**2 * sp2)
-    return np.minimum(support, 1.0)
 
 
 def coverage(

@@ -10,7 +10,7 @@ and silhouette together) and the total; the detector, the quadtree, the silhouet
 detection-to-fingertip assignment are then timed alone on the same frames, at the start
 pose the tracker used
 (the last two tracked poses extrapolated), and the model update and the objective alone
-on the last frame.
+on the last frame, at poses around the last tracked one.
 
 ``--compare REF`` runs this benchmark (this file) on this tree's tracker and on the tracker of
 another source tree ``REF`` (e.g. a checkout of the previous commit) as separate processes,
@@ -173,18 +173,21 @@ def run_benchmark(
             t4 = time.perf_counter()
             silhouette(pre, window)
             stage["silhouette"].append((time.perf_counter() - t4) * 1e3)
-    # Per-call costs of the two inner stages, measured on the last tracked pose.
+    # Per-call costs of the two inner stages, on the last frame around the last tracked pose:
+    # at poses about 1e-3 mm / rad apart (distinct, as the optimiser's iterates: no call
+    # can reuse the kinematics of an earlier one, which the tracker keeps for repeated poses).
     pose = tracker.last_pose
     if pose is not None:
         pre = preprocess(depth_frames[-1], intr, config)
         roi, window = hand_roi(tracker.model, pose, pre.intrinsics, config.roi_radius_mm)
         data = quadtree_sog(pre, config.quadtree_threshold_mm, roi, window, config.min_quad_px)
         obj = Objective(tracker.model, data, config, previous=(pose, pose))
-        for _ in range(200):
+        nearby = pose + np.random.default_rng(0).normal(0.0, 1e-3, (200, pose.size))
+        for theta in nearby:
             t0 = time.perf_counter()
-            gaussian_centres(tracker.model, pose, jacobian=True)
+            gaussian_centres(tracker.model, theta, jacobian=True)
             t1 = time.perf_counter()
-            obj(pose)
+            obj(theta)
             t2 = time.perf_counter()
             stage["model_update"].append((t1 - t0) * 1e3)
             stage["energy_gradient"].append((t2 - t1) * 1e3)
