@@ -1,0 +1,93 @@
+"""Finger thickness and knuckle span measured in rendered depth at a known pose (core/measure.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hand_sog_tracker.core.depth_sog import preprocess
+from hand_sog_tracker.core.hand_model import HandShape, default_hand_model, rest_pose
+from hand_sog_tracker.core.measure import (
+    WidthMeasurement,
+    measure_widths,
+    reference_widths,
+    shape_from_widths,
+)
+from hand_sog_tracker.core.types import TrackerConfig
+from hand_sog_tracker.errors import CalibrationError
+from hand_sog_tracker.synth.render import RenderOptions, render_depth
+from hand_sog_tracker.synth.sequence import default_intrinsics
+
+INTR = default_intrinsics()
+
+
+def open_poses() -> list[np.ndarray]:
+    """Three open hands, fingers slightly spread, at different places, distances and tilts."""
+    poses = []
+    places = ((0.0, 380.0, 0.15, 0.0), (-25.0, 430.0, -0.1, 0.3), (20.0, 340.0, 0.25, -0.25))
+    for k, (x, z, tilt, roll) in enumerate(places):
+        th = rest_pose((x, 20.0, z))
+        th[3] += tilt
+        th[5] = roll
+        th[6 + 4 + 1 :: 4] = np.array([-0.08, 0.0, 0.06, 0.12]) * (1 + k % 2)  # finger abduction
+        poses.append(th)
+    return poses
+
+
+def measured(shape: HandShape, right: bool = True, seed: int = 0) -> tuple[float, float, WidthMeasurement]:
+    """Factors measured on ToF-like capsule renders of ``shape`` at the true poses."""
+    model = default_hand_model(right).scaled(shape)
+    rng = np.random.default_rng(seed)
+    depths = [render_depth(model, th, INTR, RenderOptions(), rng) for th in open_poses()]
+    pres = [preprocess(d, INTR, TrackerConfig()) for d in depths]
+    # The poses place the axes with the hand's own length (as the fit does after its first round).
+    at = default_hand_model(right).scaled(HandShape(length=shape.length))
+    meas = measure_widths([p.depth_mm for p in pres], [p.intrinsics for p in pres], at, open_poses())
+    sigma, width = shape_from_widths(meas)
+    return sigma, width, meas
+
+
+@pytest.mark.parametrize(
+    ("length", "width", "thickness"), [(1.0, 1.0, 1.0), (0.9, 1.12, 0.88), (1.1, 0.88, 1.12)]
+)
+def test_measured_factors_are_within_five_percent_of_the_rendered_hand(
+    length: float, width: float, thickness: float
+) -> None:
+    """Width and thickness vary independently (a wide hand with thin fingers and the reverse)."""
+    sigma, fitted_width, meas = measured(HandShape(length, width, thickness, thickness))
+    print(f"truth W={width} T={thickness}: measured sigma {sigma:.3f} width {fitted_width:.3f}, "
+          f"fingers {meas.finger_mm.round(1)} mm, knuckles {meas.knuckle_mm:.1f} mm, palm {meas.palm_mm:.1f} mm")
+    assert sigma == pytest.approx(thickness, rel=0.05)
+    assert fitted_width == pytest.approx(width, rel=0.05)
+    assert np.all(meas.finger_profiles >= 9) and meas.knuckle_frames == 3 and meas.palm_profiles >= 9
+    # The palm outline (not used for the factor when the knuckles are seen) agrees too.
+    fingers, knuckle, rim = reference_widths()
+    assert meas.palm_mm == pytest.approx(knuckle * width + rim * thickness, rel=0.05)
+
+
+def test_left_hand_measures_like_the_right_hand() -> None:
+    shape = HandShape(1.0, 1.08, 0.92, 0.92)
+    right, left = measured(shape, True)[:2], measured(shape, False)[:2]
+    print(f"right {right}, left {left}")
+    assert left == pytest.approx(right, rel=0.03)
+    assert left[1] == pytest.approx(1.08, rel=0.05)
+
+
+def test_nothing_measured_without_a_hand_in_view() -> None:
+    empty = np.zeros((INTR.height, INTR.width), np.float32)
+    meas = measure_widths([empty], INTR, default_hand_model(True), [open_poses()[0]])
+    assert np.all(meas.finger_profiles == 0) and np.all(np.isnan(meas.finger_mm))
+    assert meas.knuckle_frames == 0 and meas.palm_profiles == 0
+    assert all(np.isnan(v) for v in shape_from_widths(meas))
+    with pytest.raises(CalibrationError):
+        measure_widths([empty, empty], INTR, default_hand_model(True), [open_poses()[0]])
+
+
+def test_reference_widths_follow_the_default_model() -> None:
+    fingers, knuckle, rim = reference_widths()
+    model = default_hand_model(True)
+    assert knuckle == pytest.approx(model.bases[1, 0] - model.bases[4, 0])  # 57 mm
+    assert rim == pytest.approx(2 * 12.5)
+    assert fingers.shape == (4,) and np.all((fingers > 12) & (fingers < 22))
+    # A scaled model's reference is the default's (the factors are relative to the default model).
+    assert np.allclose(reference_widths(model.scaled(HandShape(1.1, 0.9, 1.2, 1.2)))[0], fingers)
