@@ -82,3 +82,17 @@ def test_labelled_fingertips_are_within_15_mm(frame: int, mirror: bool) -> None:
     assert res.status is TrackerStatus.TRACKING and res.fingertips_mm is not None
     err = np.linalg.norm(res.fingertips_mm - truth, axis=1)
     assert err.max() < 15.0, err.round(1)
+
+
+@pytest.mark.parametrize("mirror", [False, True])
+def test_finger_curled_toward_the_camera_is_found(mirror: bool) -> None:
+    """Frame 2: the middle finger points at the camera in front of the palm.  The unexplained
+    end-on detection pulls the model's middle finger onto it (before the finger-only pull the
+    model's middle finger lay on the ring finger's data, 60 mm off).  Not yet within 15 mm."""
+    depth, intr, truth = _labelled(2, mirror)
+    tracker = Tracker(TrackerConfig(right_hand=not mirror))
+    for _ in range(10):
+        res = tracker.process(depth, intr)
+    assert res.status is TrackerStatus.TRACKING and res.fingertips_mm is not None
+    err = np.linalg.norm(res.fingertips_mm - truth, axis=1)
+    assert err.max() < 25.0, err.round(1)

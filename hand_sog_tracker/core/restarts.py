@@ -186,10 +186,12 @@ class RestartStrategies:
         A confident detection farther than ``UNEXPLAINED_DETECTION_MM`` from every model
         fingertip is a finger the model has missed (typically one curled toward the camera
         while the model finger lies on its neighbour).  Each of the two model fingers
-        nearest to it is pulled onto it (the salient term alone, strongly weighted, for
-        ``RESTART_ITERATIONS``), then released into the objective without the salient term
-        (which would favour the assignment the frame started with); a candidate is kept only
-        if its :meth:`_score` is higher than before.  ``lonely``: :meth:`_lonely` at ``res.x``
+        nearest to it is pulled onto it by the salient term, strongly weighted, for
+        ``RESTART_ITERATIONS``, twice: with only that finger's joints free (the other fingers
+        stay on their data) and with the whole pose free (when the hand itself sits wrong);
+        each pull is then released into the objective without the salient term (which would
+        favour the assignment the frame started with); a candidate is kept only if its
+        :meth:`_score` is higher than before.  ``lonely``: :meth:`_lonely` at ``res.x``
         when already known.
         """
         if lonely is None:
@@ -210,7 +212,12 @@ class RestartStrategies:
                 self._model, obj.data, replace_config(cfg, w_sal=max(cfg.w_sal, 1.0) * 20.0),
                 previous=obj.previous, targets=TipTargets(pts, w), silhouette=obj.silhouette,
             )
-            starts = [self._maximise(pull, res.x, iterations=RESTART_ITERATIONS).x]
+            finger = np.zeros(res.x.size, dtype=bool)
+            finger[chain_slice(c)] = True
+            starts = [
+                self._maximise(pull, res.x, iterations=RESTART_ITERATIONS, active=active).x
+                for active in (finger, None)
+            ]
             if det.end_on[s] and c > 0:
                 # A finger seen end-on is curled toward the camera: also try it curled.
                 curled = res.x.copy()
