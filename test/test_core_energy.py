@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
-from hand_sog_tracker.core.energy import ORDER_MIN_GAP_RAD, Objective, TipTargets, gaussian_support
+from hand_sog_tracker.core.energy import (
+    ORDER_MIN_GAP_RAD,
+    SIM_GAIN,
+    SIM_SATURATION,
+    Objective,
+    TipTargets,
+    gaussian_support,
+)
 from hand_sog_tracker.core.hand_model import N_PARAMS, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres
 from hand_sog_tracker.core.optimizer import maximise
@@ -196,6 +203,13 @@ def test_silhouette_term_is_zero_inside_and_grows_outside() -> None:
     assert 0.0 < values[0] < values[1] < values[2]
 
 
+def _saturated(data: ImageSoG, overlap: np.ndarray) -> float:
+    """``E_sim`` from each image Gaussian's overlap with the model ``S_q`` (n,): the saturated
+    sum of the module docstring."""
+    k = SIM_SATURATION * np.pi * data.sigma**2
+    return float((SIM_GAIN * k * (1.0 - np.exp(-overlap / k))).sum() / data.norm)
+
+
 def _dense_data_terms(obj: Objective, theta: np.ndarray) -> tuple[float, float]:
     """``E_sim`` and ``E_dan`` over all model x data pairs, straight from the module docstring."""
     model, data = obj.model, obj.data
@@ -212,7 +226,7 @@ def _dense_data_terms(obj: Objective, theta: np.ndarray) -> tuple[float, float]:
     D = 2 * np.pi * sp2 * sq2 / s2 * np.exp(-0.5 * r2 / s2)
     dd = (z - model.g_sigmas)[:, None] - data.depth[None, :]
     delta = np.maximum(1.0 - np.abs(dd) / (2.0 * model.g_sigmas[:, None]), 0.0)
-    sim = float((delta * D).sum() / data.norm)
+    sim = _saturated(data, (delta * D).sum(axis=0))
     lat = np.maximum(np.sqrt(r2) - data.sigma[None, :] / np.sqrt(2.0), 0.0) * (z / f)[:, None]
     dist = np.sqrt(lat**2 + np.maximum(-dd, 0.0) ** 2)
     w = np.clip((dist.min(axis=1) - 15.0) / 15.0, 0.0, 1.0)
@@ -294,7 +308,7 @@ def test_candidate_product_keeps_exactly_the_pairs_of_the_definition(seed: int) 
         keep = (np.abs(dd) < 2.0 * sh[:, None]) & (r2 < (36.0 * sp * sp)[:, None] + 36.0 * data.sigma**2)
         s2 = (sp * sp)[:, None] + data.sigma**2
         D = 2 * np.pi * (sp * sp)[:, None] * data.sigma**2 / s2 * np.exp(-0.5 * r2 / s2)
-        sim = float(((1.0 - np.abs(dd) / (2.0 * sh[:, None])) * D)[keep].sum() / data.norm)
+        sim = _saturated(data, np.where(keep, (1.0 - np.abs(dd) / (2.0 * sh[:, None])) * D, 0.0).sum(axis=0))
         assert 0.2 < keep.mean() < 0.9  # both tests decide
         assert obj._data_terms(P, None, 0.0)[0] == pytest.approx(sim, rel=1e-12)
 
@@ -331,3 +345,35 @@ def test_gaussian_support_equals_the_dense_definition(seed: int) -> None:
         np.testing.assert_array_equal(gaussian_support(model, theta, data, centres=P), dense)
     empty = ImageSoG(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)), intr, 0.0)
     np.testing.assert_array_equal(gaussian_support(model, truth, empty), np.zeros(model.n_gaussians))
+
+
+def test_similarity_saturates_where_two_model_parts_explain_the_same_data() -> None:
+    # E_sim counts an image Gaussian's overlap with the model saturated (module docstring):
+    # a second model Gaussian on data already explained adds less than the first did, so two
+    # model fingers on one finger's data gain little over one.  With eq. 5's plain sum the
+    # pair would score exactly the sum of the two.
+    model = default_hand_model()
+    sh = model.g_sigmas
+    i, j = np.flatnonzero(np.isclose(sh, sh[-1]))[:2]  # two Gaussians of equal radius
+    centre = np.array([0.0, 0.0, 400.0])
+    uv = INTR.project(centre[None, :] - [0.0, 0.0, sh[i]])
+    sigma = np.full(1, 1.5)
+    depth = np.array([centre[2] - sh[i]])
+    data = ImageSoG(uv, sigma, depth, INTR.backproject(uv, depth), INTR, float(2.0 * np.pi**2 * 1.5**2))
+    obj = Objective(model, data, TrackerConfig())
+
+    def sim_with(parts: list[int]) -> float:
+        P = np.tile([0.0, 0.0, 2000.0], (model.n_gaussians, 1))  # far behind: Delta = 0
+        P[parts] = centre
+        return obj._data_terms(P, None, 0.0)[0]
+
+    one, other, both = sim_with([i]), sim_with([j]), sim_with([i, j])
+    assert one == pytest.approx(other) and one > 0.0
+    assert one < both < 0.85 * (one + other)
+    assert both == pytest.approx(_saturated(data, np.array([2.0 * _saturated_inverse(data, one)])))
+
+
+def _saturated_inverse(data: ImageSoG, sim: float) -> float:
+    """The overlap ``S`` of a single image Gaussian that :func:`_saturated` maps to ``sim``."""
+    k = SIM_SATURATION * np.pi * data.sigma[0] ** 2
+    return float(-k * np.log(1.0 - sim * data.norm / (SIM_GAIN * k)))
