@@ -146,3 +146,54 @@ def test_restart_interval_limits_the_restarts_to_a_rate() -> None:
         runs[interval] = len(calls)
     assert runs[None] == 7  # every tracked frame
     assert runs[3600.0] == 1  # the first tracked frame only
+
+
+def test_scheduled_shift_restart_is_spread_over_frames_and_undoes_a_shift_by_one() -> None:
+    # Counting "one": the index finger up, the others curled.  The track has every finger on
+    # its neighbour's articulation (the middle finger up on the index's data).  A scheduled
+    # shift candidate starts on a frame counted a multiple of SHIFT_EVERY, gets SHIFT_CHUNK
+    # iterations per frame (never a whole restart on one frame) and, after
+    # RESTART_ITERATIONS, replaces the fit because it explains the frame better.
+    from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
+    from hand_sog_tracker.core.depth_sog import preprocess
+    from hand_sog_tracker.core.energy import Objective
+    from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
+    from hand_sog_tracker.core.kinematics import fingertips
+    from hand_sog_tracker.core.restarts import RESTART_ITERATIONS, SHIFT_CHUNK, SHIFT_EVERY
+    from hand_sog_tracker.synth.render import render_depth
+
+    intr = default_intrinsics()
+    model = default_hand_model()
+    truth = rest_pose((0.0, 20.0, 380.0))
+    for c, joints in ((1, FINGER_EXTENDED), (2, FINGER_CURLED), (3, FINGER_CURLED), (4, FINGER_CURLED)):
+        truth[chain_slice(c)] = joints
+    wrong = truth.copy()
+    wrong[chain_slice(1)], wrong[chain_slice(2)] = FINGER_CURLED, FINGER_EXTENDED
+    tracker = Tracker(TrackerConfig())
+    pre = preprocess(render_depth(model, truth, intr, RenderOptions()), intr, tracker.config)
+    data, det, sil = tracker._data_near(pre, wrong, detect=True)
+    obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(wrong, det), silhouette=sil)
+    res = tracker._maximise(obj, wrong, iterations=7)  # the frame's own fit stays wrong
+
+    calls: list[int] = []
+    maximise = tracker._maximise
+
+    def counted(obj_, x0, **kwargs):
+        calls.append(int(kwargs["iterations"]))
+        return maximise(obj_, x0, **kwargs)
+
+    tracker._maximise = counted  # type: ignore[method-assign]
+    tracker._frame_count = SHIFT_EVERY  # the schedule's side +1: each finger takes the next one's
+    out = res
+    for frame in range(RESTART_ITERATIONS // SHIFT_CHUNK):
+        out = tracker._scheduled_shift(obj, res, det)
+        assert calls == [SHIFT_CHUNK] * (frame + 1)
+        if frame < RESTART_ITERATIONS // SHIFT_CHUNK - 1:
+            assert out is res and tracker._shift_pending is not None
+    assert tracker._shift_pending is None
+    err_wrong = np.linalg.norm(fingertips(tracker.model, res.x) - fingertips(model, truth), axis=1)
+    err = np.linalg.norm(fingertips(tracker.model, out.x) - fingertips(model, truth), axis=1)
+    assert err_wrong[1:3].min() > 40.0 and err.max() < 15.0, (err_wrong.round(0), err.round(0))
+    # Off the schedule nothing runs.
+    tracker._frame_count = SHIFT_EVERY + 1
+    assert tracker._scheduled_shift(obj, res, det) is res and len(calls) == RESTART_ITERATIONS // SHIFT_CHUNK

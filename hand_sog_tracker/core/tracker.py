@@ -37,7 +37,7 @@ from hand_sog_tracker.core.kinematics import (
     skeleton_points,
 )
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
-from hand_sog_tracker.core.restarts import ASSIGN_LAMBDA_MM, RestartStrategies
+from hand_sog_tracker.core.restarts import ASSIGN_LAMBDA_MM, RestartStrategies, ShiftCandidate
 from hand_sog_tracker.core.salient import Detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.types import (
@@ -155,6 +155,7 @@ class Tracker(RestartStrategies):
         self._status = TrackerStatus.NO_HAND
         self._frame_count = 0
         self._restart_wait = 0  # frames to skip the detection-triggered restarts
+        self._shift_pending: ShiftCandidate | None = None
 
     #: Spread the initialisation over two frames (issue 14): the frame that finds the hand
     #: runs the search and returns no pose, the next one (or :meth:`finish_initialisation`)
@@ -192,6 +193,7 @@ class Tracker(RestartStrategies):
     def set_model(self, model: HandModel) -> None:
         """Use another hand model (e.g. after calibration); keeps the track."""
         self._model = model.mirrored(self._config.right_hand)
+        self._shift_pending = None
 
     def set_config(self, config: TrackerConfig) -> None:
         """Change the configuration; a handedness change also resets the track."""
@@ -230,6 +232,7 @@ class Tracker(RestartStrategies):
             result = self._track(pre)
         else:
             self._steps = None  # a new track starts with fresh step lengths
+            self._shift_pending = None
             self._restart_wait = 0
             result = self._initialise(pre)
         t2 = time.perf_counter()
