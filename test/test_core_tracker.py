@@ -5,10 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
+from hand_sog_tracker.core.depth_sog import preprocess
+from hand_sog_tracker.core.energy import Objective
+from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
+from hand_sog_tracker.core.kinematics import fingertips
+from hand_sog_tracker.core.restarts import RESTART_ITERATIONS, SHIFT_CHUNK, SHIFT_EVERY
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import DepthImageError, IntrinsicsError
-from hand_sog_tracker.synth.render import RenderOptions
+from hand_sog_tracker.synth.render import RenderOptions, render_depth
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
 
 
@@ -154,14 +160,6 @@ def test_scheduled_shift_restart_is_spread_over_frames_and_undoes_a_shift_by_one
     # shift candidate starts on a frame counted a multiple of SHIFT_EVERY, gets SHIFT_CHUNK
     # iterations per frame (never a whole restart on one frame) and, after
     # RESTART_ITERATIONS, replaces the fit because it explains the frame better.
-    from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
-    from hand_sog_tracker.core.depth_sog import preprocess
-    from hand_sog_tracker.core.energy import Objective
-    from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
-    from hand_sog_tracker.core.kinematics import fingertips
-    from hand_sog_tracker.core.restarts import RESTART_ITERATIONS, SHIFT_CHUNK, SHIFT_EVERY
-    from hand_sog_tracker.synth.render import render_depth
-
     intr = default_intrinsics()
     model = default_hand_model()
     truth = rest_pose((0.0, 20.0, 380.0))
