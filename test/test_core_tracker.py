@@ -11,6 +11,7 @@ from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips
 from hand_sog_tracker.core.restarts import RESTART_ITERATIONS, SHIFT_CHUNK, SHIFT_EVERY
+from hand_sog_tracker.core.salient import Detections
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import DepthImageError, IntrinsicsError
@@ -195,3 +196,35 @@ def test_scheduled_shift_restart_is_spread_over_frames_and_undoes_a_shift_by_one
     # Off the schedule nothing runs.
     tracker._frame_count = SHIFT_EVERY + 1
     assert tracker._scheduled_shift(obj, res, det) is res and len(calls) == RESTART_ITERATIONS // SHIFT_CHUNK
+
+
+def test_scheduled_shift_does_not_start_when_every_fingertip_is_seen_at_its_finger() -> None:
+    # An open hand, tracked at the truth: each fingertip has its own detection nearby, so no
+    # finger can be on its neighbour's place and the scheduled candidate is skipped.  Without
+    # one fingertip's detection the candidate starts as scheduled.
+    intr = default_intrinsics()
+    frame = next(iter(synthetic_sequence("fingerwave", 1, intrinsics=intr)))
+    truth = frame.pose
+    tracker = Tracker(TrackerConfig())
+    pre = preprocess(frame.depth_mm, intr, tracker.config)
+    data, det, sil = tracker._data_near(pre, truth, detect=True)
+    assert det.n >= 5
+    obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(truth, det), silhouette=sil)
+    res = tracker._maximise(obj, truth, iterations=7)
+    calls: list[int] = []
+    maximise = tracker._maximise
+
+    def counted(obj_, x0, **kwargs):
+        calls.append(int(kwargs["iterations"]))
+        return maximise(obj_, x0, **kwargs)
+
+    tracker._maximise = counted  # type: ignore[method-assign]
+    tracker._frame_count = SHIFT_EVERY
+    assert tracker._scheduled_shift(obj, res, det) is res
+    assert calls == [] and tracker._shift_pending is None
+    # The detection nearest the middle fingertip removed: the middle finger has no detection.
+    near = int(np.argmin(np.linalg.norm(det.points - fingertips(tracker.model, res.x)[2], axis=1)))
+    keep = np.arange(det.n) != near
+    fewer = Detections(det.points[keep], det.uv[keep], det.confidence[keep], det.end_on[keep])
+    assert tracker._scheduled_shift(obj, res, fewer) is res
+    assert calls == [SHIFT_CHUNK] and tracker._shift_pending is not None
