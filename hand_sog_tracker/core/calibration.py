@@ -28,8 +28,9 @@ measured), so the fit wants frames of an open hand with relaxed fingers
 Measured widths.  The silhouette score alone fits width and thickness to within 8-13%
 only (they trade off against each other, against abduction and against the pose), so after
 the first round the widths are measured in the depth data at the refitted poses
-(:func:`~hand_sog_tracker.core.measure.measure_widths`: each finger's width across its axis,
-the knuckle span between the index and little finger axes) and mapped to the factors relative
+(:func:`~hand_sog_tracker.core.measure.measure_widths`: each finger's width across its axis on
+30 profiles a finger and frame, the knuckle span between the index and little finger axes
+through those profiles' centres, in mm) and mapped to the factors relative
 to the default model (:func:`~hand_sog_tracker.core.measure.shape_from_widths`); width,
 depth and sigma are set from them and the second round searches the length alone.  Without
 a usable measurement (fingers not seen) the search fits all factors as before.  The measured
@@ -42,7 +43,7 @@ a depth-aware silhouette overlap (:func:`shape_score`), which is largest when
 the model's skin and the hand's data cover the same pixels at the same depth.
 The skin is drawn with OpenCV (about 1 ms a candidate and frame at 320 x 240).
 
-Cost: see the README (about 0.25-0.35 s on one core for 3 fit frames with tracked poses and
+Cost: see the README (about 0.28-0.35 s on one core for 3 fit frames with tracked poses and
 :data:`DEFAULT_HOLDOUT_FRAMES` held-out frames, the node's case); without poses a tracker
 run finds them first.
 
@@ -58,7 +59,12 @@ lose more than :data:`GUARD_FRAME_DROP`.  Otherwise :class:`CalibrationRejected`
 distance of the refitted fingertips to the fingertip detections is reported too.  None of
 this has fingertip truth: the guard refuses fits that explain unseen frames worse, not
 every fit that tracks a little worse (on rendered hands a 1% change of the model moves the
-tracker's mean fingertip error over 30 frames by up to 0.7 mm either way).
+tracker's mean fingertip error over 30 frames by up to 0.7 mm either way).  On 4 of 12 capsule
+dev hands (seeds 2000-2011 of the README's study) the tracker follows the hand worse with its
+true shape than with the default model (by 0.30-1.42 mm, also with the collision, finger-order
+or silhouette term off); the guard's score, the same score on all non-fit history frames, and
+the score along a history re-tracked with each model all rate the true shape higher on most of
+them, so such fits pass when they are accurate.
 """
 
 from __future__ import annotations
@@ -119,10 +125,15 @@ SEARCH_RANGE = (0.8, 1.25)
 #: Frames the fit uses by default (the node's ``calibration_frames``); more are accepted.
 DEFAULT_FIT_FRAMES = 3
 #: The fitted model must raise the mean held-out :func:`shape_score` by at least this much
-#: (a 6% size error costs more than this: test_core_calibration.py).  0.01 while width and
-#: thickness came from the search; with measured widths correct fits gain less on the
-#: held-out frames (on the dev hands 0.005-0.01 for 4 mesh fits that all tracked better).
-GUARD_MARGIN = 0.005
+#: (a 6% size error costs more than this: test_core_calibration.py; the same model twice gains
+#: exactly 0).  0.01 while width and thickness came from the search; with measured widths
+#: correct fits gain less on the held-out frames.  0.005 until 2026-11-23; 0.003 since: on the
+#: 24 dev hands (seeds 2000-2011, mesh and capsule) every margin from 0 to 0.005 accepts and
+#: refuses the same fits (no gain lies in between), and the issue's large mesh hand (1.12 x 1.1
+#: x 1.1), fitted within 2%, gains 0.0039 and tracks 1.15 mm better.  Raising it does not stop
+#: fits that track worse: at 0.02 a third of the dev fits that track better are refused and two
+#: that track worse (0.17-0.61 mm) still pass, at 0.03 two thirds are refused.
+GUARD_MARGIN = 0.003
 #: Held-out frames the guard checks by default (the node holds out this many of its history).
 DEFAULT_HOLDOUT_FRAMES = 4
 #: Pose-refit iterations each model gets on a held-out frame before it is scored (in two
