@@ -104,3 +104,23 @@ def test_map_is_reproducible() -> None:
         assert a.tobytes() == b.tobytes()
     d2 = (maps[0] / 2.0) ** 2  # squared distances in cells: integers
     np.testing.assert_allclose(d2, np.rint(d2), atol=1e-3)
+
+
+
+def test_term_with_the_map_made_on_demand_equals_the_term_on_the_made_map() -> None:
+    # The term reads the hand's cells first and makes the distance map only once a model
+    # Gaussian's cell lies off the hand: value and gradient as with the map made up front.
+    frame, pre, model, roi, window = _first_frame("fistopen", 4)
+    rng = np.random.default_rng(1)
+    P = gaussian_centres(model, frame.pose)
+    for cell in (1, 2):
+        lazy, eager = silhouette(pre, window, roi, cell=cell), silhouette(pre, window, roi, cell=cell)
+        assert eager.distance.size > 0  # (the map made now)
+        for shift in (0.0, 3.0, 12.0, 40.0):
+            Q = P + rng.normal(0.0, shift, P.shape) * [1.0, 1.0, 0.0]
+            g_lazy, g_eager = np.zeros_like(Q), np.zeros_like(Q)
+            v_lazy = silhouette_term(lazy, Q, g_lazy, 1.0)
+            v_eager = silhouette_term(eager, Q, g_eager, 1.0)
+            assert v_lazy == v_eager
+            np.testing.assert_array_equal(g_lazy, g_eager)
+        assert v_lazy > 0.0  # (40 mm off: Gaussians off the hand, the map was made)

@@ -291,31 +291,60 @@ def gaussian_support(
     P = gaussian_centres(model, theta) if centres is None else centres
     sh = model.g_sigmas
     z = np.maximum(P[:, 2], 1.0)
-    u = intr.fx * P[:, 0] / z + intr.cx
-    v = intr.fy * P[:, 1] / z + intr.cy
-    sp2 = (sh * np.sqrt(intr.fx * intr.fy) / z) ** 2
-    dp = z - sh
-    two_sh = 2.0 * sh
+    # Per model Gaussian (rows): the two tests' own terms, ones, u, v, dp, sp^2, 2 sigma_h
+    # (written in place: the same operations as the expressions in the comments).
+    rows = np.empty((8, m))
+    u, v, dp, sp2, two_sh = rows[3:]
+    np.multiply(intr.fx, P[:, 0], out=u)
+    u /= z
+    u += intr.cx  # fx x / z + cx
+    np.multiply(intr.fy, P[:, 1], out=v)
+    v /= z
+    v += intr.cy  # fy y / z + cy
+    np.multiply(sh, np.sqrt(intr.fx * intr.fy), out=sp2)
+    sp2 /= z
+    np.multiply(sp2, sp2, out=sp2)  # (sh f / z)^2
+    np.subtract(z, sh, out=dp)
+    np.multiply(2.0, sh, out=two_sh)
+    t = u * u
+    t += v * v
+    t -= 36.0 * sp2
+    rows[0] = t  # u^2 + v^2 - 36 sp^2
+    np.multiply(dp, dp, out=rows[1])
+    rows[1] -= two_sh * two_sh  # dp^2 - (2 sigma_h)^2
+    rows[2] = 1.0
     cand, row_starts, per_q = _data_constants(data, m)[4:]
-    rows = np.array([u * u + v * v - 36.0 * sp2, dp * dp - two_sh * two_sh, np.ones(m), u, v, dp, sp2, two_sh])
     near = np.matmul(rows[:6].T, cand) < _SUPPORT_SLACK  # (2, m, n): candidates of both tests
     flat = np.logical_and(near[0], near[1], out=near[0]).ravel().nonzero()[0]
     bounds = flat.searchsorted(row_starts)
     per_row = bounds[1:] - bounds[:-1]
     p = np.arange(m).repeat(per_row)
-    u_p, v_p, dp_p, sp2_p, two_sh_p = rows[3:].repeat(per_row, axis=1)
-    mu_u, mu_v, depth, sq2_q = per_q[:4].take(_flat_cols(m, n).take(flat), axis=1)
-    du = u_p - mu_u
-    dv = v_p - mu_v
-    r2 = du * du + dv * dv
-    dd = np.abs(dp_p - depth)
-    s2 = sp2_p + sq2_q
-    D = 2 * np.pi * sp2_p * sq2_q / s2 * np.exp(-0.5 * r2 / s2)
-    delta = 1.0 - dd / two_sh_p
+    per_p = rows[3:].repeat(per_row, axis=1)  # u, v, dp, sp^2, 2 sigma_h per pair
+    sp2_p, two_sh_p = per_p[3:]
+    q = per_q[:4].take(_flat_cols(m, n).take(flat), axis=1)  # mu_u, mu_v, depth, sigma_q^2
+    sq2_q = q[3]
+    diffs = np.subtract(per_p[:3], q[:3], out=q[:3])  # du, dv, dp - depth
+    sq = diffs[:2] * diffs[:2]
+    r2 = np.add(sq[0], sq[1], out=sq[0])  # du^2 + dv^2
+    dd = np.abs(diffs[2], out=diffs[2])
+    s2 = np.add(sp2_p, sq2_q, out=per_p[0])  # s2 = sp^2 + sq^2
+    # D = 2 pi sp^2 sq^2 / s2 exp(-0.5 r2 / s2), in this order
+    e = np.multiply(-0.5, r2, out=sq[1])
+    e /= s2
+    np.exp(e, out=e)
+    D = np.multiply(_TWO_PI, sp2_p, out=sp2_p)
+    D *= sq2_q
+    D /= s2
+    D *= e
     # The exact tests; a candidate failing them adds an exact 0 (the sums are unchanged).
-    passed = (dd < two_sh_p) & (r2 < 36.0 * s2)
-    support = np.bincount(p, weights=np.where(passed, delta * D, 0.0), minlength=m) / (2 * np.pi**2 * sp2)
-    return np.minimum(support, 1.0)
+    passed = np.less(dd, two_sh_p)
+    passed &= r2 < np.multiply(36.0, s2, out=s2)
+    delta = np.divide(dd, two_sh_p, out=dd)
+    np.subtract(1.0, delta, out=delta)  # Delta = 1 - dd / (2 sigma_h)
+    delta *= D
+    support = np.bincount(p, weights=np.where(passed, delta, 0.0), minlength=m)
+    support /= 2 * np.pi**2 * sp2
+    return np.minimum(support, 1.0, out=support)
 
 
 @lru_cache(maxsize=1)
@@ -394,26 +423,28 @@ class Objective:
         self, theta: NDArray[np.float64], gradient: bool = True
     ) -> tuple[float, NDArray[np.float64] | None]:
         """Return ``E(theta)`` and, with ``gradient``, ``dE/dtheta`` of shape (26,)."""
-        values, grad = self._evaluate(theta, gradient)
+        values, grad = self._evaluate(theta, gradient, False)
         return values[0], grad
 
     def evaluate(
         self, theta: NDArray[np.float64], gradient: bool = True
     ) -> tuple[EnergyTerms, NDArray[np.float64] | None]:
         """Return every term of ``E(theta)`` and optionally the gradient, shape (26,)."""
-        v, grad = self._evaluate(theta, gradient)
+        v, grad = self._evaluate(theta, gradient, True)
         terms = EnergyTerms(
             total=v[0], sim=v[1], col=v[2], dan=v[3], lim=v[4], smo=v[5], ord=v[6], sal=v[7], sil=v[8]
         )
         return terms, grad
 
     def _evaluate(
-        self, theta: NDArray[np.float64], gradient: bool
+        self, theta: NDArray[np.float64], gradient: bool, terms: bool = True
     ) -> tuple[tuple[float, ...], NDArray[np.float64] | None]:
         """``(total, sim, col, dan, lim, smo, ord, sal, sil)`` and the gradient (or None).
 
         The shared body of :meth:`__call__` (the optimiser's path: no :class:`EnergyTerms`)
-        and :meth:`evaluate`.
+        and :meth:`evaluate`.  Without ``terms`` (only the total and the gradient are read)
+        a term whose weight is 0 is not evaluated (reported as 0): the total and the
+        gradient are the same bits (it would add ``0 * value``).
         """
         cfg = self.config
         if gradient:
@@ -424,7 +455,10 @@ class Objective:
         sim, dan = self._data_terms(P, g3, cfg.w_dan)
         col = self._collision(P, g3, cfg.w_col)
         lim, g_lim = self._limits(theta)
-        smo, g_smo = self._smoothness(theta)
+        if terms or cfg.w_smo != 0.0:
+            smo, g_smo = self._smoothness(theta)
+        else:  # (the default weight is 0: the optimiser's path skips the term)
+            smo, g_smo = 0.0, None
         ordv, g_ord = self._order(theta)
         sal = self._salient(P, g3, cfg.w_sal)
         sil = 0.0
@@ -444,7 +478,11 @@ class Objective:
         if pullback is None:
             return values, None
         grad = pullback(g3)  # = einsum("mk,mkj->j", g3, J) up to rounding
-        grad -= cfg.w_lim * g_lim + cfg.w_smo * g_smo
+        # (A zero g_lim or w_smo = 0: subtracting 0 would change no bit.)
+        if g_smo is not None:
+            grad -= cfg.w_lim * g_lim + cfg.w_smo * g_smo if g_lim is not None else cfg.w_smo * g_smo
+        elif g_lim is not None:
+            grad -= cfg.w_lim * g_lim
         if ordv > 0.0:  # (else g_ord is 0)
             grad -= cfg.w_ord * g_ord
         return values, grad
@@ -550,10 +588,14 @@ class Objective:
         lat_c += beh_c
         near_c = lat_c <= TAU1_MM * TAU1_MM
         nz = per_row > 0
-        starts = bounds[:-1][nz]
-        settled = np.zeros(m, dtype=bool)
-        if flat.size:
-            settled[nz] = np.logical_or.reduceat(near_c, starts)
+        every_row = bool(nz.all())  # (typical: then the segmented sums need no scatter)
+        starts = bounds[:-1] if every_row else bounds[:-1][nz]
+        if every_row:
+            settled = np.logical_or.reduceat(near_c, starts)
+        else:
+            settled = np.zeros(m, dtype=bool)
+            if flat.size:
+                settled[nz] = np.logical_or.reduceat(near_c, starts)
         U = (~settled).nonzero()[0]
         dan = 0.0
         sel = U[:0]
@@ -590,20 +632,22 @@ class Objective:
         # dE/dsp = sum wD (2 / sp - 2 sp / s2 + r2 sp / s2^2)
         #        = 2 / sp sum wD + sp sum wD / s2 (r2 / s2 - 2).
         W = np.empty((5, flat.size))
+        sat *= SIM_GAIN  # (per image Gaussian: fewer products than per pair, the same bits)
         w_pair = sat.take(qi)  # each pair's share of dE_sim/dS_q
-        w_pair *= SIM_GAIN
         np.multiply(delta_D, w_pair, out=W[2])
         wD = np.multiply(W[2], inv_norm, out=W[2])
         a = np.multiply(wD, inv_s2, out=inv_s2)
-        np.multiply(a, du, out=W[0])
-        np.multiply(a, dv, out=W[1])
+        np.multiply(a, diffs[:2], out=W[:2])  # a du, a dv
         np.subtract(r2_s2, 2.0, out=r2_s2)
         np.multiply(a, r2_s2, out=W[3])
         np.copysign(D, dd, out=W[4])  # D sign(dd), weighted like wD
         W[4] *= w_pair
-        g = np.zeros((5, m))
-        if flat.size:
-            g[:, nz] = np.add.reduceat(W, starts, axis=1)
+        if every_row:
+            g = np.add.reduceat(W, starts, axis=1)
+        else:
+            g = np.zeros((5, m))
+            if flat.size:
+                g[:, nz] = np.add.reduceat(W, starts, axis=1)
         # g[0:2] = -dE/d(u, v), then dE/dsp, dE/dp, and the explicit z-dependence of the
         # dangle distances (rows 2-4 replaced in place by what they are made of).
         g[2] = 2.0 * g[2] / sp + sp * g[3]
@@ -678,23 +722,27 @@ class Objective:
             g3 += np.bincount(c.scatter, weights=weights, minlength=3 * P.shape[0]).reshape(-1, 3)
         return col
 
-    def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        """``E_lim`` (eq. 8) and its gradient, shape (26,)."""
+    def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
+        """``E_lim`` (eq. 8) and its gradient, shape (26,), or None for a zero gradient (every
+        joint within its limits, as the tracker's projected iterates always are)."""
+        if (theta >= self._limits_low).all() and (theta <= self._limits_high).all():
+            return 0.0, None  # (lo = hi = 0 below: E_lim = 0, gradient 0)
         # On all 26 parameters, the global ones unlimited (their lo, hi and gradient are 0).
         lo = np.minimum(theta - self._limits_low, 0.0)
         hi = np.maximum(theta - self._limits_high, 0.0)
         g = 2.0 * (lo + hi)
         return float(_sum((lo * lo)[JOINTS]) + _sum((hi * hi)[JOINTS])), g
 
-    def _order(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        """``E_ord`` and its gradient, shape (26,): neighbouring fingers may not cross."""
+    def _order(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
+        """``E_ord`` and its gradient, shape (26,) (None when ``E_ord`` is 0: a zero
+        gradient): neighbouring fingers may not cross."""
         abd = theta[FINGER_ABD]  # MCP abduction of index .. little, shape (4,)
         a = self._const.fan + abd
         gap = a[1:] - a[:-1]  # (3,), as np.diff
         short = np.minimum(gap - ORDER_MIN_GAP_RAD, 0.0)
-        g = np.zeros(N_PARAMS)
         if not short.any():
-            return 0.0, g
+            return 0.0, None
+        g = np.zeros(N_PARAMS)
         # d/d abd_{c+1} of short^2 is 2 short, d/d abd_c is -2 short.
         g_abd = np.zeros(4)
         g_abd[1:] += 2.0 * short

@@ -119,7 +119,7 @@ def maximise(
         See ``extra_iterations`` (unitless).
     """
     x = np.array(x0, dtype=np.float64)
-    step = steps.expand(steps.initial) * initial_scale
+    step = steps.expand(steps.initial) * initial_scale  # (a new array: updated in place)
     if initial_steps is not None:
         step = np.array(initial_steps, dtype=np.float64)
     lo, hi = steps.expand(steps.minimum), steps.expand(steps.maximum)
@@ -144,8 +144,10 @@ def maximise(
             sign *= mask
         agree = sign * prev_sign
         grows, shrinks = agree > 0, agree < 0
-        step = np.where(grows, np.minimum(step * steps.grow, hi), step)
-        step = np.where(shrinks, np.maximum(step * steps.shrink, lo), step)
+        # (In place where the step changes: the values of
+        # np.where(grows, np.minimum(step * grow, hi), step), then likewise for shrinks.)
+        np.minimum(step * steps.grow, hi, out=step, where=grows)
+        np.maximum(step * steps.shrink, lo, out=step, where=shrinks)
         sign[shrinks] = 0.0
         x = x + step * sign
         if bounds is not None:

@@ -155,8 +155,9 @@ def detect_fingertips(
     # The windowed depth around the ROI, shared with the quadtree and the silhouette.
     hw = hand_window(pre, roi, window_mm)
     d = hw.view(u0, v0, u1, v1)
-    valid = d > 0
-    if np.count_nonzero(valid) < 20:
+    # (Inside the image the window holds no negative values: its nonzero pixels are the
+    # valid ones, counted by OpenCV without a boolean image.)
+    if cv2.countNonZero(d) < 20:
         return Detections.empty()
     intr = pre.intrinsics
     # Candidates: valid pixels on a 2-pixel grid (a tip region is several pixels wide),
@@ -165,19 +166,20 @@ def detect_fingertips(
     # pixel samples the same ones.  (cu, cv): first grid pixel in the ROI.
     cu = int(np.floor(intr.cx + 0.5) - u0) % 2
     cv = int(np.floor(intr.cy + 0.5) - v0) % 2
-    grid_valid = valid[cv::2, cu::2]
+    grid_valid = d[cv::2, cu::2] > 0  # (a quarter of the comparisons; contiguous)
     gw = grid_valid.shape[1]
     cell = grid_valid.ravel().nonzero()[0]
-    vv = cell // gw  # (row and column of the grid cells: cheaper than np.divmod and 2-d nonzero)
-    uu = cell - vv * gw
-    vv, uu = vv * 2 + cv, uu * 2 + cu
-    # The candidates' depths, gathered from the shared window (flat indices ``centre``).
+    gv = cell // gw  # (row and column of the grid cells: cheaper than np.divmod and 2-d nonzero)
+    gu = cell - gv * gw
+    # The candidates' depths, gathered from the shared window (flat indices ``centre`` of the
+    # pixels (v0 + cv + 2 gv, u0 + cu + 2 gu)).
     stride = hw.depth.shape[1]
     flat = hw.depth.ravel()
-    centre = (vv + (v0 - hw.v0)) * stride + (uu + (u0 - hw.u0))
-    dc = flat[centre]
+    centre = gv * (2 * stride) + gu * 2
+    centre += (v0 + cv - hw.v0) * stride + (u0 + cu - hw.u0)
+    dc = flat.take(centre)
     # The hand's depth: the median over the candidates (a quarter of the pixels).
-    z_ref = _median(dc if dc.size else d[valid])
+    z_ref = _median(dc if dc.size else d[d > 0])
     f = float(np.sqrt(intr.fx * intr.fy))
     r_px = max(RING_RADIUS_MM * f / z_ref, 3.0)
     offsets = _ring_offsets(r_px)
@@ -194,7 +196,8 @@ def detect_fingertips(
         )
         stride = big.shape[1]
         flat = big.ravel()
-        centre = (vv + pad) * stride + (uu + pad)
+        centre = gv * (2 * stride) + gu * 2
+        centre += (cv + pad) * stride + (cu + pad)
     step = offsets[:, 1] * stride + offsets[:, 0]  # flat offsets of the ring samples
     # First the four samples on the axes (every quarter of the ring): a fingertip seen from
     # the side meets its own surface in one arc of at most a quarter of the ring, and any
@@ -202,23 +205,25 @@ def detect_fingertips(
     # samples on the pixel's surface, or one blocked, rule a candidate out exactly, and the
     # full ring is sampled only for the rest (most of the hand's inside goes here).
     q = RING_SAMPLES // 4
-    s = flat[centre[None, :] + step[::q, None]]
+    # (Gathers by ``take``, cheaper than indexing; counts of booleans summed as uint8, exact
+    # up to 255, cheaper than the default int64 sums.)
+    s = flat.take(centre[None, :] + step[::q, None])
     diff = s - dc
     on_surface = s > 0
-    n_axis = (on_surface & (np.abs(diff) < SAME_SURFACE_MM)).sum(0)
-    axis_blocked = ((s < 0) | (on_surface & (diff < -SAME_SURFACE_MM))).any(axis=0)
+    n_axis = _count(on_surface & (np.abs(diff) < SAME_SURFACE_MM))
+    axis_blocked = _any(np.logical_or(s < 0, on_surface & (diff < -SAME_SURFACE_MM)))
     cand = np.flatnonzero((n_axis <= 1) & ~axis_blocked)
-    dcc = dc[cand]
+    dcc = dc.take(cand)
     # All ring samples of the remaining candidates at once, shape (RING_SAMPLES, candidates).
-    s = flat[centre[cand][None, :] + step[:, None]]
+    s = flat.take(centre.take(cand)[None, :] + step[:, None])
     diff = s - dcc
     on_surface = s > 0
     same = on_surface & (np.abs(diff) < SAME_SURFACE_MM)
-    blocked = ((s < 0) | (on_surface & (diff < -SAME_SURFACE_MM))).any(axis=0)
-    behind = ((s == 0) | (diff > END_ON_MM)).sum(axis=0)
-    n_same = same.sum(0)
+    blocked = _any(np.logical_or(s < 0, on_surface & (diff < -SAME_SURFACE_MM)))
+    behind = _count(np.logical_or(s == 0, diff > END_ON_MM))
+    n_same = _count(same)
     # Changes between neighbouring ring samples, the ring closed (last to first).
-    transitions = (same[1:] != same[:-1]).sum(0) + (same[0] != same[-1])
+    transitions = _count(same[1:] != same[:-1]) + (same[0] != same[-1])
     side_tip = (n_same >= 1) & (n_same <= RING_SAMPLES // 4) & (transitions == 2)
     end_on = (n_same == 0) & (behind >= RING_SAMPLES - 2)
     keep = ~blocked & (side_tip | end_on)
@@ -227,7 +232,7 @@ def detect_fingertips(
     sel = cand[keep]  # increasing, like the candidates
     grid = np.zeros(grid_valid.shape, np.uint8)
     gcell = cell[sel]  # flat index in the grid (of row gv, column gu)
-    gv, gu = vv[sel] // 2, uu[sel] // 2
+    gv, gu = gv.take(sel), gu.take(sel)
     grid.reshape(-1)[gcell] = 1
     # Labels only (the statistics of connectedComponentsWithStats cost several times more);
     # areas and centroids from the candidate cells, each cell once: integer sums, exact.
@@ -260,6 +265,16 @@ def detect_fingertips(
     return Detections(points=pts[order], uv=uvs[order], confidence=conf[order], end_on=ends[order])
 
 
+def _count(flags: NDArray[np.bool_]) -> NDArray[np.uint8]:
+    """``flags.sum(axis=0)`` of a (k, n) boolean array with ``k <= 255``, as uint8 (exact)."""
+    return np.add.reduce(flags.view(np.uint8), axis=0, dtype=np.uint8)
+
+
+def _any(flags: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """``flags.any(axis=0)`` without the method's Python layer."""
+    return np.logical_or.reduce(flags, axis=0)
+
+
 def _median(a: NDArray[np.float32]) -> float:
     """``float(np.median(a))`` of a non-empty 1D array, by one partition (several times faster)."""
     n = a.size
@@ -272,17 +287,20 @@ def _median(a: NDArray[np.float32]) -> float:
     return float(np.mean(np.array([part[:k].max(), part[k]], dtype=a.dtype)))
 
 
-_SUBSETS: dict[int, tuple[NDArray[np.int64], NDArray[np.int64]]] = {}
+_SUBSETS: dict[int, tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]] = {}
 
 
-def _subset_tables(S: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """``bits[D, s]`` (detection ``s`` in subset ``D``) and ``prev[D, s] = D - {s}``, (2^S, S)."""
+def _subset_tables(S: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """Tables of the subsets ``D`` of ``S`` detections, each (2^S, S): ``bits[D, s]`` (1 when
+    detection ``s`` is in ``D``), ``prev[D, s] = D - {s}`` where ``s`` is in ``D`` and ``2^S``
+    (one past the last subset: an infinite cost there) where it is not, and ``1 - bits``
+    as floats."""
     hit = _SUBSETS.get(S)
     if hit is None:
         masks = np.arange(1 << S)
         bits = (masks[:, None] >> np.arange(S)[None, :]) & 1
-        prev = masks[:, None] & ~(1 << np.arange(S))[None, :]
-        hit = (bits, prev)
+        prev = np.where(bits > 0, masks[:, None] & ~(1 << np.arange(S))[None, :], 1 << S)
+        hit = (bits, prev, (1 - bits).astype(np.float64))
         _SUBSETS[S] = hit
     return hit
 
@@ -321,26 +339,27 @@ def assign_detections(
         raise ValueError(f"at most 10 detections can be assigned, got {S}")
     diff = tips_mm[:, None, :] - det.points[None, :, :]
     cost = np.sqrt(np.add.reduce(diff * diff, axis=-1))  # (T, S), = np.linalg.norm(diff, axis=-1)
-    bits, prev = _subset_tables(S)
+    _, prev, not_bits = _subset_tables(S)
     n_masks = 1 << S
-    best = np.full((T + 1, n_masks), np.inf)
-    choice = np.full((T + 1, n_masks), -1, dtype=np.int64)
+    # best[t, D]: the least cost of fingertips 0 .. t-1 using the detections D; one column
+    # more, always infinite, that prev points to for a detection not in D.
+    best = np.full((T + 1, n_masks + 1), np.inf)
+    pick = np.empty((T + 1, n_masks), dtype=np.int64)  # the choice, + 1 (0: none)
     best[0, 0] = 0.0
     cand = np.empty((n_masks, S + 1))
     for t in range(T):
         # Set D of used detections after fingertip t: fingertip t without a detection
         # (column 0), or with detection s of D (column s + 1) after the set D - {s}.  The
         # first minimum wins, as "none" and then s = 0, 1, ... would in a sequential update.
-        np.add(best[t], lam_mm, out=cand[:, 0])
-        cand[:, 1:] = np.where(bits, best[t].take(prev) + cost[t], np.inf)
-        pick = cand.argmin(axis=1)
-        best[t + 1] = cand[np.arange(n_masks), pick]
-        choice[t + 1] = pick - 1
+        np.add(best[t, :n_masks], lam_mm, out=cand[:, 0])
+        np.add(best[t].take(prev), cost[t], out=cand[:, 1:])  # (inf + cost = inf off D)
+        cand.argmin(axis=1, out=pick[t + 1])
+        np.minimum.reduce(cand, axis=1, out=best[t + 1, :n_masks])  # (= the picked values)
     # Detections left unused are false positives.
-    unused = (1 - bits) @ (lam_mm * det.confidence)
-    mask = int(np.argmin(best[T] + unused))
+    unused = not_bits @ (lam_mm * det.confidence)
+    mask = int(np.argmin(best[T, :n_masks] + unused))
     for t in range(T, 0, -1):
-        s = int(choice[t, mask])
+        s = int(pick[t, mask]) - 1
         out[t - 1] = s
         if s >= 0:
             mask &= ~(1 << s)

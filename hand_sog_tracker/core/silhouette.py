@@ -21,7 +21,7 @@ Units: millimetres, pixels of the processing image.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import FrozenInstanceError
 from typing import Final
 
 import cv2
@@ -47,15 +47,22 @@ SILHOUETTE_MARGIN_PX: Final[float] = 1.0
 SILHOUETTE_SCALE_MM: Final[float] = 10.0
 
 
-@dataclass(frozen=True, eq=False)
 class Silhouette:
     """Distance (px) of the hand's surroundings to the hand's pixels, on a grid of cells.
+
+    A read-only value (attributes cannot be set), made from its distance map or from its
+    hand cells (:func:`silhouette` gives the cells: the map is made when first asked for).
 
     Attributes
     ----------
     distance : array, shape (h, w), float32
         Distance (pixels of the processing image) from each cell's centre to the nearest
-        cell on the hand; 0 on the hand.
+        cell on the hand; 0 on the hand.  Made on first access when only ``hand`` was given
+        (:func:`silhouette_term` asks for it only once a model Gaussian's cell lies off the
+        hand: while every Gaussian projects onto the hand the term is 0 and reads only
+        ``hand``).
+    hand : array, shape (h, w), uint8
+        1 on the cells on the hand (distance 0), 0 elsewhere.
     origin : (u0, v0)
         Image pixel at the top-left corner of the first cell.
     intrinsics : Intrinsics
@@ -66,10 +73,66 @@ class Silhouette:
         at pixel ``u0 + cell j + (cell - 1) / 2``.
     """
 
-    distance: NDArray[np.float32]
-    origin: tuple[int, int]
-    intrinsics: Intrinsics
-    cell: int = 1
+    __slots__ = ("_distance", "_hand", "origin", "intrinsics", "cell")
+
+    def __init__(
+        self,
+        distance: NDArray[np.float32] | None,
+        origin: tuple[int, int],
+        intrinsics: Intrinsics,
+        cell: int = 1,
+        hand: NDArray[np.uint8] | None = None,
+    ) -> None:
+        if distance is None and hand is None:
+            raise ValueError("a Silhouette needs its distance map or its hand cells")
+        for name, value in (("_distance", distance), ("_hand", hand), ("origin", origin),
+                            ("intrinsics", intrinsics), ("cell", cell)):
+            object.__setattr__(self, name, value)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise FrozenInstanceError(f"cannot assign to field {name!r}")
+
+    def __reduce__(self) -> tuple:
+        return (Silhouette, (self._distance, self.origin, self.intrinsics, self.cell, self._hand))
+
+    @property
+    def distance(self) -> NDArray[np.float32]:
+        """The distance map, shape (h, w), float32, px (see the class docstring; cached)."""
+        dist = self._distance
+        if dist is None:
+            dist = _distance_map(self._hand, self.cell)
+            dist.setflags(write=False)
+            object.__setattr__(self, "_distance", dist)
+        return dist
+
+    @property
+    def hand(self) -> NDArray[np.uint8]:
+        """The cells on the hand, shape (h, w), uint8, 1 on the hand (see the class docstring)."""
+        hand = self._hand
+        if hand is None:
+            hand = (self._distance == 0).view(np.uint8)
+            object.__setattr__(self, "_hand", hand)
+        return hand
+
+    def has_distance(self) -> bool:
+        """Whether the distance map is made (given, or asked for before)."""
+        return self._distance is not None
+
+
+def _distance_map(hand: NDArray[np.uint8], cell: int) -> NDArray[np.float32]:
+    """Distance (px) of every cell's centre to the nearest cell on ``hand`` (nonzero),
+    float32, a multiple of ``cell`` times the square root of an integer."""
+    background = np.subtract(1, hand, dtype=np.uint8)
+    dist = cv2.distanceTransform(background, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    # OpenCV's exact transform varies in the last bits from call to call (and between an
+    # image and its mirror image); the squared distances between cell centres are integers:
+    # rounding them makes the map exact, reproducible and mirror-symmetric.
+    np.multiply(dist, dist, out=dist)
+    np.rint(dist, out=dist)
+    np.sqrt(dist, out=dist)
+    if cell > 1:
+        dist *= np.float32(cell)
+    return dist
 
 
 #: The distance map covers the box of the hand's pixels in the region of interest plus this
@@ -131,17 +194,9 @@ def silhouette(
     elif cell > 2:
         hc, wc = hand.shape[0] // cell, hand.shape[1] // cell
         hand = hand.reshape(hc, cell, wc, cell).max(axis=(1, 3))
-    background = np.subtract(1, hand, dtype=np.uint8)
-    dist = cv2.distanceTransform(background, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    # OpenCV's exact transform varies in the last bits from call to call (and between an
-    # image and its mirror image); the squared distances between cell centres are integers:
-    # rounding them makes the map exact, reproducible and mirror-symmetric.
-    np.multiply(dist, dist, out=dist)
-    np.rint(dist, out=dist)
-    np.sqrt(dist, out=dist)
-    if cell > 1:
-        dist *= np.float32(cell)
-    return Silhouette(distance=dist, origin=(u0, v0), intrinsics=pre.intrinsics, cell=cell)
+    hand.setflags(write=False)
+    # (The distance map is computed when first asked for: the term reads a few cells.)
+    return Silhouette(None, (u0, v0), pre.intrinsics, cell, hand=hand)
 
 
 #: ``[(sil, constants)]`` of the last map (one tuple: replaced atomically).
@@ -152,12 +207,19 @@ def _term_constants(sil: Silhouette) -> tuple:
     """Constants of :func:`silhouette_term` for one map (cached for the last map: a frame's
     objective evaluates the same map many times): ``(fx, fy)``, the offsets of ``(u, v)``,
     the clamp limits, the flat offsets of a cell's four corners, ``(1, w)`` (a cell's flat
-    index from its column and row) and the map as float64."""
+    index from its column and row) and the map as float64, flat: until a cell off the hand is
+    read, 0 on the hand and -1 off it (:func:`silhouette_term` then fills in the distance
+    map; at once when no cell is on the hand)."""
     hit = _TERM_CACHE[0]
     if hit[0] is sil:
         return hit[1]
     intr = sil.intrinsics
-    h, w = sil.distance.shape
+    h, w = sil.hand.shape
+    if not sil.has_distance() and sil.hand.any():
+        flat_map = sil.hand.reshape(-1).astype(np.float64)
+        flat_map -= 1.0  # (hand: 1 - 1 = 0; off the hand -1, not computed)
+    else:
+        flat_map = sil.distance.astype(np.float64).reshape(-1)
     half = 0.5 * (sil.cell - 1)
     const = (
         np.array((intr.fx, intr.fy)),
@@ -165,7 +227,7 @@ def _term_constants(sil: Silhouette) -> tuple:
         np.array((w - 1.000001, h - 1.000001)),
         np.array((0, 1, w, w + 1)),
         np.array((1.0, w)),
-        sil.distance.astype(np.float64).reshape(-1),
+        flat_map,
     )
     _TERM_CACHE[0] = (sil, const)
     return const
@@ -192,7 +254,15 @@ def silhouette_term(
     one_ab = 1 - ab  # (m, 2): 1 - a, 1 - b
     # The four corners of every cell square in one gather: d[:, i, j] = d_ij (row i, column j).
     corner = (uv0 @ flat_of).astype(np.int64)[:, None] + corners  # (integers: exact)
-    d = flat_map.take(corner).reshape(-1, 2, 2)
+    d = flat_map.take(corner)
+    if not np.count_nonzero(d):
+        # Every corner on the hand (distance 0; typical while tracking): D = 0 at every
+        # Gaussian, nothing beyond the margin, E_sil = 0 exactly and no gradient.
+        return 0.0
+    if np.minimum.reduce(d, axis=None) < 0.0:  # a cell off the hand: the distances needed
+        np.copyto(flat_map, sil.distance.reshape(-1), casting="safe")
+        d = flat_map.take(corner)
+    d = d.reshape(-1, 2, 2)
     # Both rows interpolated along u, then along v.
     along_u = one_ab[:, :1] * d[:, :, 0] + ab[:, :1] * d[:, :, 1]  # (m, 2)
     D = one_ab[:, 1] * along_u[:, 0] + ab[:, 1] * along_u[:, 1]

@@ -8,7 +8,8 @@ thread before NumPy is imported, so the numbers are single-core numbers.
 The tracker's own timings give preprocessing, the data stage (quadtree, fingertip detector
 and silhouette together) and the total; the detector, the quadtree, the silhouette and the
 detection-to-fingertip assignment are then timed alone on the same frames, at the start
-pose the tracker used
+pose the tracker used (the silhouette is its cell mask: its distance map is made inside the
+objective's evaluations, on the frames where a model Gaussian falls off the hand)
 (the last two tracked poses extrapolated), and the model update and the objective alone
 on the last frame, at poses around the last tracked one.
 
@@ -212,7 +213,7 @@ STAGE_LABELS = {
     "quadtree": "data: quadtree, detector, ...",
     "quadtree_only": "  quadtree alone",
     "detector": "  detector alone",
-    "silhouette": "  silhouette alone",
+    "silhouette": "  silhouette (mask) alone",
     "assignment": "assignment (one call)",
     "model_update": "model update (FK + J)",
     "energy_gradient": "energy+gradient / iteration",
