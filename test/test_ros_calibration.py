@@ -115,3 +115,53 @@ def test_calibration_needs_frames_to_check_the_fit_on(ros_context, tmp_path: Pat
         assert not (tmp_path / "hand_model.yaml").exists()
     finally:
         rig.close()
+
+
+def test_the_node_fits_a_large_hand_by_itself_keeps_tracking_and_saves_nothing(ros_context, tmp_path: Path) -> None:
+    # Half a second of a hand 1.12x long and 1.1x wide at 30 Hz: the node fits the model by
+    # itself (auto_calibrate, the default) in a child process, answers every frame meanwhile,
+    # uses the fitted model and writes no file.
+    model = default_hand_model().scaled(HandShape(length=1.12, width=1.1, depth=1.05, sigma=1.05))
+    frames = open_hand_frames(40, model)
+    rig = Rig(ros_context, tmp_path, auto_calibrate=True)
+    try:
+        assert rig.node.settings.auto_calibrate
+        rig.send_info()
+        k = 0
+        end = time.monotonic() + 60.0
+        while time.monotonic() < end and rig.node.hand_model.shape == HandShape():
+            rig.send(image_msg(frames[k % len(frames)], T0_NS + k * PERIOD_NS))
+            rig.spin_until(lambda: False, 1.0 / 30.0)  # a 30 Hz camera
+            k += 1
+        shape = rig.node.hand_model.shape
+        auto = rig.node._auto_calib
+        assert shape != HandShape(), f"no automatic fit after {k} frames ({auto.attempts} attempts)"
+        assert k >= 15  # not before the history holds half a second
+        assert 1.05 <= shape.length <= 1.19 and 1.03 <= shape.width <= 1.17, shape
+        assert rig.node.stats.processed == k  # every frame was answered during the fit
+        assert not (tmp_path / "hand_model.yaml").exists()
+    finally:
+        rig.close()
+
+
+def test_no_automatic_fit_with_a_saved_user_model_or_when_switched_off(ros_context, tmp_path: Path) -> None:
+    from hand_sog_tracker.core.model_io import save_hand_shape
+
+    saved = HandShape(length=0.95, width=0.97, depth=1.0, sigma=1.0)
+    save_hand_shape(tmp_path / "hand_model.yaml", saved, right=True)
+    frames = open_hand_frames(20, default_hand_model().scaled(HandShape(length=1.12, width=1.1)))
+    off = tmp_path / "off"
+    off.mkdir()
+    for where, params in ((tmp_path, {"auto_calibrate": True}), (off, {"auto_calibrate": False})):
+        rig = Rig(ros_context, where, **params)
+        try:
+            before = rig.node.hand_model.shape
+            rig.send_info()
+            for k, depth in enumerate(frames):
+                rig.send(image_msg(depth, T0_NS + k * PERIOD_NS))
+            rig.spin_until(lambda: False, 0.5)
+            assert rig.node._auto_calib.attempts == 0
+            assert rig.node.hand_model.shape == before
+        finally:
+            rig.close()
+    assert load_hand_shape(tmp_path / "hand_model.yaml")[0] == saved

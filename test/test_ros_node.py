@@ -81,6 +81,9 @@ class Rig:
         self.ns = f"/t{uuid.uuid4().hex[:10]}"
         if compressed:
             params["input_transport"] = "compressedDepth"
+        # The automatic fit (a child process at half a second of tracking) is off unless a test
+        # asks for it: it would compete for the CPU with what the other tests time.
+        params.setdefault("auto_calibrate", False)
         overrides = [Parameter("user_model_path", value=str(tmp_path / "hand_model.yaml"))]
         overrides += [Parameter(k, value=v) for k, v in params.items()]
         self.node = TrackerNode(context=context, namespace=self.ns, parameter_overrides=overrides)

@@ -292,3 +292,40 @@ def test_calibrate_keeps_the_model_when_the_guard_refuses_the_fit(
     info = ev.to_json()["calibration"]
     assert info["accepted"] is False and "rejected" in info["reason"]
     assert info["holdout_score_fitted"] == pytest.approx(0.79)
+
+
+def test_core_mode_fits_the_model_automatically_as_the_node_does(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The real tracker on a rendered open hand (30 Hz): once the history holds AUTO_MIN_FRAMES
+    # tracked frames, the fit runs on open-hand frames with their tracked poses, checked on
+    # others, and its model is used from the next frame on; auto_calibrate=False fits nothing.
+    from hand_sog_tracker.core import calibration
+    from hand_sog_tracker.core.autocalibration import AUTO_MIN_FRAMES
+    from hand_sog_tracker.core.hand_model import HandShape, default_hand_model
+    from hand_sog_tracker.tools.make_sample_bags import write_sample_bag
+
+    bag = write_sample_bag(tmp_path / "b", "abdadd", AUTO_MIN_FRAMES + 5, width=160, height=120)
+    calls: list[dict] = []
+    fitted_shape = HandShape(length=1.1, width=1.05)
+
+    def stand_in(frames, intrinsics, config, model, start_pose=None, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append({"n": len(frames), "poses": kwargs["poses"], "holdout": kwargs["holdout"]})
+        return calibration.CalibrationResult(
+            fitted_shape, default_hand_model(True).scaled(fitted_shape), np.zeros(26), 1.0, 2.0, 0.25
+        )
+
+    monkeypatch.setattr(calibration, "calibrate", stand_in)
+    from hand_sog_tracker.core.tracker import Tracker
+
+    tracker = Tracker()
+    js = evaluate_core(bag.path, tracker=tracker, progress=False).to_json()
+    assert len(calls) == 1 and calls[0]["n"] == 3 and len(calls[0]["holdout"]) == 4
+    assert all(p is not None and p.shape == (26,) for p in calls[0]["poses"])
+    fits = js["auto_calibration"]
+    assert len(fits) == 1 and fits[0]["frame"] == AUTO_MIN_FRAMES - 1 and fits[0]["accepted"]
+    assert fits[0]["shape"]["length"] == pytest.approx(1.1)
+    assert tracker.model.shape == fitted_shape
+    calls.clear()
+    js = evaluate_core(bag.path, tracker=Tracker(), progress=False, auto_calibrate=False).to_json()
+    assert calls == [] and "auto_calibration" not in js

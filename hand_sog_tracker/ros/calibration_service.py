@@ -1,16 +1,17 @@
-"""The node's ``~/calibrate`` service: the recent-frame history and the fit in a child process.
+"""The node's ``~/calibrate`` service and automatic calibration: the fit in a child process.
 
 :class:`CalibrationService` is a mixin of :class:`~hand_sog_tracker.ros.node.TrackerNode`: the
 node creates the service, its callback group and the wake-up guard condition in its
-``__init__`` and calls :meth:`CalibrationService._remember` after each tracked frame; the
-service callback :meth:`CalibrationService._on_calibrate` lives here.
+``__init__`` and calls :meth:`CalibrationService._remember` after each tracked frame, which
+keeps the frame in the history (:class:`~hand_sog_tracker.core.autocalibration.FrameHistory`)
+and starts an automatic fit when one is due
+(:class:`~hand_sog_tracker.core.autocalibration.AutoCalibration`, parameter ``auto_calibrate``);
+the service callback :meth:`CalibrationService._on_calibrate` lives here.
 """
 
 from __future__ import annotations
 
 import threading
-from collections import deque
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -18,12 +19,20 @@ from numpy.typing import NDArray
 from rclpy.task import Future
 from std_srvs.srv import Trigger
 
+from hand_sog_tracker.core.autocalibration import (
+    HISTORY_FRAMES,
+    HISTORY_SPACING_S,
+    AutoCalibration,
+    FitFrames,
+    FrameHistory,
+    HistoryFrame,
+    choose_fit_frames,
+)
 from hand_sog_tracker.core.calibration import (
     DEFAULT_HOLDOUT_FRAMES,
     CalibrationRejected,
     CalibrationResult,
     calibrate,
-    select_frames,
 )
 from hand_sog_tracker.core.model_io import calibration_metadata, save_hand_shape
 from hand_sog_tracker.core.types import Intrinsics
@@ -32,16 +41,19 @@ from hand_sog_tracker.errors import CalibrationError, HandSogError
 if TYPE_CHECKING:
     from rclpy.guard_condition import GuardCondition
 
+    from hand_sog_tracker.core.hand_model import HandModel
     from hand_sog_tracker.core.tracker import Tracker
     from hand_sog_tracker.ros.params import NodeSettings
 
 __all__ = ["CALIB_HISTORY", "CALIB_SPACING_S", "CALIB_HOLDOUT", "FIT_IN_PROCESS", "CalibFrame", "CalibrationService"]
 
 #: Tracked frames kept for ~/calibrate (one at least CALIB_SPACING_S after the previous).
-CALIB_HISTORY = 15
-CALIB_SPACING_S = 0.06
+CALIB_HISTORY = HISTORY_FRAMES
+CALIB_SPACING_S = HISTORY_SPACING_S
 #: Frames of the history held out of the fit to check it (the guard).
 CALIB_HOLDOUT = DEFAULT_HOLDOUT_FRAMES
+#: A tracked frame kept for ~/calibrate (the core's history frame).
+CalibFrame = HistoryFrame
 
 
 #: Run the fit in a child process (True) or on a thread of the node (False).  A thread shares
@@ -106,38 +118,82 @@ def _fit_in_child_process(args: tuple, kwargs: dict) -> CalibrationResult:
     return value
 
 
-@dataclass(frozen=True, eq=False)
-class CalibFrame:
-    """A tracked frame kept for ~/calibrate."""
-
-    depth: NDArray[np.float32]
-    intrinsics: Intrinsics
-    pose: NDArray[np.float64] | None
-    stamp_ns: int
-
-
 class CalibrationService:
-    """Mixin of the node: ``~/calibrate`` (see :meth:`_on_calibrate`) and its frame history.
+    """Mixin of the node: ``~/calibrate`` (see :meth:`_on_calibrate`), the frame history and the
+    automatic fit (see :meth:`_remember`).
 
-    Uses the node's ``_tracker`` and ``_tracker_lock``, ``_settings``, ``_calib_history``
-    (a ``deque`` of at most :data:`CALIB_HISTORY` frames), ``_calib_wake`` (a guard condition)
-    and ``get_logger``.
+    Uses the node's ``_tracker`` and ``_tracker_lock``, ``_settings``, ``_calib_history`` (a
+    :class:`~hand_sog_tracker.core.autocalibration.FrameHistory`), ``_auto_calib`` (an
+    :class:`~hand_sog_tracker.core.autocalibration.AutoCalibration`), ``_calib_wake`` (a guard
+    condition) and ``get_logger``.  ``_model_generation`` counts the model switches made here: an
+    automatic fit started before a ``~/calibrate`` that switched the model is dropped.
     """
 
     _tracker: Tracker
     _tracker_lock: threading.Lock
     _settings: NodeSettings
-    _calib_history: deque[CalibFrame]
+    _calib_history: FrameHistory
+    _auto_calib: AutoCalibration
     _calib_wake: GuardCondition
+    _model_generation: int = 0
 
     def _remember(
         self, depth: NDArray[np.float32], intr: Intrinsics, pose: NDArray[np.float64] | None, stamp: int
     ) -> None:
-        """Keep a tracked frame for ~/calibrate (at most one per CALIB_SPACING_S)."""
-        last = self._calib_history[-1] if self._calib_history else None
-        if last is not None and 0 <= stamp - last.stamp_ns < CALIB_SPACING_S * 1e9:
+        """Keep a tracked frame (at most one per CALIB_SPACING_S) and start an automatic fit when due.
+
+        Called with ``_tracker_lock`` held (the node's frame processing holds it).
+        """
+        if not self._calib_history.remember(depth, intr, pose, stamp):
             return
-        self._calib_history.append(CalibFrame(depth, intr, None if pose is None else pose.copy(), stamp))
+        auto = self._auto_calib
+        auto.enabled = auto.enabled and self._settings.auto_calibrate
+        frames = auto.due(self._calib_history, stamp)
+        if frames is None:
+            return
+        auto.started(stamp)
+        self._start_auto_fit(frames, self._tracker.model, self._model_generation)
+
+    def _start_auto_fit(self, frames: FitFrames, model: HandModel, generation: int) -> None:
+        """Run an automatic fit on a worker thread; switch to its model if the guard accepts it."""
+        settings = self._settings
+        args, kwargs = frames.calibrate_args(settings.tracker, model)
+        attempt = self._auto_calib.attempts
+        self.get_logger().info(
+            f"automatic calibration (attempt {attempt}): fitting the hand model on {len(frames.fit)} "
+            f"frames, checking it on {len(frames.holdout)} others (tracking goes on) ..."
+        )
+
+        def work() -> None:
+            logger = self.get_logger()
+            accepted = False
+            try:
+                res = _run_fit(args, kwargs)
+                with self._tracker_lock:
+                    if generation == self._model_generation and self._auto_calib.enabled:
+                        self._tracker.set_model(res.model)
+                        self._model_generation += 1
+                        accepted = True
+                s = res.shape
+                if accepted:
+                    logger.info(
+                        f"automatic calibration: length={s.length:.3f} width={s.width:.3f} "
+                        f"depth={s.depth:.3f} sigma={s.sigma:.3f} in use (not saved; ~/calibrate saves); "
+                        f"{res.validation.describe() if res.validation else ''} ({res.seconds:.2f} s)"
+                    )
+                else:
+                    logger.info("automatic calibration: dropped (the model was changed meanwhile)")
+            except CalibrationRejected as err:
+                logger.info(f"automatic calibration refused, the model is unchanged: {err}")
+            except HandSogError as err:
+                logger.info(f"automatic calibration failed, the model is unchanged: {err}")
+            except Exception as err:  # noqa: BLE001 - a bug in the fit must not kill the node
+                logger.error(f"automatic calibration error: {err!r}")
+            finally:
+                with self._tracker_lock:
+                    self._auto_calib.finished(accepted)
+
+        threading.Thread(target=work, name="hand_sog_auto_calibration", daemon=True).start()
 
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Fit the hand model to recent frames in a child process; tracking goes on meanwhile.
@@ -150,10 +206,11 @@ class CalibrationService:
         uses ``calibration_frames`` open-hand frames of the last second (the least spread
         ones) and is checked on up to CALIB_HOLDOUT other frames of it (the guard of
         :func:`~hand_sog_tracker.core.calibration.calibrate`); a refused fit changes and
-        saves nothing.  Calls are served one at a time (own callback group).
+        saves nothing.  A fit that is saved ends the automatic fits.  Calls are served one at
+        a time (own callback group).
         """
         with self._tracker_lock:  # a consistent snapshot of the history and the model
-            history = list(self._calib_history)
+            history = self._calib_history.frames()
             model = self._tracker.model
         settings = self._settings
         if not history:
@@ -163,40 +220,30 @@ class CalibrationService:
             )
             self.get_logger().warning(f"calibration refused: {response.message}")
             return response
-        intr = history[-1].intrinsics
-        history = [h for h in history if h.intrinsics == intr]
-        fit_idx, hold_idx = select_frames([h.pose for h in history], settings.calibration_frames, CALIB_HOLDOUT)
-        if not fit_idx or not hold_idx:
-            tracked = sum(h.pose is not None for h in history)
+        frames = choose_fit_frames(history, settings.calibration_frames, CALIB_HOLDOUT)
+        if frames is None or not frames.usable:
+            tracked = 0 if frames is None else frames.tracked
+            n_open = 0 if frames is None else len(frames.fit)
             response.success = False
             response.message = (
                 f"calibration failed: {tracked} tracked frames in the last "
-                f"{CALIB_HISTORY * CALIB_SPACING_S:.1f} s, {len(fit_idx)} with an open hand; need an open "
+                f"{CALIB_HISTORY * CALIB_SPACING_S:.1f} s, {n_open} with an open hand; need an open "
                 "hand on at least one frame and one more frame to check the fit on (hold an open hand "
                 "toward the camera for a second)"
             )
             self.get_logger().warning(response.message)
             return response
-        fit = [history[i] for i in fit_idx]
-        hold = [history[i] for i in hold_idx]
+        fit, hold = frames.fit, frames.holdout
         self.get_logger().info(
             f"calibrating the hand model on {len(fit)} frames, checking it on {len(hold)} others "
             "(tracking goes on) ..."
         )
         future: Future = Future()
-
-        args = ([h.depth for h in fit], intr, settings.tracker, model)
-        kwargs = dict(
-            poses=[h.pose for h in fit], holdout=[h.depth for h in hold], holdout_poses=[h.pose for h in hold]
-        )
+        args, kwargs = frames.calibrate_args(settings.tracker, model)
 
         def work() -> None:
             try:
-                if FIT_IN_PROCESS:
-                    future.set_result(_fit_in_child_process(args, kwargs))
-                else:
-                    _lower_priority(threading.get_native_id())
-                    future.set_result(calibrate(*args, **kwargs))
+                future.set_result(_run_fit(args, kwargs))
             except BaseException as err:  # noqa: BLE001 - handed to the service callback
                 future.set_exception(err)
             finally:
@@ -226,6 +273,8 @@ class CalibrationService:
             return response
         with self._tracker_lock:  # atomic switch between two frames
             self._tracker.set_model(res.model)
+            self._model_generation += 1
+            self._auto_calib.stop()
         s = res.shape
         v = res.validation
         assert v is not None
@@ -255,3 +304,12 @@ class CalibrationService:
         )
         self.get_logger().info(f"calibrated: {response.message}")
         return response
+
+
+def _run_fit(args: tuple, kwargs: dict) -> CalibrationResult:
+    """:func:`~hand_sog_tracker.core.calibration.calibrate` in a child process
+    (:data:`FIT_IN_PROCESS`) or on this thread at a lower OS priority."""
+    if FIT_IN_PROCESS:
+        return _fit_in_child_process(args, kwargs)
+    _lower_priority(threading.get_native_id())
+    return calibrate(*args, **kwargs)

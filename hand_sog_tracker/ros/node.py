@@ -50,7 +50,6 @@ import sys
 import threading
 import time
 import traceback
-from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
@@ -77,6 +76,7 @@ from std_msgs.msg import Header, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory
 from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
 from hand_sog_tracker.core.model_io import load_hand_shape
 from hand_sog_tracker.core.overlay import draw_overlay
@@ -108,7 +108,7 @@ from hand_sog_tracker.interface import (
     image_to_depth_mm,
     stamp_to_ns,
 )
-from hand_sog_tracker.ros.calibration_service import CALIB_HISTORY, CalibFrame, CalibrationService
+from hand_sog_tracker.ros.calibration_service import CalibrationService
 from hand_sog_tracker.ros.conversions import (
     bgr_to_image_msg,
     delete_all_markers,
@@ -239,14 +239,18 @@ class TrackerNode(CalibrationService, Node):
         self._intrinsics: Intrinsics | None = None
         self._intrinsics_problem = ""
         # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).
-        self._tracker = Tracker(self._settings.tracker, self._initial_model())
+        user_model = self._initial_model()
+        self._tracker = Tracker(self._settings.tracker, user_model)
         self._tracker.split_initialisation = True  # issue 14: see _process
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
         self._markers_shown = False
         self._frame_id = ""
-        # Recent tracked frames for ~/calibrate: (depth, intrinsics, pose or None, stamp ns).
-        self._calib_history: deque[CalibFrame] = deque(maxlen=CALIB_HISTORY)
+        # Recent tracked frames for ~/calibrate and the automatic fit (calibration_service.py),
+        # which runs only without a saved user model.
+        self._calib_history = FrameHistory()
+        self._auto_calib = AutoCalibration(enabled=self._settings.auto_calibrate and user_model is None)
+        self._model_generation = 0
 
         # Every callback is in the node's default group except ~/calibrate: its coroutine holds
         # its callback group while it awaits the calibration worker thread, so it gets a group
@@ -562,7 +566,8 @@ class TrackerNode(CalibrationService, Node):
 
         self._frame_id = header.frame_id
         self._publish_result(header, result, depth, intr)
-        self._remember(depth, intr, result.pose, stamp)
+        tracked = result.pose if result.status is TrackerStatus.TRACKING else None
+        self._remember(depth, intr, tracked, stamp)
         latency_ms = (self.get_clock().now().nanoseconds - stamp) * 1e-6
         self._stats = replace(
             self._stats,

@@ -4,7 +4,7 @@ Every tunable of :class:`~hand_sog_tracker.core.types.TrackerConfig` becomes a
 parameter of the same name (units in the name), except ``right_hand`` which is
 the string parameter ``handedness`` (``right`` / ``left``).  Node-only
 parameters: ``user_model_path``, ``debug_image``, ``calibration_frames``,
-``input_transport``, ``publish_wrist_joints`` and ``publish_tf``.
+``auto_calibrate``, ``input_transport``, ``publish_wrist_joints`` and ``publish_tf``.
 
 The values are validated as a whole by building a :class:`NodeSettings` (which
 builds a ``TrackerConfig``), both at start-up and in the on-set callback, so a
@@ -174,6 +174,12 @@ PARAM_SPECS: tuple[ParamSpec, ...] = _tracker_specs() + (
         3,
     ),
     ParamSpec(
+        "auto_calibrate",
+        True,
+        "Fit the hand model by itself once, about half a second after tracking starts, with the fit and "
+        "guard of ~/calibrate (kept in memory, not saved); off while a saved user model is in use.",
+    ),
+    ParamSpec(
         "input_transport",
         "raw",
         "How depth images arrive: raw = sensor_msgs/Image on camera/depth/image_rect_raw; "
@@ -211,6 +217,7 @@ class NodeSettings:
         Expanded path of the user hand-model file.
     debug_image : bool
     calibration_frames : int
+    auto_calibrate : bool
     input_transport : {"raw", "compressedDepth"}
     publish_wrist_joints : bool
     publish_tf : bool
@@ -220,6 +227,7 @@ class NodeSettings:
     user_model_path: Path
     debug_image: bool
     calibration_frames: int
+    auto_calibrate: bool = True
     input_transport: str = "raw"
     publish_wrist_joints: bool = False
     publish_tf: bool = False
@@ -278,6 +286,7 @@ def settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
         user_model_path=path,
         debug_image=bool(v["debug_image"]),
         calibration_frames=int(v["calibration_frames"]),
+        auto_calibrate=bool(v["auto_calibrate"]),
         input_transport=str(v["input_transport"]),
         publish_wrist_joints=bool(v["publish_wrist_joints"]),
         publish_tf=bool(v["publish_tf"]),

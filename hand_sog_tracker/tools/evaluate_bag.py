@@ -92,7 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--calibrate",
         action="store_true",
         help="fit the hand model on the first 3 frames, check it on the next 3 (a refused fit keeps the default), "
-        "then track",
+        "then track (without it, the model is fitted automatically as the node's auto_calibrate does; "
+        "--set auto_calibrate=false turns that off)",
     )
     g.add_argument("--max-frames", type=int, metavar="N", help="evaluate only the first N depth images of each bag")
     g = p.add_argument_group("output")
@@ -161,6 +162,7 @@ def _evaluate(entry: BagEntry, args: argparse.Namespace, topics: BagTopics, valu
     return evaluate_core(
         entry.path, topics, calibrate=args.calibrate, config=tracker_config(values), max_frames=args.max_frames,
         keep_worst=args.overlay_worst if args.overlay else 0, split=entry.split,
+        auto_calibrate=bool(values.get("auto_calibrate", True)),
     )
 
 
@@ -188,8 +190,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise HandSogError(f"--overlay refused for the test-split bag(s) {', '.join(test_bags)}: {PROTOCOL}")
         if args.overlay and args.through_node:
             _note("--overlay needs core mode; no overlays with --through-node")
-        if not args.through_node and node_only(values):
-            _note(f"core mode ignores the node-only parameter(s) {', '.join(node_only(values))}")
+        ignored = [n for n in node_only(values) if n != "auto_calibrate"]
+        if not args.through_node and ignored:
+            _note(f"core mode ignores the node-only parameter(s) {', '.join(ignored)}")
     except HandSogError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

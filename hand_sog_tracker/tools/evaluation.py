@@ -6,8 +6,12 @@ directly on every depth image of a bag (contract 5, see
 ``ms per frame`` is the wall time of :meth:`Tracker.process`.  With
 ``calibrate=True`` the hand model is first fitted on the first (up to three)
 usable frames (:func:`~hand_sog_tracker.core.calibration.calibrate`), then the
-whole bag is tracked from its start with the fitted model.  With
-``keep_worst=N`` the depth images of the N worst frames are kept (a bounded
+whole bag is tracked from its start with the fitted model.  Otherwise, with
+``auto_calibrate=True`` (the default, as the node's parameter), the hand model is fitted
+automatically when :class:`~hand_sog_tracker.core.autocalibration.AutoCalibration` says so,
+on the frames the node would keep, in place (the node fits in a child process while it
+tracks on; the fit's time is not in ``ms per frame``).  With ``keep_worst=N`` the
+depth images of the N worst frames are kept (a bounded
 heap) for :func:`hand_sog_tracker.tools.report.write_overlays`.
 """
 
@@ -23,6 +27,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory
 from hand_sog_tracker.core.hand_model import HandModel
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import BagError, CalibrationError, InputError
@@ -85,6 +90,28 @@ def _calibrate_model(
     return res.model, info
 
 
+def _auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> dict[str, Any]:
+    """Run one automatic fit in place (``frames``: a due
+    :class:`~hand_sog_tracker.core.autocalibration.FitFrames`); switch the tracker's model if the
+    guard accepts the fit.  Returns what happened (for the evaluation's ``calibration``)."""
+    from hand_sog_tracker.core.calibration import CalibrationRejected, calibrate
+
+    args, kwargs = frames.calibrate_args(config, tracker.model)  # type: ignore[attr-defined]
+    t0 = time.perf_counter()
+    info: dict[str, Any] = {"frames": len(frames.fit), "holdout_frames": len(frames.holdout)}
+    try:
+        res = calibrate(*args, **kwargs)
+    except CalibrationRejected as err:
+        info.update(accepted=False, reason=str(err))
+    except CalibrationError as err:
+        info.update(accepted=False, reason=str(err))
+    else:
+        tracker.set_model(res.model)  # type: ignore[attr-defined]
+        info.update(accepted=True, shape={k: float(v) for k, v in dataclasses.asdict(res.shape).items()})
+    info["seconds"] = time.perf_counter() - t0
+    return info
+
+
 def evaluate_core(
     bag: str | Path,
     topics: BagTopics = BagTopics(),
@@ -95,6 +122,7 @@ def evaluate_core(
     progress: bool | None = None,
     keep_worst: int = 0,
     split: str = "-",
+    auto_calibrate: bool = True,
 ) -> Evaluation:
     """Track every depth image of ``bag`` with the core tracker and score it.
 
@@ -118,6 +146,9 @@ def evaluate_core(
         (:attr:`Evaluation.worst`, for overlays); 0 keeps none.
     split : str
         Stored in :attr:`Evaluation.split`.
+    auto_calibrate : bool
+        Fit the model automatically as the node does (not with ``calibrate``; only for a
+        tracker with ``set_model`` and ``model``).
 
     Returns
     -------
@@ -140,6 +171,11 @@ def evaluate_core(
     elif calibrate and not hasattr(tracker, "set_model"):
         raise InputError("calibrate=True needs a tracker with set_model()")
     records: list[FrameRecord] = []
+    history = FrameHistory()
+    auto = AutoCalibration(
+        enabled=auto_calibrate and not calibrate and hasattr(tracker, "set_model") and hasattr(tracker, "model")
+    )
+    auto_fits: list[dict[str, Any]] = []
     worst = WorstFrames(keep_worst)
     first_error: str | None = None
     image_size: tuple[int, int] | None = None
@@ -166,6 +202,14 @@ def evaluate_core(
                     break
                 record, pose, problem = _track_one(tracker, f)
                 records.append(record)
+                if auto.enabled and f.depth_mm is not None and f.intrinsics is not None:
+                    history.remember(f.depth_mm, f.intrinsics, pose, f.stamp_ns)
+                    due = auto.due(history, f.stamp_ns)
+                    if due is not None:
+                        auto.started(f.stamp_ns)
+                        info = _auto_fit(tracker, due, cfg)
+                        auto.finished(bool(info["accepted"]))
+                        auto_fits.append({"frame": f.index, **info})
                 if f.depth_mm is not None and f.intrinsics is not None:
                     make = functools.partial(
                         WorstFrame, record, f.depth_mm, f.intrinsics, pose, getattr(tracker, "model", None)
@@ -184,6 +228,8 @@ def evaluate_core(
     if all(r.status == STATUS_ERROR for r in records):
         raise BagError(f"bag {bag}: no depth image could be used; first problem: {first_error}")
     extra: dict[str, Any] = {"handedness": "right" if cfg.right_hand else "left"}
+    if auto.enabled:
+        extra["auto_calibration"] = auto_fits
     if first_error is not None:
         extra["first_frame_error"] = first_error
     ev = build_evaluation(str(bag), "core", records, wall, image_size, calib_info, extra)

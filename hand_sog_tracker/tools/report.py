@@ -28,6 +28,14 @@ def _fmt(v: float, spec: str = ".1f") -> str:
     return "n/a" if not math.isfinite(v) else format(v, spec)
 
 
+def _fit_text(info: dict) -> str:
+    """One calibration outcome (``Evaluation.calibration`` or an automatic fit) as text."""
+    seconds = f" ({info['seconds']:.1f} s)" if "seconds" in info else ""
+    if "shape" not in info:
+        return f"refused, model unchanged{seconds}: {info.get('reason', '')}"
+    return ", ".join(f"{k} {v:.3f}" for k, v in info["shape"].items()) + seconds
+
+
 def format_table(ev: Evaluation) -> str:
     """The paper's table plus timing, as text."""
     e = ev.errors
@@ -41,8 +49,9 @@ def format_table(ev: Evaluation) -> str:
         "status: " + ", ".join(f"{k} {v}" for k, v in ev.status_counts.items()),
     ]
     if ev.calibration:
-        shape = ", ".join(f"{k} {v:.3f}" for k, v in ev.calibration["shape"].items())
-        lines.append(f"calibration: {shape} ({ev.calibration['seconds']:.1f} s)")
+        lines.append(f"calibration: {_fit_text(ev.calibration)}")
+    for fit in ev.extra.get("auto_calibration", []):
+        lines.append(f"automatic calibration at frame {fit['frame']}: {_fit_text(fit)}")
     cols = ["mean"] + list(FINGERS)
     vals = [e.mean_mm] + [e.per_finger_mm[f] for f in FINGERS]
     lines += [

@@ -1,0 +1,235 @@
+"""Automatic calibration: the recent tracked frames, and when to fit the hand model to them.
+
+The default model is one adult hand; a hand 10% larger or smaller than it is tracked with
+fingertips a few millimetres short or long, and worse: a wide finger holds two model fingers
+side by side, so that when a finger curls into the palm its neighbours take its place.  With
+``auto_calibrate`` on (the node's default), the node fits the hand model by itself once, with
+the same fit and guard as ``~/calibrate``
+(:func:`~hand_sog_tracker.core.calibration.calibrate`): as soon as its recent tracked frames
+hold :data:`AUTO_MIN_FRAMES` frames of one camera among which
+:func:`~hand_sog_tracker.core.calibration.select_frames` finds an open hand to fit on and
+frames to check the fit on.  An accepted fit replaces the model for the rest of the run (it is
+not saved: ``~/calibrate`` saves); a refused or failed one is tried again
+:data:`AUTO_RETRY_S` later, at most :data:`AUTO_ATTEMPTS` times.  A saved user model, or a
+successful ``~/calibrate``, turns it off.
+
+This module holds what the node and ``evaluate_bag`` share: :class:`FrameHistory` (the
+frames ``~/calibrate`` and the automatic fit choose from), :func:`choose_fit_frames` and the
+schedule :class:`AutoCalibration`.  It does not fit (the node runs the fit in a child process
+while it goes on tracking; ``evaluate_bag`` runs it in place).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.core.calibration import DEFAULT_FIT_FRAMES, DEFAULT_HOLDOUT_FRAMES, select_frames
+from hand_sog_tracker.core.hand_model import HandModel
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
+
+__all__ = [
+    "AUTO_ATTEMPTS",
+    "AUTO_MIN_FRAMES",
+    "AUTO_RETRY_S",
+    "HISTORY_FRAMES",
+    "HISTORY_SPACING_S",
+    "AutoCalibration",
+    "FitFrames",
+    "FrameHistory",
+    "HistoryFrame",
+    "choose_fit_frames",
+]
+
+#: Tracked frames kept (count), at most one per :data:`HISTORY_SPACING_S` (s): the last half
+#: second of a 30 Hz camera (every frame), of a 100 Hz one every third frame.
+HISTORY_FRAMES = 15
+HISTORY_SPACING_S = 0.03
+#: Tracked frames of one camera in the history before the first automatic fit (count): the full
+#: history, half a second of tracking at 30 Hz.  Chosen on 144 dev renders (60 frames at 30 Hz,
+#: half of the hands 1.04-1.14x): fitting on 15 frames of the first 0.5 s lowered the mean
+#: fingertip error from 7.46 to 7.17 mm, on 8 frames of the same 0.5 s only to 7.41 mm, on 15
+#: frames of the first second to 7.40 mm (fingers that curl early are tracked with the fitted
+#: model).
+AUTO_MIN_FRAMES = HISTORY_FRAMES
+#: Seconds between automatic fits after a refused or failed one.
+AUTO_RETRY_S = 1.0
+#: Automatic fits tried at most (count).
+AUTO_ATTEMPTS = 3
+
+
+@dataclass(frozen=True, eq=False)
+class HistoryFrame:
+    """A tracked frame kept for calibration.
+
+    Attributes
+    ----------
+    depth : array, shape (H, W), float32
+        Depth image (mm, 0 = invalid).
+    intrinsics : Intrinsics
+    pose : array, shape (26,), or None
+        The tracked pose (mm, rad); None when the frame was not tracked.
+    stamp_ns : int
+        The image's stamp (ns).
+    """
+
+    depth: NDArray[np.float32]
+    intrinsics: Intrinsics
+    pose: NDArray[np.float64] | None
+    stamp_ns: int
+
+
+class FrameHistory:
+    """The last :data:`HISTORY_FRAMES` tracked frames, at most one per :data:`HISTORY_SPACING_S`."""
+
+    def __init__(self, size: int = HISTORY_FRAMES, spacing_s: float = HISTORY_SPACING_S) -> None:
+        self._frames: deque[HistoryFrame] = deque(maxlen=size)
+        self._spacing_ns = int(spacing_s * 1e9)
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def remember(
+        self, depth: NDArray[np.float32], intrinsics: Intrinsics, pose: NDArray[np.float64] | None, stamp_ns: int
+    ) -> bool:
+        """Keep a frame unless the last one kept is less than the spacing older; True if kept.
+
+        ``depth`` is kept by reference (not copied): the caller must not modify it later.
+        """
+        last = self._frames[-1] if self._frames else None
+        if last is not None and 0 <= stamp_ns - last.stamp_ns < self._spacing_ns:
+            return False
+        self._frames.append(HistoryFrame(depth, intrinsics, None if pose is None else pose.copy(), stamp_ns))
+        return True
+
+    def clear(self) -> None:
+        """Forget every frame (e.g. when the resolution changes)."""
+        self._frames.clear()
+
+    def frames(self) -> list[HistoryFrame]:
+        """The kept frames, oldest first (a new list)."""
+        return list(self._frames)
+
+
+@dataclass(frozen=True, eq=False)
+class FitFrames:
+    """Frames to fit on and to check the fit on (the guard), all of one camera.
+
+    Attributes
+    ----------
+    fit, holdout : tuple of HistoryFrame
+    intrinsics : Intrinsics
+    tracked : int
+        Tracked frames of that camera in the history.
+    """
+
+    fit: tuple[HistoryFrame, ...]
+    holdout: tuple[HistoryFrame, ...]
+    intrinsics: Intrinsics
+    tracked: int
+
+    @property
+    def usable(self) -> bool:
+        """Whether there is an open hand to fit on and a frame to check it on."""
+        return bool(self.fit) and bool(self.holdout)
+
+    def calibrate_args(self, config: TrackerConfig, model: HandModel) -> tuple[tuple, dict]:
+        """The arguments of :func:`~hand_sog_tracker.core.calibration.calibrate` for these frames
+        (with the tracked poses, and the held-out frames for its guard)."""
+        args = ([f.depth for f in self.fit], self.intrinsics, config, model)
+        kwargs = dict(
+            poses=[f.pose for f in self.fit],
+            holdout=[f.depth for f in self.holdout],
+            holdout_poses=[f.pose for f in self.holdout],
+        )
+        return args, kwargs
+
+
+def choose_fit_frames(
+    frames: Sequence[HistoryFrame],
+    n_fit: int = DEFAULT_FIT_FRAMES,
+    n_holdout: int = DEFAULT_HOLDOUT_FRAMES,
+) -> FitFrames | None:
+    """Fit and held-out frames among ``frames`` of the newest frame's camera.
+
+    The fit frames are open hands, the held-out ones the other tracked frames
+    (:func:`~hand_sog_tracker.core.calibration.select_frames`).  None without frames.
+    """
+    if not frames:
+        return None
+    intr = frames[-1].intrinsics
+    same = [f for f in frames if f.intrinsics == intr]
+    fit_idx, hold_idx = select_frames([f.pose for f in same], n_fit, n_holdout)
+    return FitFrames(
+        fit=tuple(same[i] for i in fit_idx),
+        holdout=tuple(same[i] for i in hold_idx),
+        intrinsics=intr,
+        tracked=sum(f.pose is not None for f in same),
+    )
+
+
+class AutoCalibration:
+    """When to fit the hand model automatically (see the module docstring).
+
+    Call :meth:`due` after each tracked frame; when it returns frames, fit on them, call
+    :meth:`started` before and :meth:`finished` after (with whether the fit was accepted).
+
+    Parameters
+    ----------
+    enabled : bool
+    min_frames : int
+        Tracked frames of one camera needed in the history.
+    retry_s : float
+        Seconds between attempts after a refused or failed fit.
+    attempts : int
+        Fits tried at most.
+    """
+
+    def __init__(
+        self,
+        enabled: bool = True,
+        min_frames: int = AUTO_MIN_FRAMES,
+        retry_s: float = AUTO_RETRY_S,
+        attempts: int = AUTO_ATTEMPTS,
+    ) -> None:
+        self.enabled = enabled
+        self.min_frames = min_frames
+        self.retry_ns = int(retry_s * 1e9)
+        self.max_attempts = attempts
+        self.attempts = 0
+        self.running = False
+        self.accepted = False
+        self._last_ns: int | None = None
+
+    def due(self, history: FrameHistory, stamp_ns: int) -> FitFrames | None:
+        """The frames to fit on now, or None (off, done, running, too soon, or no usable frames)."""
+        if not self.enabled or self.accepted or self.running or self.attempts >= self.max_attempts:
+            return None
+        if self._last_ns is not None and 0 <= stamp_ns - self._last_ns < self.retry_ns:
+            return None
+        frames = history.frames()
+        if sum(f.pose is not None for f in frames) < self.min_frames:
+            return None
+        chosen = choose_fit_frames(frames)
+        if chosen is None or chosen.tracked < self.min_frames or not chosen.usable:
+            return None
+        return chosen
+
+    def started(self, stamp_ns: int) -> None:
+        """A fit starts (on the frame stamped ``stamp_ns``)."""
+        self.running = True
+        self.attempts += 1
+        self._last_ns = stamp_ns
+
+    def finished(self, accepted: bool) -> None:
+        """The fit ended; ``accepted``: its model is now in use (no further attempts)."""
+        self.running = False
+        self.accepted = self.accepted or accepted
+
+    def stop(self) -> None:
+        """No more automatic fits (a user model is in use)."""
+        self.enabled = False
