@@ -8,12 +8,14 @@ from hand_sog_tracker.core.articulations import FINGER_CURLED
 from hand_sog_tracker.core.autocalibration import (
     AUTO_ATTEMPTS,
     AUTO_MIN_FRAMES,
+    AUTO_MIN_LENGTH,
     HISTORY_FRAMES,
     AutoCalibration,
     FrameHistory,
     choose_fit_frames,
+    usable_automatically,
 )
-from hand_sog_tracker.core.hand_model import chain_slice, rest_pose
+from hand_sog_tracker.core.hand_model import HandShape, chain_slice, rest_pose
 from hand_sog_tracker.core.types import Intrinsics
 
 INTR = Intrinsics(287.0, 287.0, 160.0, 120.0, 320, 240)
@@ -95,3 +97,9 @@ def test_schedule_waits_for_a_full_history_retries_after_a_refusal_and_stops_aft
         fists.remember(DEPTH, INTR, _fist(k), k * PERIOD_NS)
     assert AutoCalibration().due(fists, 20 * PERIOD_NS) is None  # no open hand to fit on
     assert AutoCalibration(enabled=False).due(h, stamp) is None
+
+
+def test_an_automatic_fit_that_shrinks_the_hand_too_much_is_not_used() -> None:
+    assert usable_automatically(HandShape(length=1.1, width=1.1))
+    assert usable_automatically(HandShape(length=AUTO_MIN_LENGTH, width=0.9))
+    assert not usable_automatically(HandShape(length=AUTO_MIN_LENGTH - 0.01, width=1.2))

@@ -301,7 +301,7 @@ def test_core_mode_fits_the_model_automatically_as_the_node_does(
     # tracked frames, the fit runs on open-hand frames with their tracked poses, checked on
     # others, and its model is used from the next frame on; auto_calibrate=False fits nothing.
     from hand_sog_tracker.core import calibration
-    from hand_sog_tracker.core.autocalibration import AUTO_MIN_FRAMES
+    from hand_sog_tracker.core.autocalibration import AUTO_MIN_FRAMES, AUTO_MIN_LENGTH
     from hand_sog_tracker.core.hand_model import HandShape, default_hand_model
     from hand_sog_tracker.tools.make_sample_bags import write_sample_bag
 
@@ -326,6 +326,14 @@ def test_core_mode_fits_the_model_automatically_as_the_node_does(
     assert len(fits) == 1 and fits[0]["frame"] == AUTO_MIN_FRAMES - 1 and fits[0]["accepted"]
     assert fits[0]["shape"]["length"] == pytest.approx(1.1)
     assert tracker.model.shape == fitted_shape
+    assert fits[0]["used"]
+    # A fit that shrinks the hand below AUTO_MIN_LENGTH keeps the default model (no retry).
+    fitted_shape = HandShape(length=AUTO_MIN_LENGTH - 0.05)
+    calls.clear()
+    tracker = Tracker()
+    fits = evaluate_core(bag.path, tracker=tracker, progress=False).to_json()["auto_calibration"]
+    assert len(calls) == 1 and fits[0]["accepted"] and not fits[0]["used"]
+    assert tracker.model.shape == HandShape()
     calls.clear()
     js = evaluate_core(bag.path, tracker=Tracker(), progress=False, auto_calibrate=False).to_json()
     assert calls == [] and "auto_calibration" not in js

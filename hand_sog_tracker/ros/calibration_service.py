@@ -20,6 +20,7 @@ from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from hand_sog_tracker.core.autocalibration import (
+    AUTO_MIN_LENGTH,
     HISTORY_FRAMES,
     HISTORY_SPACING_S,
     AutoCalibration,
@@ -27,6 +28,7 @@ from hand_sog_tracker.core.autocalibration import (
     FrameHistory,
     HistoryFrame,
     choose_fit_frames,
+    usable_automatically,
 )
 from hand_sog_tracker.core.calibration import (
     DEFAULT_HOLDOUT_FRAMES,
@@ -169,18 +171,25 @@ class CalibrationService:
             accepted = False
             try:
                 res = _run_fit(args, kwargs)
+                s = res.shape
+                fitted = (
+                    f"length={s.length:.3f} width={s.width:.3f} depth={s.depth:.3f} sigma={s.sigma:.3f}; "
+                    f"{res.validation.describe() if res.validation else ''} ({res.seconds:.2f} s)"
+                )
+                accepted = True  # by the guard: no further attempts
+                if not usable_automatically(s):
+                    logger.info(
+                        f"automatic calibration: {fitted}; a hand smaller than length {AUTO_MIN_LENGTH} "
+                        "keeps the default model (it tracks such hands better on average)"
+                    )
+                    return
                 with self._tracker_lock:
-                    if generation == self._model_generation and self._auto_calib.enabled:
+                    used = generation == self._model_generation and self._auto_calib.enabled
+                    if used:
                         self._tracker.set_model(res.model)
                         self._model_generation += 1
-                        accepted = True
-                s = res.shape
-                if accepted:
-                    logger.info(
-                        f"automatic calibration: length={s.length:.3f} width={s.width:.3f} "
-                        f"depth={s.depth:.3f} sigma={s.sigma:.3f} in use (not saved; ~/calibrate saves); "
-                        f"{res.validation.describe() if res.validation else ''} ({res.seconds:.2f} s)"
-                    )
+                if used:
+                    logger.info(f"automatic calibration in use (not saved; ~/calibrate saves): {fitted}")
                 else:
                     logger.info("automatic calibration: dropped (the model was changed meanwhile)")
             except CalibrationRejected as err:

@@ -27,7 +27,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory
+from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory, usable_automatically
 from hand_sog_tracker.core.hand_model import HandModel
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import BagError, CalibrationError, InputError
@@ -93,7 +93,8 @@ def _calibrate_model(
 def _auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> dict[str, Any]:
     """Run one automatic fit in place (``frames``: a due
     :class:`~hand_sog_tracker.core.autocalibration.FitFrames`); switch the tracker's model if the
-    guard accepts the fit.  Returns what happened (for the evaluation's ``calibration``)."""
+    guard accepts the fit and it is :func:`usable_automatically`.  Returns what happened (for the
+    evaluation's ``auto_calibration``: ``accepted`` by the guard, ``used``)."""
     from hand_sog_tracker.core.calibration import CalibrationRejected, calibrate
 
     args, kwargs = frames.calibrate_args(config, tracker.model)  # type: ignore[attr-defined]
@@ -106,8 +107,10 @@ def _auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> dict[
     except CalibrationError as err:
         info.update(accepted=False, reason=str(err))
     else:
-        tracker.set_model(res.model)  # type: ignore[attr-defined]
-        info.update(accepted=True, shape={k: float(v) for k, v in dataclasses.asdict(res.shape).items()})
+        used = usable_automatically(res.shape)
+        if used:
+            tracker.set_model(res.model)  # type: ignore[attr-defined]
+        info.update(accepted=True, used=used, shape={k: float(v) for k, v in dataclasses.asdict(res.shape).items()})
     info["seconds"] = time.perf_counter() - t0
     return info
 

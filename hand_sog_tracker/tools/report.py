@@ -33,7 +33,8 @@ def _fit_text(info: dict) -> str:
     seconds = f" ({info['seconds']:.1f} s)" if "seconds" in info else ""
     if "shape" not in info:
         return f"refused, model unchanged{seconds}: {info.get('reason', '')}"
-    return ", ".join(f"{k} {v:.3f}" for k, v in info["shape"].items()) + seconds
+    unused = "; not used (a smaller hand keeps the default model)" if info.get("used") is False else ""
+    return ", ".join(f"{k} {v:.3f}" for k, v in info["shape"].items()) + seconds + unused
 
 
 def format_table(ev: Evaluation) -> str:
