@@ -155,6 +155,19 @@ def test_restart_interval_limits_the_restarts_to_a_rate() -> None:
     assert runs[3600.0] == 1  # the first tracked frame only
 
 
+def _count_maximise(tracker: Tracker) -> list[int]:
+    """Record the iterations of every fit ``tracker`` runs from now on (the list fills up)."""
+    calls: list[int] = []
+    maximise = tracker._maximise
+
+    def counted(obj_, x0, **kwargs):
+        calls.append(int(kwargs["iterations"]))
+        return maximise(obj_, x0, **kwargs)
+
+    tracker._maximise = counted  # type: ignore[method-assign]
+    return calls
+
+
 def test_scheduled_shift_restart_is_spread_over_frames_and_undoes_a_shift_by_one() -> None:
     # Counting "one": the index finger up, the others curled.  The track has every finger on
     # its neighbour's articulation (the middle finger up on the index's data).  A scheduled
@@ -174,14 +187,7 @@ def test_scheduled_shift_restart_is_spread_over_frames_and_undoes_a_shift_by_one
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(wrong, det), silhouette=sil)
     res = tracker._maximise(obj, wrong, iterations=7)  # the frame's own fit stays wrong
 
-    calls: list[int] = []
-    maximise = tracker._maximise
-
-    def counted(obj_, x0, **kwargs):
-        calls.append(int(kwargs["iterations"]))
-        return maximise(obj_, x0, **kwargs)
-
-    tracker._maximise = counted  # type: ignore[method-assign]
+    calls = _count_maximise(tracker)
     tracker._frame_count = SHIFT_EVERY  # the schedule's side +1: each finger takes the next one's
     out = res
     for frame in range(RESTART_ITERATIONS // SHIFT_CHUNK):
@@ -211,14 +217,7 @@ def test_scheduled_shift_does_not_start_when_every_fingertip_is_seen_at_its_fing
     assert det.n >= 5
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(truth, det), silhouette=sil)
     res = tracker._maximise(obj, truth, iterations=7)
-    calls: list[int] = []
-    maximise = tracker._maximise
-
-    def counted(obj_, x0, **kwargs):
-        calls.append(int(kwargs["iterations"]))
-        return maximise(obj_, x0, **kwargs)
-
-    tracker._maximise = counted  # type: ignore[method-assign]
+    calls = _count_maximise(tracker)
     tracker._frame_count = SHIFT_EVERY
     assert tracker._scheduled_shift(obj, res, det) is res
     assert calls == [] and tracker._shift_pending is None

@@ -227,10 +227,7 @@ class AutoCalibration:
             return None
         if self._last_ns is not None and 0 <= stamp_ns - self._last_ns < self.retry_ns:
             return None
-        frames = history.frames()
-        if sum(f.pose is not None for f in frames) < self.min_frames:
-            return None
-        chosen = choose_fit_frames(frames)
+        chosen = choose_fit_frames(history.frames())
         if chosen is None or chosen.tracked < self.min_frames or not chosen.usable:
             return None
         return chosen

@@ -95,16 +95,14 @@ def _auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> dict[
     :class:`~hand_sog_tracker.core.autocalibration.FitFrames`); switch the tracker's model if the
     guard accepts the fit and it is :func:`usable_automatically`.  Returns what happened (for the
     evaluation's ``auto_calibration``: ``accepted`` by the guard, ``used``)."""
-    from hand_sog_tracker.core.calibration import CalibrationRejected, calibrate
+    from hand_sog_tracker.core.calibration import calibrate
 
     args, kwargs = frames.calibrate_args(config, tracker.model)  # type: ignore[attr-defined]
     t0 = time.perf_counter()
     info: dict[str, Any] = {"frames": len(frames.fit), "holdout_frames": len(frames.holdout)}
     try:
         res = calibrate(*args, **kwargs)
-    except CalibrationRejected as err:
-        info.update(accepted=False, reason=str(err))
-    except CalibrationError as err:
+    except CalibrationError as err:  # (also CalibrationRejected: the guard refused the fit)
         info.update(accepted=False, reason=str(err))
     else:
         used = usable_automatically(res.shape)
