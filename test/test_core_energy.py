@@ -347,6 +347,30 @@ def test_gaussian_support_equals_the_dense_definition(seed: int) -> None:
     np.testing.assert_array_equal(gaussian_support(model, truth, empty), np.zeros(model.n_gaussians))
 
 
+def test_objective_support_is_the_support_of_its_last_evaluation() -> None:
+    # The tracker's confidence reads the support of the fit's last evaluation when that was at
+    # the result's pose: the same as gaussian_support up to rounding, and only at that pose.
+    model = default_hand_model()
+    rng = np.random.default_rng(31)
+    truth = rest_pose((0.0, 60.0, 400.0))
+    data = data_near(model, truth, rng, n=400, skip_chain=3)
+    obj = Objective(model, data, TrackerConfig())
+    assert obj.support(truth) is None  # nothing evaluated yet
+    for k, gradient in enumerate((True, False, True)):
+        theta = truth + rng.normal(0.0, 0.05, N_PARAMS) * np.r_[40.0, 40.0, 40.0, np.ones(23)] * (k > 0)
+        obj(theta, gradient=gradient)
+        support = obj.support(theta)
+        assert support is not None
+        expected = gaussian_support(model, theta, data)
+        assert 0.1 < expected.mean() and (expected < 1.0).any()
+        np.testing.assert_allclose(support, expected, rtol=1e-12, atol=1e-14)
+        assert obj.support(theta + 1e-9) is None  # another pose: not known
+    empty = ImageSoG(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)), data.intrinsics, 0.0)
+    no_data = Objective(model, empty, TrackerConfig())
+    no_data(truth)
+    assert no_data.support(truth) is None
+
+
 def test_similarity_saturates_where_two_model_parts_explain_the_same_data() -> None:
     # E_sim counts an image Gaussian's overlap with the model saturated (module docstring):
     # a second model Gaussian on data already explained adds less than the first did, so two

@@ -418,6 +418,10 @@ class Objective:
         self._sal: tuple[object, tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None] = (
             _UNSET, None
         )
+        # What :meth:`support` needs of the last evaluation: the pose's bytes, and per pair
+        # (sorted by model Gaussian) ``Delta D`` with the pairs' row bounds and the depths z.
+        self._support_key = b""
+        self._support_src: tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64]] | None = None
 
     def __call__(
         self, theta: NDArray[np.float64], gradient: bool = True
@@ -436,6 +440,23 @@ class Objective:
         )
         return terms, grad
 
+    def support(self, theta: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """:func:`gaussian_support` at ``theta`` (m,) from the last evaluation, when that was at
+        ``theta`` (the same sums up to rounding: the same pairs and values); else None.
+
+        A tracked frame's fit usually ends at its best pose: its confidence then costs no
+        second pass over the pairs.
+        """
+        src = self._support_src
+        if src is None or theta.tobytes() != self._support_key:
+            return None
+        delta_D, bounds, z = src
+        m = z.size
+        support = np.bincount(np.arange(m).repeat(bounds[1:] - bounds[:-1]), weights=delta_D, minlength=m)
+        sp = self._shf / z
+        support /= 2 * np.pi**2 * sp * sp
+        return np.minimum(support, 1.0, out=support)
+
     def _evaluate(
         self, theta: NDArray[np.float64], gradient: bool, terms: bool = True
     ) -> tuple[tuple[float, ...], NDArray[np.float64] | None]:
@@ -446,6 +467,8 @@ class Objective:
         a term whose weight is 0 is not evaluated (reported as 0): the total and the
         gradient are the same bits (it would add ``0 * value``).
         """
+        self._support_key = theta.tobytes()
+        self._support_src = None
         cfg = self.config
         if gradient:
             P, pullback = centres_with_pullback(self.model, theta)
@@ -565,6 +588,7 @@ class Objective:
         delta_D /= two_sh_p
         np.subtract(1.0, delta_D, out=delta_D)  # Delta = 1 - |dd| / (2 sigma_h) ...
         delta_D *= D  # ... times D
+        self._support_src = (delta_D, bounds, z)
         inv_norm = 1.0 / data.norm
         # Saturated per image Gaussian (module docstring): S_q, then G k_q (1 - exp(-S_q / k_q)).
         k = self._sat

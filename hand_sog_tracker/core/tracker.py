@@ -88,13 +88,17 @@ def coverage(
     theta: NDArray[np.float64],
     data: ImageSoG,
     centres: NDArray[np.float64] | None = None,
+    support: NDArray[np.float64] | None = None,
 ) -> float:
     """How well the data explain the model at ``theta``, in [0, 1].
 
     The mean :func:`gaussian_support` over the best-supported two thirds of
-    the Gaussians (the rest may be legitimately occluded).
+    the Gaussians (the rest may be legitimately occluded).  ``support``: that support (m,),
+    when already known (:meth:`Objective.support`).
     """
-    support = np.sort(gaussian_support(model, theta, data, centres))[::-1]
+    if support is None:
+        support = gaussian_support(model, theta, data, centres)
+    support = np.sort(support)[::-1]
     keep = max(1, (2 * support.size) // 3)
     return float(support[:keep].mean())
 
@@ -308,7 +312,7 @@ class Tracker(RestartStrategies):
             res = self._restarts(obj, res, data, det)
             self._last_restarts_s = now
         centres = gaussian_centres(self._model, res.x)
-        conf = coverage(self._model, res.x, data, centres)
+        conf = coverage(self._model, res.x, data, centres, obj.support(res.x))
         if conf < cfg.lost_confidence:
             self._low_frames += 1
         else:
