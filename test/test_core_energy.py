@@ -371,6 +371,25 @@ def test_objective_support_is_the_support_of_its_last_evaluation() -> None:
     assert no_data.support(truth) is None
 
 
+def test_objective_and_support_where_no_pair_overlaps() -> None:
+    # A pose far from every data Gaussian (e.g. a restart pulled off the data): no pair passes
+    # the candidate tests.  The sums per data and per model Gaussian are then empty, which once
+    # raised (an empty weighted bincount is an integer array) on a real frame.
+    model = default_hand_model()
+    rng = np.random.default_rng(41)
+    truth = rest_pose((0.0, 60.0, 400.0))
+    data = data_near(model, truth, rng, n=200)
+    away = truth.copy()
+    away[:3] += (400.0, 0.0, 300.0)
+    obj = Objective(model, data, TrackerConfig())
+    value, grad = obj(away)
+    assert grad is not None and np.all(np.isfinite(grad)) and np.isfinite(value)
+    terms, _ = obj.evaluate(away, gradient=False)
+    assert terms.sim == 0.0 and terms.dan > 0.0  # nothing overlaps; every Gaussian dangles
+    np.testing.assert_array_equal(obj.support(away), np.zeros(model.n_gaussians))
+    np.testing.assert_array_equal(gaussian_support(model, away, data), np.zeros(model.n_gaussians))
+
+
 def test_similarity_saturates_where_two_model_parts_explain_the_same_data() -> None:
     # E_sim counts an image Gaussian's overlap with the model saturated (module docstring):
     # a second model Gaussian on data already explained adds less than the first did, so two

@@ -342,7 +342,7 @@ def gaussian_support(
     delta = np.divide(dd, two_sh_p, out=dd)
     np.subtract(1.0, delta, out=delta)  # Delta = 1 - dd / (2 sigma_h)
     delta *= D
-    support = np.bincount(p, weights=np.where(passed, delta, 0.0), minlength=m)
+    support = _accumulate(p, np.where(passed, delta, 0.0), m)
     support /= 2 * np.pi**2 * sp2
     return np.minimum(support, 1.0, out=support)
 
@@ -452,7 +452,7 @@ class Objective:
             return None
         delta_D, bounds, z = src
         m = z.size
-        support = np.bincount(np.arange(m).repeat(bounds[1:] - bounds[:-1]), weights=delta_D, minlength=m)
+        support = _accumulate(np.arange(m).repeat(bounds[1:] - bounds[:-1]), delta_D, m)
         sp = self._shf / z
         support /= 2 * np.pi**2 * sp * sp
         return np.minimum(support, 1.0, out=support)
@@ -592,7 +592,7 @@ class Objective:
         inv_norm = 1.0 / data.norm
         # Saturated per image Gaussian (module docstring): S_q, then G k_q (1 - exp(-S_q / k_q)).
         k = self._sat
-        sat = np.bincount(qi, weights=delta_D, minlength=n)
+        sat = _accumulate(qi, delta_D, n)
         sat /= k
         np.negative(sat, out=sat)
         np.expm1(sat, out=sat)  # exp(-S_q / k_q) - 1 (exact for small overlaps)
