@@ -206,11 +206,11 @@ def test_score_is_highest_for_the_true_shape_at_the_true_pose() -> None:
     frame = next(iter(synthetic_sequence("abdadd", 1, INTR, shape=truth, seed=6)))
     pre = preprocess(frame.depth_mm, INTR, TrackerConfig())
     base = default_hand_model(True)
-    roi, _ = hand_roi(base.scaled(truth), frame.pose, INTR, 160.0)
-    best = shape_score(base.scaled(truth), frame.pose, pre, roi)
+    roi, window = hand_roi(base.scaled(truth), frame.pose, INTR, 160.0)
+    best = shape_score(base.scaled(truth), frame.pose, pre, roi, window_mm=window)
     assert best > 0.85
     for other in (HandShape(), user_hand(1.1, 1.05), user_hand(1.0, 0.92), user_hand(1.2, 0.92)):
-        assert shape_score(base.scaled(other), frame.pose, pre, roi) < best
+        assert shape_score(base.scaled(other), frame.pose, pre, roi, window_mm=window) < best
 
 
 def test_drawn_skin_is_as_wide_as_the_finger() -> None:

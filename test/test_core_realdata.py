@@ -1,7 +1,8 @@
-"""The tracker on real RealSense depth frames (``../shared/realdata``; skipped where it is absent).
+"""The tracker on real depth frames (``../shared/realdata``; skipped where it is absent).
 
-The frames have no joint labels, only a hand/forearm mask: an open hand must be tracked with
-every fingertip on the hand's own pixels, at the hand's depth, and spread across the hand.
+RealSense frames: the hand/forearm masks of the data, and our own fingertip labels
+(``data/realsense_fingertips.json``).  One Kinect frame of the NYU hand pose data set, with
+its own joint labels: a hand at arm's length (0.74 m) in front of the body.
 """
 
 from __future__ import annotations
@@ -16,7 +17,9 @@ from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 
-REALSENSE = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "realsense-user1"
+REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+REALSENSE = REALDATA / "realsense-user1"
+NYU = REALDATA / "nyu-test-frame1"
 #: From the data's source (see ../shared/realdata/README.md); equal to helpers.INTR today but
 #: bound to the recorded camera, so kept here.
 INTR = Intrinsics(287.26, 287.26, 160.0, 120.0, 320, 240)
@@ -97,3 +100,21 @@ def test_finger_curled_toward_the_camera_is_found(mirror: bool) -> None:
     model's middle finger lay on the ring finger's data, 60 mm off).  Not yet within 15 mm."""
     err = _static_tip_errors(2, mirror)
     assert err.max() < 25.0, err.round(1)
+
+
+@pytest.mark.skipif(not NYU.is_dir(), reason="../shared/realdata/nyu-test-frame1 is not here")
+def test_kinect_hand_at_arm_length_is_tracked_with_the_default_depth_window() -> None:
+    """NYU test frame 1 (Kinect, 640x480, an open right hand at 0.74 m, the body behind it):
+    with the default parameters the hand is found and every fingertip is within 15 mm of the
+    data set's labels (with the former 600 mm window nothing was found)."""
+    bgr = cv2.imread(str(NYU / "depth_1_0000001.png"), cv2.IMREAD_UNCHANGED)
+    depth = bgr[:, :, 1].astype(np.float32) * 256.0 + bgr[:, :, 0]  # depth_mm = G * 256 + B
+    intr = Intrinsics(588.04, 587.08, 320.0, 240.0, 640, 480)
+    u, v, d = (np.loadtxt(NYU / f"joint_1_{k}_row1.csv", delimiter=",") for k in "uvd")
+    tips = [24, 18, 12, 6, 0]  # the data set's fingertip joints, thumb .. little
+    truth = intr.backproject(np.c_[u[tips], v[tips]], d[tips])
+    tracker = Tracker()
+    results = [tracker.process(depth, intr) for _ in range(10)]  # a static sequence
+    assert all(r.status is TrackerStatus.TRACKING for r in results), [r.status for r in results]
+    err = np.linalg.norm(results[-1].fingertips_mm - truth, axis=1)
+    assert err.max() < 15.0, err.round(1)

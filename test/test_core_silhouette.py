@@ -17,7 +17,7 @@ def _first_frame(motion: str, seed: int):
     """A rendered frame, its preprocessed depth, the default model and the hand's ROI and window."""
     intr = default_intrinsics()
     frame = next(synthetic_sequence(motion, 1, intrinsics=intr, seed=seed))
-    pre = preprocess(frame.depth_mm, intr, TrackerConfig())
+    pre = preprocess(frame.depth_mm, intr, TrackerConfig(far_mm=600.0))  # (the wall at 900 mm: out)
     model = default_hand_model()
     roi, window = hand_roi(model, frame.pose, pre.intrinsics, 160.0)
     return frame, pre, model, roi, window

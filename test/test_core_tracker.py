@@ -130,6 +130,23 @@ def test_hand_in_front_of_a_body_in_range_is_found() -> None:
     assert max(errs) < 15.0, np.round(errs, 1)
 
 
+def test_a_wall_in_the_depth_window_is_no_hand() -> None:
+    """A flat or tilted wall inside the window (no hand in view) is too large to be a hand:
+    nothing is tracked; a hand in front of the same wall is found."""
+    intr = default_intrinsics()
+    tracker = Tracker()
+    across = np.broadcast_to(np.linspace(0.0, 150.0, intr.width, dtype=np.float32), (intr.height, intr.width))
+    down = np.broadcast_to(np.linspace(0.0, 150.0, intr.height, dtype=np.float32)[:, None], (intr.height, intr.width))
+    for wall in (np.full((intr.height, intr.width), 850.0, np.float32), 550.0 + across, 700.0 + down):
+        assert [tracker.process(wall, intr).status for _ in range(3)] == [TrackerStatus.NO_HAND] * 3
+    walled = RenderOptions(background_mm=850.0)
+    frame = next(iter(synthetic_sequence("abdadd", 1, intrinsics=intr, seed=9, options=walled)))
+    assert tracker.config.far_mm > 850.0  # the wall behind the hand is in the window
+    res = [tracker.process(frame.depth_mm, intr) for _ in range(3)][-1]
+    assert res.status is TrackerStatus.TRACKING
+    assert np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).max() < 15.0
+
+
 def test_restart_interval_limits_the_restarts_to_a_rate() -> None:
     """restart_interval_s (the node's setting for fast cameras) skips the restarts on frames
     closer than the interval to the last frame that ran them; None runs them every frame."""

@@ -329,7 +329,9 @@ def test_calibrate_fits_saves_and_a_new_node_loads_the_model(ros_context, tmp_pa
     (How well the fit recovers the true shape is the core's business: test_core_calibration.)
     """
     model = default_hand_model().scaled(HandShape(length=1.1, width=1.05, depth=1.0, sigma=1.0))
-    rig = Rig(ros_context, tmp_path, calibration_frames=1)
+    # (The renderer's wall at 900 mm left outside the depth window: with it inside, this fit on a
+    # single frame comes out 4% long and the guard refuses it; see the README's limitations.)
+    rig = Rig(ros_context, tmp_path, calibration_frames=1, far_mm=600.0)
     try:
         rig.send_info()
         th = rest_pose((0.0, 20.0, 430.0))

@@ -39,7 +39,7 @@ def test_shipped_yaml_lists_every_parameter_at_its_default() -> None:
 @pytest.mark.parametrize(
     "values, match",
     [
-        ({"near_mm": 700.0}, "near_mm < far_mm"),
+        ({"near_mm": 1200.0}, "near_mm < far_mm"),
         ({"median_kernel": 2}, "median_kernel"),
         ({"handedness": "up"}, "handedness must be one of right, left"),
         ({"iterations": 2.5}, "iterations must be int"),
@@ -83,7 +83,7 @@ def test_on_set_callback_rejects_with_a_reason_and_accepts_valid_changes(ros_con
     try:
         results = node.set_parameters(
             [
-                Parameter("near_mm", value=800.0),
+                Parameter("near_mm", value=1200.0),
                 Parameter("median_kernel", value=4),
                 Parameter("far_mm", value=50000.0),
                 Parameter("handedness", value="both"),
@@ -109,6 +109,6 @@ def test_on_set_callback_rejects_with_a_reason_and_accepts_valid_changes(ros_con
 
 def test_invalid_start_up_parameters_raise(ros_context) -> None:
     with pytest.raises(InputError, match="near_mm < far_mm"):
-        TrackerNode(context=ros_context, parameter_overrides=[Parameter("near_mm", value=650.0)])
+        TrackerNode(context=ros_context, parameter_overrides=[Parameter("near_mm", value=1050.0)])
     with pytest.raises(InvalidParameterValueException):
         TrackerNode(context=ros_context, parameter_overrides=[Parameter("iterations", value=0)])

@@ -225,7 +225,7 @@ def test_left_hand_sidecar_and_tracker_settings(
     n = len(FakeTracker.configs)
     assert main([str(tmp_path / "lh"), "--set", "iterations=many"]) == 2
     assert "error: --set iterations=many: iterations must be int" in capsys.readouterr().err
-    assert main([str(tmp_path / "lh"), "--set", "near_mm=900"]) == 2
+    assert main([str(tmp_path / "lh"), "--set", "near_mm=1500"]) == 2
     assert "near_mm" in capsys.readouterr().err
     assert main([str(tmp_path / "lh"), "--set", "wiggle=1"]) == 2
     assert "unknown tracker parameter 'wiggle'" in capsys.readouterr().err

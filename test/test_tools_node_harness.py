@@ -72,7 +72,7 @@ def test_harness_reports_a_node_that_rejects_its_parameters(tmp_path: Path) -> N
         NodeHarness(DOMAIN, params_file=tmp_path / "missing.yaml").start()
     t0 = time.monotonic()
     with pytest.raises(HandSogError, match=r"the tracker node exited with code \d+ before connecting") as exc:
-        with NodeHarness(DOMAIN, params={"near_mm": 900.0}, namespace="/harness_bad"):
+        with NodeHarness(DOMAIN, params={"near_mm": 1500.0}, namespace="/harness_bad"):
             pass
     assert "near_mm" in str(exc.value)  # the end of the node's log tells why
     assert time.monotonic() - t0 < 25.0

@@ -80,7 +80,7 @@ def test_set_items_are_typed_like_the_parameter() -> None:
 
 def test_validation_is_the_node_s() -> None:
     with pytest.raises(InputError, match="near_mm"):
-        tracker_config({"near_mm": 700.0})
+        tracker_config({"near_mm": 1500.0})
     with pytest.raises(InputError, match="outside"):
         tracker_config({"iterations": 0})
     with pytest.raises(InputError, match="handedness must be one of"):

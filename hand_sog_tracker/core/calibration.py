@@ -428,7 +428,7 @@ def _prepare(pre: Preprocessed, pose: NDArray[np.float64], model: HandModel, con
     lo = np.floor((data.mu - data.sigma[:, None]).min(axis=0)) - _SCORE_MARGIN_PX
     hi = np.ceil((data.mu + data.sigma[:, None]).max(axis=0)) + _SCORE_MARGIN_PX
     box = (int(lo[0]), int(lo[1]), int(hi[0]) + 1, int(hi[1]) + 1)
-    return _Frame(pre, data, score_data(pre, box), np.asarray(pose, dtype=np.float64).copy())
+    return _Frame(pre, data, score_data(pre, box, window), np.asarray(pose, dtype=np.float64).copy())
 
 
 def _preprocess_all(frames: Sequence[NDArray], intrinsics: Intrinsics, config: TrackerConfig) -> list[Preprocessed]:

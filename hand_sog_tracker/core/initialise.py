@@ -34,7 +34,7 @@ from hand_sog_tracker.core.articulations import CLOSED, HALF_CLOSED, OPEN
 from hand_sog_tracker.core.depth_sog import Preprocessed
 from hand_sog_tracker.core.hand_model import JOINTS, N_PARAMS, HandModel
 from hand_sog_tracker.core.rotations import euler_from_matrix, rot_y  # euler_from_matrix re-exported
-from hand_sog_tracker.core.types import TrackerConfig
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 
 __all__ = [
     "HandBlob",
@@ -50,6 +50,11 @@ __all__ = [
 # 001 starts from a manual pose); all chosen here, the reason beside each.
 #: Smallest blob accepted as a hand: area in mm^2 at its depth (a palm is ~ 6000).
 MIN_BLOB_AREA_MM2 = 2500.0
+#: Largest: a blob larger than this (mm^2 at its median depth, after the cut at
+#: :data:`HAND_DEPTH_BAND_MM`) is a wall or a table, not a hand (hand and forearm measure
+#: 16,000-20,000 mm^2 in the RealSense frames and 38,000 in the NYU Kinect frame; a wall
+#: filling the view at 0.9 m, 750,000).
+MAX_BLOB_AREA_MM2 = 150_000.0
 #: A blob reaching this far beyond its thickest point (and 1.4x farther than
 #: on the other side) is taken to hold a forearm on that side (mm; a hand reaches about 135
 #: mm from its palm centre to the fingertips).
@@ -136,26 +141,38 @@ class HandBlob:
 
 
 def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
+    """The nearest blob of valid depth that can be a hand (plus forearm), or None.
+
+    Blobs (8-connected valid pixels) are taken nearest first (median depth); a blob must
+    measure at least :data:`MIN_BLOB_AREA_MM2`, and at most :data:`MAX_BLOB_AREA_MM2` after
+    the cut at :data:`HAND_DEPTH_BAND_MM` behind its nearest points.
+    """
     depth = pre.depth_mm
     mask = (depth > 0).astype(np.uint8)
     if not mask.any():
         return None
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     intr = pre.intrinsics
-    best, best_z = -1, np.inf
+    candidates: list[tuple[float, int]] = []
     for lab in range(1, n):
         area_px = stats[lab, cv2.CC_STAT_AREA]
         if area_px < 20:
             continue
         z = float(np.median(depth[labels == lab]))
-        area_mm2 = area_px * (z / intr.fx) * (z / intr.fy)
-        if area_mm2 >= MIN_BLOB_AREA_MM2 and z < best_z:
-            best, best_z = lab, z
-    if best < 0:
-        return None
-    blob = labels == best
-    # An arm reaching toward the camera joins hand and body in one surface: keep the
-    # part within a hand's depth extent of the blob's nearest points.
+        if area_px * (z / intr.fx) * (z / intr.fy) >= MIN_BLOB_AREA_MM2:
+            candidates.append((z, lab))
+    for _, lab in sorted(candidates):
+        blob = _hand_part(depth, labels == lab, intr)
+        z = float(np.median(depth[blob]))
+        if int(np.count_nonzero(blob)) * (z / intr.fx) * (z / intr.fy) <= MAX_BLOB_AREA_MM2:
+            return blob
+    return None
+
+
+def _hand_part(depth: NDArray[np.float32], blob: NDArray[np.bool_], intr: Intrinsics) -> NDArray[np.bool_]:
+    """An arm reaching toward the camera joins hand and body in one surface: the largest part
+    of ``blob`` within a hand's depth extent (:data:`HAND_DEPTH_BAND_MM`) of its nearest
+    points, if that is large enough for a hand; else ``blob``."""
     near = float(np.percentile(depth[blob], 2))
     band = (blob & (depth <= near + HAND_DEPTH_BAND_MM)).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(band, connectivity=8)

@@ -142,11 +142,18 @@ class ScoreData:
     cache: dict = field(default_factory=dict)  # points projected on the last hand axis
 
 
-def score_data(pre: Preprocessed, roi: tuple[int, int, int, int]) -> ScoreData:
+def score_data(
+    pre: Preprocessed, roi: tuple[int, int, int, int], window_mm: tuple[float, float] | None = None
+) -> ScoreData:
+    """The depth inside ``roi`` (u0, v0, u1, v1, px, end-exclusive) that :func:`overlap_score`
+    compares the model with; with ``window_mm`` (near, far) only the depth strictly inside it
+    (the hand's depth window: a wall or body behind the hand is not hand)."""
     intr = pre.intrinsics
     u0, v0, u1, v1 = (max(0, roi[0]), max(0, roi[1]), min(intr.width, roi[2]), min(intr.height, roi[3]))
     u1, v1 = max(u1, u0), max(v1, v0)
     depth = pre.depth_mm[v0:v1, u0:u1].astype(np.float32)
+    if window_mm is not None:
+        depth[(depth <= window_mm[0]) | (depth >= window_mm[1])] = 0.0
     vv, uu = np.mgrid[v0:v1, u0:u1]
     pts = intr.backproject(np.stack([uu.ravel(), vv.ravel()], 1).astype(np.float64), depth.ravel().astype(np.float64))
     return ScoreData((u0, v0, u1, v1), depth, pts.reshape(depth.shape + (3,)))
@@ -174,15 +181,17 @@ def shape_score(
     pre: Preprocessed,
     roi: tuple[int, int, int, int],
     tolerance_mm: float = SCORE_TOLERANCE_MM,
+    window_mm: tuple[float, float] | None = None,
 ) -> float:
     """Depth-aware overlap of the model's silhouette with the hand's, in [0, 1].
 
     The model's skin is drawn as capsules joining consecutive Gaussians of each
     chain and neighbouring palm Gaussians (radii = their sigmas, mm), projected
     into the image at the resolution of ``pre``.  Data pixels count if they lie
-    inside ``roi`` (u0, v0, u1, v1, px, end-exclusive) and on the finger side
-    of the wrist (the forearm is not part of the model).  Score = pixels
+    inside ``roi`` (u0, v0, u1, v1, px, end-exclusive), inside ``window_mm`` (near, far; the
+    hand's depth window, e.g. from :func:`~hand_sog_tracker.core.tracker.hand_roi`) when
+    given, and on the finger side of the wrist (the forearm is not part of the model).  Score = pixels
     covered by both with depths within ``tolerance_mm`` (mm), divided by pixels
     covered by either.
     """
-    return overlap_score(model, theta, score_data(pre, roi), pre.intrinsics, tolerance_mm)
+    return overlap_score(model, theta, score_data(pre, roi, window_mm), pre.intrinsics, tolerance_mm)

@@ -53,7 +53,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.overlay import TIP_COLOURS_BGR, draw_overlay
-from hand_sog_tracker.core.types import Intrinsics, TrackerStatus
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import BagError, HandSogError, InputError
 from hand_sog_tracker.tools.bagio import BagFrame, BagTopics, DepthBagReader, deserialize, iter_messages, stamp_to_ns
 from hand_sog_tracker.tools.bagset import PROTOCOL, TEST_SPLIT, read_sidecar
@@ -357,8 +357,8 @@ def run_demo(
     node_params: dict[str, Any] = dict(params or {})
     if "handedness" not in node_params and sample.get("handedness") in ("right", "left"):
         node_params["handedness"] = sample["handedness"]
-    near = float(node_params.get("near_mm", 150.0))
-    far = float(node_params.get("far_mm", 600.0))
+    near = float(node_params.get("near_mm", TrackerConfig.near_mm))
+    far = float(node_params.get("far_mm", TrackerConfig.far_mm))
     lines: list[str] = []
 
     def say(text: str = "") -> None:

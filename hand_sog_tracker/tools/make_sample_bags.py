@@ -28,8 +28,8 @@ per-message compression.  Unless ``--no-hires``, one more bag,
 
 By default nothing is rendered behind the hand and forearm (no return, 0):
 a noisy wall (``--background-mm 900``) is ~60 KB per compressed 320x240 frame
-and would make the bags 7x larger; the tracker ignores depth beyond
-``far_mm`` (600 mm) anyway.
+and would make the bags 7x larger; the tracker cuts off what lies well behind the hand
+anyway.
 
 An existing bag directory of the same name is replaced unless ``--no-force`` (only if it holds a
 ``metadata.yaml``; anything else is an error).
