@@ -9,6 +9,7 @@ from hand_sog_tracker.core.depth_sog import (
     MAX_QUAD_PX,
     MIN_QUAD_PX,
     check_depth,
+    leaf_px,
     preprocess,
     quadtree_sog,
     self_overlap_2d,
@@ -248,3 +249,13 @@ def test_fast_preprocessing_equals_the_plain_expressions() -> None:
             keep = (d > 0) & (med > 0) & (np.abs(med - d) < cfg.quadtree_threshold_mm)
             ref = np.where(keep, med, np.float32(0.0))
             assert preprocess(arr, intr, cfg).depth_mm.tobytes() == ref.tobytes()
+
+
+def test_leaf_px_halves_the_leaf_for_far_hands() -> None:
+    # f = 287.26 px (the helpers' 320x240 camera): 2 f = 575 mm, 4 f = 1149 mm.
+    assert [leaf_px(4, z, INTR) for z in (250.0, 400.0, 570.0, 580.0, 900.0, 1200.0)] == [4, 4, 4, 2, 2, 2]
+    assert [leaf_px(8, z, INTR) for z in (400.0, 580.0, 1200.0)] == [8, 4, 2]
+    assert leaf_px(2, 900.0, INTR) == 2
+    # The same camera at twice the resolution: the same depths (leaves in px of that image).
+    double = Intrinsics(2 * INTR.fx, 2 * INTR.fy, 2 * INTR.cx, 2 * INTR.cy, 640, 480)
+    assert [leaf_px(4, z, double) for z in (580.0, 1100.0, 1200.0)] == [4, 4, 2]

@@ -13,7 +13,7 @@ from hand_sog_tracker.core.kinematics import fingertips
 from hand_sog_tracker.core.restarts import RESTART_ITERATIONS, SHIFT_CHUNK, SHIFT_EVERY
 from hand_sog_tracker.core.salient import Detections
 from hand_sog_tracker.core.tracker import Tracker
-from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import DepthImageError, IntrinsicsError
 from hand_sog_tracker.synth.render import RenderOptions, render_depth
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
@@ -145,6 +145,28 @@ def test_a_wall_in_the_depth_window_is_no_hand() -> None:
     res = [tracker.process(frame.depth_mm, intr) for _ in range(3)][-1]
     assert res.status is TrackerStatus.TRACKING
     assert np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).max() < 15.0
+
+
+def test_far_hand_gets_finer_data_and_is_tracked() -> None:
+    """A hand at 0.78 m before a Kinect-like 640x480 camera (processed at 320x240): its data
+    get the leaves of a near hand (2 px instead of 4), and the fingers are tracked."""
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, mesh_fingertips, render_mesh_depth
+    from hand_sog_tracker.synth.motions import motion_poses
+
+    intr = Intrinsics(588.0, 587.0, 320.0, 240.0, 640, 480)
+    poses = motion_poses("fingerwave", 24, seed=4021)
+    poses[:, 2] += 380.0
+    rng = np.random.default_rng(4021)
+    tracker = Tracker()
+    errs, counts = [], []
+    for theta in poses:
+        depth = render_mesh_depth(theta, intr, options=MeshRenderOptions(sensor="tof"), rng=rng)
+        res = tracker.process(depth, intr)
+        assert res.status is TrackerStatus.TRACKING
+        errs.append(np.linalg.norm(res.fingertips_mm - mesh_fingertips(theta), axis=1).mean())
+        counts.append(res.n_image_gaussians)
+    assert min(counts) > 100  # (with 4 px leaves about 50)
+    assert np.mean(errs) < 6.0 and max(errs) < 12.0, np.round(errs, 1)  # (4 px leaves: 6.1 mm mean)
 
 
 def test_restart_interval_limits_the_restarts_to_a_rate() -> None:

@@ -77,7 +77,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.articulations import OPEN
-from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess, quadtree_sog
+from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
 from hand_sog_tracker.core.energy import Objective, TipTargets
 from hand_sog_tracker.core.hand_model import (
     FINGER_ABD,
@@ -421,7 +421,8 @@ class _Frame:
 def _prepare(pre: Preprocessed, pose: NDArray[np.float64], model: HandModel, config: TrackerConfig) -> _Frame | None:
     """Data around the hand at ``pose``; None when no hand data are there."""
     roi, window = hand_roi(model, pose, pre.intrinsics, config.roi_radius_mm)
-    data = quadtree_sog(pre, config.quadtree_threshold_mm, roi, window, config.min_quad_px)
+    leaf = leaf_px(config.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
+    data = quadtree_sog(pre, config.quadtree_threshold_mm, roi, window, leaf)
     if data.n == 0:
         return None
     # Score only around the hand's data (plus a margin for a model too large).

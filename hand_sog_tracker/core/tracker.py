@@ -23,7 +23,7 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess, quadtree_sog
+from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
 from hand_sog_tracker.core.energy import Objective, TipTargets, gaussian_support
 from hand_sog_tracker.core.hand_model import (
     HandModel,
@@ -272,9 +272,8 @@ class Tracker(RestartStrategies):
             if det.n:
                 along = (det.points - theta[:3]) @ global_rotation(theta)[:, 1]
                 det = det.subset(along > -WRIST_MARGIN_MM)
-        data = quadtree_sog(
-            pre, self._config.quadtree_threshold_mm, roi, window, self._config.min_quad_px
-        )
+        leaf = leaf_px(self._config.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
+        data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf)
         if data.n == 0:
             return data, det, sil
         axis = global_rotation(theta)[:, 1]
@@ -393,7 +392,9 @@ class Tracker(RestartStrategies):
         starts = initial_hypotheses(self._model, blob, cfg.init_hypotheses)
         roi, window = hand_roi(self._model, starts[0], pre.intrinsics, cfg.roi_radius_mm)
         coarse = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, max(eff.coarse_quad_px, cfg.min_quad_px))
-        fine = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, cfg.min_quad_px)
+        # (The coarse data keep their leaves for a far hand too: the search was tuned on them.)
+        fine_px = leaf_px(cfg.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
+        fine = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, fine_px)
         det = detect_fingertips(pre, roi, window)
         if det.n:
             det = det.subset(self._on_hand_side(det.points, starts[0]))

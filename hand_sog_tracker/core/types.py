@@ -81,7 +81,7 @@ class TrackerConfig:
     #: 600 mm saw no hand in the labelled NYU frame at 0.74 m; no change on the renders).
     far_mm: float = 1000.0
     quadtree_threshold_mm: float = 20.0
-    min_quad_px: int = 4  #: smallest quadtree leaf side at processing resolution: 2, 4 or 8
+    min_quad_px: int = 4  #: smallest quadtree leaf side at processing resolution: 2, 4 or 8 (see leaf_px)
     median_kernel: int = 3  #: 0 or 1 disables the median filter; else odd 3 or 5
     max_width_px: int = 320  #: images wider than this are decimated first
     iterations: int = 7

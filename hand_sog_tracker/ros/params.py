@@ -111,7 +111,8 @@ _TRACKER_META: dict[str, tuple[str, float | None, float | None]] = {
     "far_mm": ("Depth beyond this is ignored (mm); must exceed near_mm.", 20.0, 10000.0),
     "quadtree_threshold_mm": (
         "Quadtree split threshold: a cell whose depth range exceeds this is split (mm).", 1.0, 200.0),
-    "min_quad_px": ("Smallest quadtree leaf side at processing resolution (px): 2, 4 or 8.", 2, 8),
+    "min_quad_px": (
+        "Smallest quadtree leaf side at processing resolution (px): 2, 4 or 8; halved for a far hand.", 2, 8),
     "median_kernel": ("Median filter size on the depth image: 0 or 1 = off, 3 or 5.", 0, 5),
     "max_width_px": ("Wider images are decimated to at most this width first (px).", 80, 4096),
     "iterations": ("Gradient-ascent iterations per frame.", 1, 200),
