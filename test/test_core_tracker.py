@@ -112,8 +112,11 @@ def test_recovers_each_of_ten_returns_of_the_hand() -> None:
     assert max(final_errors) < 25.0, np.round(final_errors, 1)
 
 
-def test_hand_in_front_of_a_body_in_range_is_found() -> None:
-    """Hand and forearm seen against a body 300 mm behind them, all inside the depth window."""
+@pytest.mark.parametrize("behind_mm", [150.0, 300.0])
+def test_hand_in_front_of_a_body_in_range_is_found(behind_mm: float) -> None:
+    """Hand and forearm seen against a body 150 or 300 mm behind them, all inside the depth
+    window (150 mm: within the hand finder's first depth band, cut off by a narrower one; the
+    release before tracked the body there, 240 mm off)."""
     intr = default_intrinsics()
     config = TrackerConfig(far_mm=1200.0)
     frames = list(synthetic_sequence("abdadd", 3, intrinsics=intr, seed=8, options=RenderOptions(background_mm=None)))
@@ -123,11 +126,12 @@ def test_hand_in_front_of_a_body_in_range_is_found() -> None:
         depth = frame.depth_mm.copy()
         body = depth == 0
         body[:20, :] = False  # the body does not fill the top of the image
-        depth[body] = 700.0
+        depth[body] = 400.0 + behind_mm
         res = tracker.process(depth, intr)
         assert res.fingertips_mm is not None, res.status
         errs.append(np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).mean())
-    assert max(errs) < 15.0, np.round(errs, 1)
+    # (150 mm: the first answer is 16 mm off, the next ones 4 mm.)
+    assert errs[0] < (25.0 if behind_mm < 200.0 else 15.0) and max(errs[1:]) < 15.0, np.round(errs, 1)
 
 
 def test_a_wall_in_the_depth_window_is_no_hand() -> None:

@@ -62,6 +62,10 @@ FOREARM_MIN_EXTENT_MM = 150.0
 #: Depth extent (mm) of a hand (plus wrist) behind its nearest point: what lies farther behind
 #: is cut off as arm or body (commit ea81b12).
 HAND_DEPTH_BAND_MM = 250.0
+#: Narrower depth bands tried, in turn, while the part of a blob within the band is larger than
+#: :data:`MAX_BLOB_AREA_MM2` (mm): a body 150-250 mm behind the hand (held in front of the chest)
+#: is then cut off; a wall stays too large in every band.
+NARROW_BANDS_MM = (175.0, 120.0)
 
 
 @dataclass(frozen=True)
@@ -145,7 +149,8 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
 
     Blobs (8-connected valid pixels) are taken nearest first (median depth); a blob must
     measure at least :data:`MIN_BLOB_AREA_MM2`, and at most :data:`MAX_BLOB_AREA_MM2` after
-    the cut at :data:`HAND_DEPTH_BAND_MM` behind its nearest points.
+    the cut at :data:`HAND_DEPTH_BAND_MM` behind its nearest points (or a narrower band of
+    :data:`NARROW_BANDS_MM`).
     """
     depth = pre.depth_mm
     mask = (depth > 0).astype(np.uint8)
@@ -162,19 +167,22 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
         if area_px * (z / intr.fx) * (z / intr.fy) >= MIN_BLOB_AREA_MM2:
             candidates.append((z, lab))
     for _, lab in sorted(candidates):
-        blob = _hand_part(depth, labels == lab, intr)
-        z = float(np.median(depth[blob]))
-        if int(np.count_nonzero(blob)) * (z / intr.fx) * (z / intr.fy) <= MAX_BLOB_AREA_MM2:
-            return blob
+        for band_mm in (HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM):
+            blob = _hand_part(depth, labels == lab, intr, band_mm)
+            z = float(np.median(depth[blob]))
+            if int(np.count_nonzero(blob)) * (z / intr.fx) * (z / intr.fy) <= MAX_BLOB_AREA_MM2:
+                return blob
     return None
 
 
-def _hand_part(depth: NDArray[np.float32], blob: NDArray[np.bool_], intr: Intrinsics) -> NDArray[np.bool_]:
+def _hand_part(
+    depth: NDArray[np.float32], blob: NDArray[np.bool_], intr: Intrinsics, band_mm: float = HAND_DEPTH_BAND_MM
+) -> NDArray[np.bool_]:
     """An arm reaching toward the camera joins hand and body in one surface: the largest part
-    of ``blob`` within a hand's depth extent (:data:`HAND_DEPTH_BAND_MM`) of its nearest
-    points, if that is large enough for a hand; else ``blob``."""
+    of ``blob`` within a hand's depth extent (``band_mm``) of its nearest points, if that is
+    large enough for a hand; else ``blob``."""
     near = float(np.percentile(depth[blob], 2))
-    band = (blob & (depth <= near + HAND_DEPTH_BAND_MM)).astype(np.uint8)
+    band = (blob & (depth <= near + band_mm)).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(band, connectivity=8)
     if n <= 1:
         return blob
