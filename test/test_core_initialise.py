@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from hand_sog_tracker.core import tracker as tracker_module
+from hand_sog_tracker.core.depth_sog import preprocess
 from hand_sog_tracker.core.energy import Objective
-from hand_sog_tracker.core.initialise import INIT_SEARCH
+from hand_sog_tracker.core.initialise import INIT_SEARCH, find_hand
 from hand_sog_tracker.core.tracker import Tracker, _balanced
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
@@ -101,3 +102,18 @@ def test_the_articulated_start_poses_keep_both_palm_sides() -> None:
 def test_the_tracker_module_uses_the_initialise_effort() -> None:
     assert tracker_module.INIT_SEARCH is INIT_SEARCH
     assert INIT_SEARCH.coarse_quad_px >= TrackerConfig().min_quad_px
+
+
+def test_the_palm_is_found_through_sensor_dropouts() -> None:
+    """10% of the pixels dropped at random: the palm centre stays where it is on the intact
+    frame (before the holes were filled it landed a finger's length away, or nowhere)."""
+    intr = default_intrinsics()
+    config = TrackerConfig()
+    rng = np.random.default_rng(12)
+    for k, frame in enumerate(synthetic_sequence("abdadd", 3, intrinsics=intr, seed=12)):
+        intact = find_hand(preprocess(frame.depth_mm, intr, config), config)
+        holes = frame.depth_mm.copy()
+        holes[rng.random(holes.shape) < 0.1] = 0.0
+        dropped = find_hand(preprocess(holes, intr, config), config)
+        assert intact is not None and dropped is not None
+        assert np.linalg.norm(dropped.palm - intact.palm) < 10.0, (k, intact.palm, dropped.palm)

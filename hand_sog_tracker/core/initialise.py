@@ -198,11 +198,28 @@ def _in_plane(direction: NDArray[np.float64], angle: float) -> NDArray[np.float6
     return d / np.linalg.norm(d)
 
 
+#: Invalid pixels inside a blob in 4-connected groups up to this size (px) are filled before the
+#: palm is searched: a blob riddled with sensor dropouts has no thick part (chosen here: with 10%
+#: of the pixels dropped at random, 20 dev renders went from 15.7 to 7.0 mm and 10 others from
+#: 9.9 to 8.0 mm; 2 x 144 clean renders unchanged on average, 7.46 and 7.28 mm).
+MAX_HOLE_PX = 30
+
+
+def _without_holes(blob: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """``blob`` with its small holes (:data:`MAX_HOLE_PX`, not touching the image border) filled."""
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((~blob).astype(np.uint8), connectivity=4)
+    h, w = blob.shape
+    x, y, bw, bh, area = (stats[:, k] for k in range(5))
+    small = (area <= MAX_HOLE_PX) & (x > 0) & (y > 0) & (x + bw < w) & (y + bh < h)
+    small[0] = False  # label 0: the blob itself
+    return blob | small[labels]
+
+
 def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     """Locate the nearest sizeable depth blob, its palm and candidate hand directions.
 
     The palm centre is the point of the blob farthest from its outline
-    (distance-transform maximum), searched at the hand end when a forearm is
+    (distance-transform maximum, small holes filled), searched at the hand end when a forearm is
     recognised.  Returns None when nothing in range is large enough to be a hand.
     """
     blob = _nearest_blob(pre)
@@ -223,7 +240,7 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     t = (pts - c) @ axis
     h, w = depth.shape
     border = (us <= 1) | (vs <= 1) | (us >= w - 2) | (vs >= h - 2)
-    dist = cv2.distanceTransform(blob.astype(np.uint8), cv2.DIST_L2, 5)
+    dist = cv2.distanceTransform(_without_holes(blob).astype(np.uint8), cv2.DIST_L2, 5)
     # Extent of the blob on either side of its thickest point along the axis:
     # fingers reach about a hand length from the palm, a forearm much farther,
     # and a forearm usually leaves the image.
