@@ -200,9 +200,10 @@ def _in_plane(direction: NDArray[np.float64], angle: float) -> NDArray[np.float6
 
 #: Invalid pixels inside a blob in 4-connected groups up to this size (px) are filled before the
 #: palm is searched: a blob riddled with sensor dropouts has no thick part (chosen here: with 10%
-#: of the pixels dropped at random, 20 dev renders went from 15.7 to 7.0 mm and 10 others from
-#: 9.9 to 8.0 mm; 2 x 144 clean renders unchanged on average, 7.46 and 7.28 mm).
-MAX_HOLE_PX = 30
+#: of the pixels dropped at random, 10 dev renders went from 15.7 to 7.1 mm and 10 others from
+#: 9.9 to 8.3 mm; up to 30 px gave 7.0 and 8.0 mm, but filled enclosed gaps between fingers
+#: too: the capsule random bag went from 4.0 to 6.6 mm).
+MAX_HOLE_PX = 4
 
 
 def _without_holes(blob: NDArray[np.bool_]) -> NDArray[np.bool_]:
