@@ -10,7 +10,9 @@ import pytest
 from hand_sog_tracker.core import tracker as tracker_module
 from hand_sog_tracker.core.depth_sog import preprocess
 from hand_sog_tracker.core.energy import Objective
+from hand_sog_tracker.core.hand_model import default_hand_model
 from hand_sog_tracker.core.initialise import INIT_SEARCH, find_hand
+from hand_sog_tracker.core.kinematics import gaussian_centres
 from hand_sog_tracker.core.tracker import Tracker, _balanced
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
@@ -105,17 +107,23 @@ def test_the_tracker_module_uses_the_initialise_effort() -> None:
 
 
 def test_the_palm_is_found_through_sensor_dropouts() -> None:
-    """Single-pixel dropouts on a tenth of the pixels: the palm centre stays where it is on the
-    intact frame (before the small holes were filled it landed 18 mm away)."""
+    """Single-pixel dropouts on a tenth of the pixels: the palm is found about as near the true
+    palm centre as on the intact frames (3-28 mm: the search takes the thickest point of the
+    blob); without the holes filled it landed 14-80 mm away."""
     intr = default_intrinsics()
     config = TrackerConfig()
-    rng = np.random.default_rng(12)
+    model = default_hand_model()
     vv, uu = np.mgrid[: intr.height, : intr.width]
     lattice = (uu + vv) % 3 == 0  # no two lattice pixels are 4-neighbours: 1 px holes
-    for k, frame in enumerate(synthetic_sequence("abdadd", 3, intrinsics=intr, seed=12)):
-        intact = find_hand(preprocess(frame.depth_mm, intr, config), config)
-        holes = frame.depth_mm.copy()
-        holes[lattice & (rng.random(holes.shape) < 0.3)] = 0.0
-        dropped = find_hand(preprocess(holes, intr, config), config)
-        assert intact is not None and dropped is not None
-        assert np.linalg.norm(dropped.palm - intact.palm) < 10.0, (k, intact.palm, dropped.palm)
+    errors = []
+    for seed in (12, 13, 14):
+        rng = np.random.default_rng(seed)
+        for frame in synthetic_sequence("abdadd", 3, intrinsics=intr, seed=seed):
+            centres = gaussian_centres(model, frame.pose)
+            palm = centres[model.g_chain < 0].mean(axis=0)
+            holes = frame.depth_mm.copy()
+            holes[lattice & (rng.random(holes.shape) < 0.3)] = 0.0
+            found = find_hand(preprocess(holes, intr, config), config)
+            assert found is not None
+            errors.append(float(np.linalg.norm(found.palm - palm)))
+    assert max(errors) < 25.0 and np.mean(errors) < 15.0, np.round(errors, 1)
