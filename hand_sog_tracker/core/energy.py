@@ -134,6 +134,18 @@ def _flat_cols(m: int, n: int) -> NDArray[np.int64]:
     return hit
 
 
+def _as_slice(index: NDArray[np.int64]) -> slice | NDArray[np.int64]:
+    """``index`` (k,) as the equivalent slice when its entries are evenly spaced and increasing
+    (a slice indexes a view: cheaper than a gather and a scatter), else ``index`` itself."""
+    idx = np.asarray(index)
+    if idx.ndim != 1 or idx.size < 2 or idx[0] < 0:
+        return index
+    step = int(idx[1] - idx[0])
+    if step <= 0 or not (np.diff(idx) == step).all():
+        return index
+    return slice(int(idx[0]), int(idx[-1]) + 1, step)
+
+
 @dataclass(frozen=True)
 class EnergyTerms:
     """Values of the objective and its terms (unitless)."""
@@ -224,6 +236,11 @@ def model_constants(model: HandModel) -> _ModelConstants:
 
 _DATA_CACHE: list = [(None, 0, None)]  # (data, m, constants) of the last data: one tuple
 
+#: A candidate pair whose ``r2 scale^2 + min(dd, 0)^2`` is at most this (mm^2) is within
+#: ``TAU1_MM`` of its model Gaussian for certain (see :meth:`Objective._data_terms`; the
+#: factor leaves 1e-12 for rounding errors below 1e-14).
+_NEAR_SAFE = TAU1_MM * TAU1_MM * (1.0 - 1e-12)
+
 
 def _data_constants(data: ImageSoG, m: int) -> tuple:
     """Constants of the data terms for a frame's data and ``m`` model Gaussians (cached for
@@ -231,7 +248,7 @@ def _data_constants(data: ImageSoG, m: int) -> tuple:
 
     Returns ``mu_u, mu_v, sigma^2, half side`` (n,) each, the candidate matrix (2, 6, n) of
     :meth:`Objective._data_terms`, the first flat index of each model Gaussian's row (m + 1,)
-    and the per-data values read per pair (5, n): ``mu_u, mu_v, depth, sigma^2, half side``.
+    and the per-data values read per pair (4, n): ``mu_u, mu_v, depth, sigma^2``.
     """
     hit = _DATA_CACHE[0]
     if hit[0] is data and hit[1] == m:
@@ -252,7 +269,7 @@ def _data_constants(data: ImageSoG, m: int) -> tuple:
     cand[1, 1] = 1.0
     cand[1, 2] = depth * depth
     cand[1, 5] = -2.0 * depth
-    const = (mu_u, mu_v, sq2, half, cand, np.arange(m + 1) * n, np.array([mu_u, mu_v, depth, sq2, half]))
+    const = (mu_u, mu_v, sq2, half, cand, np.arange(m + 1) * n, np.array([mu_u, mu_v, depth, sq2]))
     _DATA_CACHE[0] = (data, m, const)
     return const
 
@@ -396,6 +413,9 @@ class Objective:
             self._mu_u, self._mu_v, self._sq2, self._half, self._cand, self._row_starts, self._per_q,
         ) = _data_constants(data, model.n_gaussians)
         self._col_of = _flat_cols(model.n_gaussians, data.n)
+        # The silhouette term reads the data terms' projections when both use the same camera.
+        self._sil_shares_projection = silhouette is not None and silhouette.intrinsics == intr
+        self._mu_uv = self._per_q[:2, None, :]  # (2, 1, n) px: mu_u, mu_v (a view)
         self._sat = (SIM_SATURATION * np.pi) * self._per_q[3]  # k_q of E_sim, (n,) px^2
         sh = model.g_sigmas
         self._shf = sh * self._f
@@ -413,7 +433,7 @@ class Objective:
         self._rows[8] = self._two_sh
         # The candidate tests of all pairs and their outcome (filled by every evaluation).
         self._tests = np.empty((2, model.n_gaussians, data.n))
-        self._neg = np.empty((2, model.n_gaussians, data.n), dtype=bool)
+        self._neg = np.empty((model.n_gaussians, data.n), dtype=bool)
         # (targets, their constants or None) of the last targets seen by _salient.
         self._sal: tuple[object, tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None] = (
             _UNSET, None
@@ -475,7 +495,12 @@ class Objective:
             g3 = np.zeros(P.shape)
         else:
             P, pullback, g3 = gaussian_centres(self.model, theta), None, None
-        sim, dan = self._data_terms(P, g3, cfg.w_dan)
+        # The model Gaussians' depths and projections (fx x / z, fy y / z), shared by the data
+        # and silhouette terms.
+        z = np.maximum(P[:, 2], 1.0)
+        proj = np.multiply(self._fxy, P[:, :2].T)
+        proj /= z
+        sim, dan = self._data_terms(P, g3, cfg.w_dan, z, proj)
         col = self._collision(P, g3, cfg.w_col)
         lim, g_lim = self._limits(theta)
         if terms or cfg.w_smo != 0.0:
@@ -486,7 +511,9 @@ class Objective:
         sal = self._salient(P, g3, cfg.w_sal)
         sil = 0.0
         if self.silhouette is not None and cfg.w_sil > 0:
-            sil = silhouette_term(self.silhouette, P, g3, cfg.w_sil)
+            sil = silhouette_term(
+                self.silhouette, P, g3, cfg.w_sil, (z, proj) if self._sil_shares_projection else None
+            )
         total = (
             sim
             - cfg.w_col * col
@@ -512,9 +539,17 @@ class Objective:
 
     # -- terms ---------------------------------------------------------------
     def _data_terms(
-        self, P: NDArray[np.float64], g3: NDArray[np.float64] | None, w_dan: float
+        self,
+        P: NDArray[np.float64],
+        g3: NDArray[np.float64] | None,
+        w_dan: float,
+        z: NDArray[np.float64] | None = None,
+        proj: NDArray[np.float64] | None = None,
     ) -> tuple[float, float]:
         """``E_sim`` and ``E_dan``; adds ``dE/dP`` (with signs and weights) into ``g3``.
+
+        ``z``, ``proj``: ``max(P_z, 1)`` (m,) mm and ``(fx x / z, fy y / z)`` (2, m) px when
+        already computed (the same operations as here: the same bits).
 
         ``E_sim`` is summed over the pairs that can contribute: depth difference
         under ``2 sigma_h`` (else ``Delta = 0`` exactly) and image distance under
@@ -533,7 +568,10 @@ class Objective:
         if n == 0 or data.norm <= 0:
             return 0.0, 0.0
         m = P.shape[0]
-        z = np.maximum(P[:, 2], 1.0)
+        if z is None or proj is None:
+            z = np.maximum(P[:, 2], 1.0)
+            proj = np.multiply(self._fxy, P[:, :2].T)
+            proj /= z
         # Per model Gaussian (rows): 0 and 1 the tests' own terms, 2 ones, 3-5 u, v, dp (rows
         # 0-5 enter the candidate product), 6-9 sp^2, 2 pi sp^2, 2 sigma_h, (mm per px)^2
         # (rows 3-9 are read per pair: contiguous rows, strided columns would slow down exp),
@@ -542,9 +580,7 @@ class Objective:
         rows = self._rows
         uv, dp, sp_sq, sp = rows[3:5], rows[5], rows[6], rows[10]
         u, v = uv
-        np.multiply(self._fxy, P[:, :2].T, out=uv)
-        uv /= z
-        uv += self._cxy  # u = fx x / z + cx, v = fy y / z + cy
+        np.add(proj, self._cxy, out=uv)  # u = fx x / z + cx, v = fy y / z + cy
         np.subtract(z, self.model.g_sigmas, out=dp)
         np.divide(self._shf, z, out=sp)
         np.multiply(sp, sp, out=sp_sq)
@@ -558,8 +594,9 @@ class Objective:
         np.multiply(dp, dp, out=rows[1])
         rows[1] -= self._four_sh2
         tests = np.matmul(rows[:6].T, self._cand, out=self._tests)  # (2, m, n): < 0: pass
-        neg = np.less(tests, 0.0, out=self._neg)
-        flat = np.logical_and(neg[0], neg[1], out=neg[0]).ravel().nonzero()[0]
+        # Both tests pass (< 0) exactly when the larger does: one comparison of (m, n) values.
+        worst = np.maximum(tests[0], tests[1], out=tests[0])
+        flat = np.less(worst, 0.0, out=self._neg).ravel().nonzero()[0]
         # Pairs per model Gaussian (the pairs come sorted by it): where each row's run starts.
         bounds = flat.searchsorted(self._row_starts)
         per_row = bounds[1:] - bounds[:-1]
@@ -568,7 +605,7 @@ class Objective:
         # instead of a gather per value); its data Gaussian's values, one gather.
         per_p = rows[3:10].repeat(per_row, axis=1)
         sp_sq_p, tpsp_p, two_sh_p, scale2_p = per_p[3:]
-        per_q = self._per_q.take(qi, axis=1)  # mu_u, mu_v, depth, sigma^2, half side
+        per_q = self._per_q.take(qi, axis=1)  # mu_u, mu_v, depth, sigma^2
         diffs = np.subtract(per_p[:3], per_q[:3], out=per_q[:3])
         du, dv, dd = diffs  # u - mu_u, v - mu_v, dp - depth
         # Per pair, in place where a value is not needed again (the same operations, fewer
@@ -599,18 +636,19 @@ class Objective:
         sim = float(_sum(k * sat) * (-SIM_GAIN * inv_norm))
         sat += 1.0  # exp(-S_q / k_q): dE_sim/dS_q in units of G / norm
         # Dangling Gaussians (eq. 7): distance from each model Gaussian to the data,
-        # occlusion-aware (see the module docstring), dmin its minimum over the data.  A
-        # candidate pair within TAU1 settles dmin <= TAU1 (weight 0); only the other rows
-        # (typically none to a few) need the distances to all data Gaussians.
-        lat_c = np.sqrt(r2)
-        lat_c -= per_q[4]
-        np.maximum(lat_c, 0.0, out=lat_c)
+        # occlusion-aware (see the module docstring), dmin its minimum over the data:
+        # ``dist^2 = lat^2 scale^2 + beh^2`` with ``lat = max(sqrt(r2) - half, 0)`` and
+        # ``beh = min(dd, 0)``.  A model Gaussian with dmin <= TAU1 has weight 0.  As ``lat``
+        # is at most ``sqrt(r2)``, a candidate pair with ``r2 scale^2 + beh^2 <= _NEAR_SAFE``
+        # settles dmin <= TAU1 (four passes over the pairs fewer than ``dist``; typically it
+        # settles every row but none to a few).  The other rows get the distances to all data
+        # Gaussians, computed per element as ``dist`` is on a pair: a row with a pair within
+        # TAU1 has dmin <= TAU1 there, weight 0, and drops out as if it had been settled here.
         beh_c = np.minimum(dd, 0.0, out=e)  # minus how far the data lie behind: squared below
-        lat_c *= lat_c
-        lat_c *= scale2_p
         beh_c *= beh_c
-        lat_c += beh_c
-        near_c = lat_c <= TAU1_MM * TAU1_MM
+        bound_c = np.multiply(r2, scale2_p, out=r2)  # (r2 is not needed again)
+        bound_c += beh_c
+        near_c = bound_c <= _NEAR_SAFE
         nz = per_row > 0
         every_row = bool(nz.all())  # (typical: then the segmented sums need no scatter)
         starts = bounds[:-1] if every_row else bounds[:-1][nz]
@@ -624,29 +662,37 @@ class Objective:
         dan = 0.0
         sel = U[:0]
         if U.size:
-            du_U = u[U][:, None] - self._mu_u
-            dv_U = v[U][:, None] - self._mu_v
-            r2_U = du_U * du_U + dv_U * dv_U
+            # (Per element the same operations as on the pairs; the rows' values in one gather,
+            # u and v together: the per-call cost dominates at this size.)
+            rows_U = rows.take(U, axis=1)
+            duv_U = rows_U[3:5, :, None] - self._mu_uv  # (2, U, n): u - mu_u, v - mu_v
+            du_U, dv_U = duv_U
+            sq_U = duv_U * duv_U
+            r2_U = np.add(sq_U[0], sq_U[1], out=sq_U[0])
             r_U = np.sqrt(r2_U)
-            lat_U = np.maximum(r_U - self._half, 0.0)
+            lat_U = r_U - self._half
+            np.maximum(lat_U, 0.0, out=lat_U)
             scale_U = scale[U][:, None]
             # minus how far the data lie behind the model's surface (data in front: 0)
-            nbeh_U = np.minimum(dp[U][:, None] - data.depth, 0.0)
-            dist2_U = lat_U * lat_U * (scale_U * scale_U) + nbeh_U * nbeh_U
-            nearest_U = dist2_U.argmin(axis=1)
-            dmin_U = np.sqrt(dist2_U[np.arange(U.size), nearest_U])
-            # (minimum of maximum: np.clip, several times cheaper on small arrays)
-            wdang_U = np.minimum(np.maximum((dmin_U - TAU1_MM) / TAU1_MM, 0.0), 1.0)
-            sel = (wdang_U > 0.0).nonzero()[0]
+            nbeh_U = rows_U[5][:, None] - data.depth
+            np.minimum(nbeh_U, 0.0, out=nbeh_U)
+            dist2_U = lat_U * lat_U
+            dist2_U *= rows_U[9][:, None]  # (row 9: scale * scale)
+            dist2_U += nbeh_U * nbeh_U
+            dmin_U = np.sqrt(np.minimum.reduce(dist2_U, axis=1))
+            # The dangling weight is positive exactly where dmin > TAU1 (typically nowhere).
+            sel = (dmin_U > TAU1_MM).nonzero()[0]
         drows = U[sel]
         if drows.size:
+            # (minimum of maximum: np.clip, several times cheaper on small arrays)
+            wdang_r = np.minimum(np.maximum((dmin_U[sel] - TAU1_MM) / TAU1_MM, 0.0), 1.0)
             dist_r = np.sqrt(dist2_U[sel])
             phi = np.minimum(np.maximum((dist_r - TAU1_MM) / (TAU2_MM - TAU1_MM), 0.0), 1.0)
             s2r = (sp[drows] ** 2)[:, None] + self._sq2[None, :]
             r2_r = r2_U[sel]
             er = np.exp(-0.5 * r2_r / s2r)
             per_row_dan = _sum(phi * (1.0 - er), axis=1) / n
-            dan = float(_sum(wdang_U[sel] * per_row_dan))
+            dan = float(_sum(wdang_r * per_row_dan))
         if g3 is None:
             return sim, dan
         # d/d(u, v, sigma_p, d_p) of E_sim, accumulated per model Gaussian.
@@ -661,7 +707,8 @@ class Objective:
         np.multiply(delta_D, w_pair, out=W[2])
         wD = np.multiply(W[2], inv_norm, out=W[2])
         a = np.multiply(wD, inv_s2, out=inv_s2)
-        np.multiply(a, diffs[:2], out=W[:2])  # a du, a dv
+        np.multiply(a, du, out=W[0])  # (two contiguous products: cheaper than one broadcast)
+        np.multiply(a, dv, out=W[1])
         np.subtract(r2_s2, 2.0, out=r2_s2)
         np.multiply(a, r2_s2, out=W[3])
         np.copysign(D, dd, out=W[4])  # D sign(dd), weighted like wD
@@ -679,7 +726,7 @@ class Objective:
         dangling = drows.size > 0 and w_dan > 0
         if dangling:
             g[4] = 0.0
-            wn = (w_dan * wdang_U[sel] / n)[:, None]
+            wn = (w_dan * wdang_r / n)[:, None]
             pe = wn * phi * er
             inv_s2r = 1.0 / s2r
             spr = sp[drows][:, None]
@@ -700,7 +747,8 @@ class Objective:
             # Through the dangling weight: d dmin / d(.) at the nearest data Gaussian.
             dmin_r = dmin_U[sel]
             on_ramp = (dmin_r > TAU1_MM) & (dmin_r < 2.0 * TAU1_MM)
-            c[np.arange(drows.size), nearest_U[sel]] += w_dan * on_ramp * per_row_dan / TAU1_MM
+            nearest_r = dist2_U[sel].argmin(axis=1)
+            c[np.arange(drows.size), nearest_r] += w_dan * on_ramp * per_row_dan / TAU1_MM
             k_uv = pe_s2 + c * k_u
             rows_sums = np.empty((5, drows.size))
             _sum(k_uv * du_r, axis=1, out=rows_sums[0])
@@ -749,7 +797,12 @@ class Objective:
     def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
         """``E_lim`` (eq. 8) and its gradient, shape (26,), or None for a zero gradient (every
         joint within its limits, as the tracker's projected iterates always are)."""
-        if (theta >= self._limits_low).all() and (theta <= self._limits_high).all():
+        # (Within the limits when clipping changes no bit: two calls instead of four.  A pose
+        # with a zero of the other sign at a limit of 0 takes the exact path below: the same
+        # E_lim = 0, a zero gradient.)
+        clipped = np.maximum(theta, self._limits_low)
+        np.minimum(clipped, self._limits_high, out=clipped)
+        if clipped.tobytes() == theta.tobytes():
             return 0.0, None  # (lo = hi = 0 below: E_lim = 0, gradient 0)
         # On all 26 parameters, the global ones unlimited (their lo, hi and gradient are 0).
         lo = np.minimum(theta - self._limits_low, 0.0)
@@ -762,6 +815,11 @@ class Objective:
         gradient): neighbouring fingers may not cross."""
         abd = theta[FINGER_ABD]  # MCP abduction of index .. little, shape (4,)
         a = self._const.fan + abd
+        # Every gap at least ORDER_MIN_GAP_RAD (typical): E_ord = 0.  (The gaps as below, by
+        # Python floats: the same IEEE differences; fl(gap - c) < 0 exactly when gap < c.)
+        a0, a1, a2, a3 = a.tolist()
+        if a1 - a0 >= ORDER_MIN_GAP_RAD and a2 - a1 >= ORDER_MIN_GAP_RAD and a3 - a2 >= ORDER_MIN_GAP_RAD:
+            return 0.0, None
         gap = a[1:] - a[:-1]  # (3,), as np.diff
         short = np.minimum(gap - ORDER_MIN_GAP_RAD, 0.0)
         if not short.any():
@@ -783,17 +841,17 @@ class Objective:
         if t is not key:  # the targets' constants, once per targets object
             const = None
             if t is not None and np.any(t.weights > 0):
-                const = (self.model.tip_index, np.asarray(t.points), t.weights / SALIENT_SCALE_MM)
+                const = (_as_slice(self.model.tip_index), np.asarray(t.points), t.weights / SALIENT_SCALE_MM)
             self._sal = (t, const)
         if const is None or w_sal <= 0:
             return 0.0
         tips, points, w = const
-        diff = P.take(tips, axis=0) - points
+        diff = P[tips] - points  # (tips: a slice of evenly spaced indices, else an index array)
         sq = diff * diff
         root = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2] + SALIENT_SOFT_MM**2)
         val = float(_sum(w * (root - SALIENT_SOFT_MM)))
         if g3 is not None:
-            g3[tips] -= w_sal * (w / root)[:, None] * diff
+            g3[tips] -= w_sal * (w / root)[:, None] * diff  # (a slice: in place, no scatter)
         return val
 
     def _smoothness(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:

@@ -149,8 +149,7 @@ def _frames(
     # Each chain's abduction, then its flexions summed along the chain (phi): one cos and
     # one sin for all 20 angles.
     ang = theta.take(mk.angle_idx)  # (5, 4)
-    np.add(ang[:, 1], ang[:, 2], out=ang[:, 2])  # (= np.cumsum(ang[:, 1:], axis=1), cheaper)
-    np.add(ang[:, 2], ang[:, 3], out=ang[:, 3])
+    np.add.accumulate(ang[:, 1:], axis=1, out=ang[:, 1:])  # (= np.cumsum, without its wrapper)
     cos, sin = np.cos(ang), np.sin(ang)
     # (bx, by) = (ca r0x + sa r0y, ca r0y - sa r0x) from two products of (5, 1) by (2, 5, 3).
     ca_r0, sa_r0 = cos[:, :1] * mk.r0xy, sin[:, :1] * mk.r0yx
@@ -167,7 +166,7 @@ def _frames(
     z_axes -= sp * by3  # (= -sp by + cp bz exactly)
     o = np.empty((5, 4, 3))
     o[:, 0] = mk.bases
-    tail = (y_axes * mk.lengths3).cumsum(axis=1, out=o[:, 1:])  # (the method: no wrapper)
+    tail = np.add.accumulate(y_axes * mk.lengths3, axis=1, out=o[:, 1:])  # (= cumsum, cheaper)
     tail += mk.bases3
     return rots, o, bz
 
@@ -490,7 +489,7 @@ class _Posed:
             R, dR = global_rotation(theta, derivatives=True)
         else:
             R, dR = global_rotation(theta), None
-        self.G = R * mk.M
+        self.G = R if mk.right else R * mk.M  # (a right hand's mirror is the identity: R * 1 = R)
         self.pts = self.p_hand @ self.G.T + theta[:3]
         self.pts.setflags(write=False)
         self.pullback: CentresPullback | None = None
@@ -505,11 +504,14 @@ class _Posed:
         self.pullback = CentresPullback(mk, self.p_hand, pm, self.G, dR, self.org20, axes)
 
 
-#: The last few posed models (:class:`_Posed`), newest last.  A tracked frame asks for the
-#: centres, fingertips and skeleton of the same poses several times (the fit's best pose, the
-#: restarts' start poses, the result): each is computed once.
-_POSED: list[_Posed] = []
-_POSED_SIZE = 8
+#: The last few posed models (:class:`_Posed`) by ``(model constants id, pose bytes)``, oldest
+#: first.  A tracked frame asks for the centres, fingertips and skeleton of the same poses
+#: several times (the fit's best pose, which may be any of its iterates, the restarts' start
+#: poses, the result, the next frame's data window): each is computed once.  (A dict: a
+#: lookup costs the same for any size; the entries keep their model constants alive, so the
+#: ids in the keys cannot be recycled while cached.)
+_POSED: dict[tuple[int, bytes], _Posed] = {}
+_POSED_SIZE = 24
 
 
 def _posed(model: HandModel, theta: NDArray[np.float64], pullback: bool = False) -> _Posed:
@@ -518,15 +520,15 @@ def _posed(model: HandModel, theta: NDArray[np.float64], pullback: bool = False)
     theta = check_pose(theta)
     mk = _model_kinematics(model)
     key = theta.tobytes()
-    for posed in reversed(_POSED):
-        if posed.mk is mk and posed.key == key:
-            if pullback and posed.pullback is None:
-                posed._add_pullback(global_rotation(theta, derivatives=True)[1])
-            return posed
+    posed = _POSED.get((id(mk), key))
+    if posed is not None:
+        if pullback and posed.pullback is None:
+            posed._add_pullback(global_rotation(theta, derivatives=True)[1])
+        return posed
     posed = _Posed(mk, key, theta, pullback)
     if len(_POSED) >= _POSED_SIZE:
-        del _POSED[0]
-    _POSED.append(posed)
+        del _POSED[next(iter(_POSED))]
+    _POSED[(id(mk), key)] = posed
     return posed
 
 

@@ -77,6 +77,23 @@ class OptimizeResult:
     steps: NDArray[np.float64] | None = None
 
 
+_LIMITS: dict[StepSizes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
+
+
+def _limits_of(steps: StepSizes) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The minimum and maximum step lengths of ``steps`` per parameter, (26,) each, read-only
+    (cached per value: a tracked frame runs several fits with the same step sizes)."""
+    hit = _LIMITS.get(steps)
+    if hit is None:
+        hit = (steps.expand(steps.minimum), steps.expand(steps.maximum))
+        for arr in hit:
+            arr.setflags(write=False)
+        if len(_LIMITS) >= 16:
+            _LIMITS.clear()
+        _LIMITS[steps] = hit
+    return hit
+
+
 def maximise(
     fun: ObjectiveFn,
     x0: NDArray[np.float64],
@@ -119,10 +136,11 @@ def maximise(
         See ``extra_iterations`` (unitless).
     """
     x = np.array(x0, dtype=np.float64)
-    step = steps.expand(steps.initial) * initial_scale  # (a new array: updated in place)
     if initial_steps is not None:
-        step = np.array(initial_steps, dtype=np.float64)
-    lo, hi = steps.expand(steps.minimum), steps.expand(steps.maximum)
+        step = np.array(initial_steps, dtype=np.float64)  # (a new array: updated in place)
+    else:
+        step = steps.expand(steps.initial) * initial_scale
+    lo, hi = _limits_of(steps)
     mask = None if active is None else np.asarray(active, bool)
     # Loop invariants (the loop body is a few dozen tiny NumPy calls: each one counts).
     lo_settled = lo * 1.0001

@@ -151,8 +151,7 @@ class RestartStrategies:
         if data.n == 0:
             return res
         tips = fingertips(self._model, res.x)
-        d2 = ((tips[:, None, :] - data.points[None, :, :]) ** 2).sum(-1)
-        far = np.sqrt(d2.min(axis=1))
+        far = np.sqrt(_sq_distances(tips, data.points).min(axis=1))
         c = int(np.argmax(far))
         if far[c] < RESTART_TIP_MM:
             return res
@@ -305,7 +304,7 @@ class RestartStrategies:
         if det.n == 0:
             return np.zeros(0, dtype=np.int64)
         tips = fingertips(self._model, theta)
-        dist = np.linalg.norm(det.points[:, None, :] - tips[None, :, :], axis=-1).min(axis=1)
+        dist = np.sqrt(_sq_distances(det.points, tips)).min(axis=1)  # = np.linalg.norm(.., axis=-1)
         return np.flatnonzero(
             (dist > UNEXPLAINED_DETECTION_MM) & (det.confidence >= UNEXPLAINED_CONFIDENCE)
         )
@@ -351,6 +350,19 @@ class RestartStrategies:
         unused[assigned[has]] = False
         cost = d + ASSIGN_LAMBDA_MM * ((~has).sum() + det.confidence[unused].sum())
         return float(cost / SALIENT_SCALE_MM)
+
+
+def _sq_distances(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Squared distances (k, l) between the points ``a`` (k, 3) and ``b`` (l, 3).
+
+    The same sums as ``((a[:, None] - b[None]) ** 2).sum(-1)`` (``(x^2 + y^2) + z^2`` in that
+    order, bit for bit; several times cheaper: no reduction over an axis of length 3).
+    """
+    diff = a[:, None, :] - b[None, :, :]
+    sq = np.multiply(diff, diff, out=diff)
+    d2 = sq[..., 0] + sq[..., 1]
+    d2 += sq[..., 2]
+    return d2
 
 
 def _shifted(theta: NDArray[np.float64], side: int) -> NDArray[np.float64]:

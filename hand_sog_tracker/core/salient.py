@@ -291,16 +291,16 @@ _SUBSETS: dict[int, tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float
 
 
 def _subset_tables(S: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
-    """Tables of the subsets ``D`` of ``S`` detections, each (2^S, S): ``bits[D, s]`` (1 when
-    detection ``s`` is in ``D``), ``prev[D, s] = D - {s}`` where ``s`` is in ``D`` and ``2^S``
-    (one past the last subset: an infinite cost there) where it is not, and ``1 - bits``
-    as floats."""
+    """Tables of the subsets ``D`` of ``S`` detections: ``bits[D, s]`` (2^S, S) (1 when
+    detection ``s`` is in ``D``), ``prev[s, D] = D - {s}`` (S, 2^S) where ``s`` is in ``D`` and
+    ``2^S`` (one past the last subset: an infinite cost there) where it is not, and
+    ``1 - bits`` (2^S, S) as floats."""
     hit = _SUBSETS.get(S)
     if hit is None:
         masks = np.arange(1 << S)
         bits = (masks[:, None] >> np.arange(S)[None, :]) & 1
         prev = np.where(bits > 0, masks[:, None] & ~(1 << np.arange(S))[None, :], 1 << S)
-        hit = (bits, prev, (1 - bits).astype(np.float64))
+        hit = (bits, np.ascontiguousarray(prev.T), (1 - bits).astype(np.float64))
         _SUBSETS[S] = hit
     return hit
 
@@ -344,22 +344,22 @@ def assign_detections(
     # best[t, D]: the least cost of fingertips 0 .. t-1 using the detections D; one column
     # more, always infinite, that prev points to for a detection not in D.
     best = np.full((T + 1, n_masks + 1), np.inf)
-    pick = np.empty((T + 1, n_masks), dtype=np.int64)  # the choice, + 1 (0: none)
     best[0, 0] = 0.0
-    cand = np.empty((n_masks, S + 1))
+    # cand[t, c, D]: the cost of the set D of used detections after fingertip t with choice
+    # c: fingertip t without a detection (c = 0), or with detection s of D (c = s + 1) after
+    # the set D - {s}.  One row per choice: the minimum over the choices runs along
+    # contiguous rows; the choice itself is read only along the path the backtracking takes.
+    cand = np.empty((T, S + 1, n_masks))
     for t in range(T):
-        # Set D of used detections after fingertip t: fingertip t without a detection
-        # (column 0), or with detection s of D (column s + 1) after the set D - {s}.  The
-        # first minimum wins, as "none" and then s = 0, 1, ... would in a sequential update.
-        np.add(best[t, :n_masks], lam_mm, out=cand[:, 0])
-        np.add(best[t].take(prev), cost[t], out=cand[:, 1:])  # (inf + cost = inf off D)
-        cand.argmin(axis=1, out=pick[t + 1])
-        np.minimum.reduce(cand, axis=1, out=best[t + 1, :n_masks])  # (= the picked values)
+        np.add(best[t, :n_masks], lam_mm, out=cand[t, 0])
+        np.add(best[t].take(prev), cost[t][:, None], out=cand[t, 1:])  # (inf + cost = inf off D)
+        np.minimum.reduce(cand[t], axis=0, out=best[t + 1, :n_masks])
     # Detections left unused are false positives.
     unused = not_bits @ (lam_mm * det.confidence)
     mask = int(np.argmin(best[T, :n_masks] + unused))
     for t in range(T, 0, -1):
-        s = int(pick[t, mask]) - 1
+        # The first minimum wins, as "none" and then s = 0, 1, ... would in a sequential update.
+        s = int(cand[t - 1, :, mask].argmin()) - 1
         out[t - 1] = s
         if s >= 0:
             mask &= ~(1 << s)

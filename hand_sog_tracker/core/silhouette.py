@@ -206,8 +206,9 @@ _TERM_CACHE: list = [(None, None)]
 def _term_constants(sil: Silhouette) -> tuple:
     """Constants of :func:`silhouette_term` for one map (cached for the last map: a frame's
     objective evaluates the same map many times): ``(fx, fy)``, the offsets of ``(u, v)``,
-    the clamp limits, the flat offsets of a cell's four corners, ``(1, w)`` (a cell's flat
-    index from its column and row) and the map as float64, flat: until a cell off the hand is
+    the clamp limits, the flat offsets of a cell's four corners, the row length ``w`` (a
+    cell's flat index is its column plus ``w`` times its row) and the map as float64, flat:
+    until a cell off the hand is
     read, 0 on the hand and -1 off it (:func:`silhouette_term` then fills in the distance
     map; at once when no cell is on the hand)."""
     hit = _TERM_CACHE[0]
@@ -226,7 +227,7 @@ def _term_constants(sil: Silhouette) -> tuple:
         np.array((intr.cx - sil.origin[0] - half, intr.cy - sil.origin[1] - half)),
         np.array((w - 1.000001, h - 1.000001)),
         np.array((0, 1, w, w + 1)),
-        np.array((1.0, w)),
+        float(w),
         flat_map,
     )
     _TERM_CACHE[0] = (sil, const)
@@ -234,26 +235,42 @@ def _term_constants(sil: Silhouette) -> tuple:
 
 
 def silhouette_term(
-    sil: Silhouette, P: NDArray[np.float64], g3: NDArray[np.float64] | None, weight: float
+    sil: Silhouette,
+    P: NDArray[np.float64],
+    g3: NDArray[np.float64] | None,
+    weight: float,
+    projected: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
 ) -> float:
-    """``E_sil`` at the model Gaussian centres ``P`` (m, 3) mm; adds ``-weight dE/dP`` into ``g3``."""
+    """``E_sil`` at the model Gaussian centres ``P`` (m, 3) mm; adds ``-weight dE/dP`` into ``g3``.
+
+    ``projected``: ``(z, q)`` when already computed with the silhouette's intrinsics, ``z =
+    max(P_z, 1)`` (m,) mm and ``q = (fx x / z, fy y / z)`` (2, m) px (the same operations as
+    here: the same bits).
+    """
     intr = sil.intrinsics
-    k_fxy, k_off, top, corners, flat_of, flat_map = _term_constants(sil)
-    z = np.maximum(P[:, 2], 1.0)
-    zc = z[:, None]
+    k_fxy, k_off, top, corners, row_len, flat_map = _term_constants(sil)
     # Map coordinates (cells, from the first cell's centre), u and v as the columns of one
     # (m, 2) array: every step below does both at once (the per-call cost of NumPy dominates).
     cell = sil.cell
-    uv = k_fxy * P[:, :2]
-    uv /= zc
-    uv += k_off
-    uv /= cell  # (fx x / z + offset) / cell
+    if projected is None:
+        z = np.maximum(P[:, 2], 1.0)
+        uv = k_fxy * P[:, :2]
+        uv /= z[:, None]
+        uv += k_off
+    else:
+        z, q = projected
+        uv = q.T + k_off
+    zc = z[:, None]
+    if cell != 1:  # (a division by 1 changes no bit)
+        uv /= cell  # (fx x / z + offset) / cell
     # Bilinear interpolation between cell centres (clamped to the map).
     uvc = np.minimum(np.maximum(uv, 0.0), top)  # = np.clip, several times cheaper
     ab, uv0 = np.modf(uvc)  # (m, 2): a, b and the cell (uvc >= 0: = uvc - floor, floor)
     one_ab = 1 - ab  # (m, 2): 1 - a, 1 - b
     # The four corners of every cell square in one gather: d[:, i, j] = d_ij (row i, column j).
-    corner = (uv0 @ flat_of).astype(np.int64)[:, None] + corners  # (integers: exact)
+    flat = uv0[:, 1] * row_len
+    flat += uv0[:, 0]  # (integers: exact; cheaper than a matrix product at this size)
+    corner = flat.astype(np.int64)[:, None] + corners
     d = flat_map.take(corner)
     if not np.count_nonzero(d):
         # Every corner on the hand (distance 0; typical while tracking): D = 0 at every
@@ -284,7 +301,10 @@ def silhouette_term(
         dD *= (uv > 0.0) & (uv < top)
         # dE/dD is 2 / m s z k (zero off the margin, where s = 0); per mm of P through (u, v):
         c = (2.0 / m * k) * s  # (m,)
-        g_uv = (c * z / cell)[:, None] * dD * k_fxy / zc  # d E / d(x, y) at fixed z, (m, 2)
+        cz = c * z
+        if cell != 1:  # (a division by 1 changes no bit)
+            cz /= cell
+        g_uv = cz[:, None] * dD * k_fxy / zc  # d E / d(x, y) at fixed z, (m, 2): c z / cell ...
         # z: through u = fx x / z + .. (-u' x / z) and the explicit z of the mm conversion.
         g_z = c * over - (g_uv[:, 0] * P[:, 0] + g_uv[:, 1] * P[:, 1]) / z
         g3[:, :2] -= weight * g_uv

@@ -173,6 +173,8 @@ class Tracker(RestartStrategies):
     #: every frame, so that it keeps up and runs them a few times a second.
     restart_interval_s: float | None = None
     _last_restarts_s: float = -np.inf
+    #: (model, low, high) of :meth:`_maximise`: the joint limits as bounds (26,) each, read-only.
+    _bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
 
     @property
     def config(self) -> TrackerConfig:
@@ -267,16 +269,16 @@ class Tracker(RestartStrategies):
         roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
         sil = silhouette(pre, window, roi) if outline and self._config.w_sil > 0 else None
         det = Detections.empty()
+        axis = global_rotation(theta)[:, 1]  # the hand's long axis (camera frame)
         if detect:
             det = detect_fingertips(pre, roi, window)
             if det.n:
-                along = (det.points - theta[:3]) @ global_rotation(theta)[:, 1]
+                along = (det.points - theta[:3]) @ axis
                 det = det.subset(along > -WRIST_MARGIN_MM)
         leaf = leaf_px(self._config.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf)
         if data.n == 0:
             return data, det, sil
-        axis = global_rotation(theta)[:, 1]
         along = (data.points - theta[:3]) @ axis
         keep = along > -WRIST_MARGIN_MM
         return (data if keep.all() else data.subset(keep)), det, sil
@@ -300,7 +302,8 @@ class Tracker(RestartStrategies):
         targets = self._targets(x0, det)
         obj = Objective(self._model, data, cfg, previous=(p1, p2), targets=targets, silhouette=sil)
         base = _INITIAL_STEPS
-        start = base if self._steps is None else np.clip(self._steps * WARM_GROW, base * WARM_MIN, base)
+        # (np.clip's values by two ufunc calls, without its wrapper.)
+        start = base if self._steps is None else np.minimum(np.maximum(self._steps * WARM_GROW, base * WARM_MIN), base)
         res = self._maximise(
             obj, x0, iterations=cfg.iterations, initial_steps=start,
             extra_iterations=EXTRA_ITERATIONS, extra_gain=EXTRA_GAIN,
@@ -328,9 +331,14 @@ class Tracker(RestartStrategies):
     def _maximise(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> OptimizeResult:
         """:func:`maximise` with the joint angles projected into the model's limits."""
         m = self._model
-        lo = np.concatenate([np.full(6, -np.inf), m.limits_low])
-        hi = np.concatenate([np.full(6, np.inf), m.limits_high])
-        return maximise(obj, x0, bounds=(lo, hi), **kwargs)  # type: ignore[arg-type]
+        cached = self._bounds
+        if cached is None or cached[0] is not m:  # (once per model: several fits per frame)
+            lo = np.concatenate([np.full(6, -np.inf), m.limits_low])
+            hi = np.concatenate([np.full(6, np.inf), m.limits_high])
+            lo.setflags(write=False)
+            hi.setflags(write=False)
+            cached = self._bounds = (m, lo, hi)
+        return maximise(obj, x0, bounds=cached[1:], **kwargs)  # type: ignore[arg-type]
 
     @property
     def initialising(self) -> bool:
