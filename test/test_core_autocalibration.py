@@ -7,6 +7,8 @@ import numpy as np
 from hand_sog_tracker.core.articulations import FINGER_CURLED
 from hand_sog_tracker.core.autocalibration import (
     AUTO_ATTEMPTS,
+    AUTO_FRAME_DROP,
+    AUTO_GUARD_MARGIN,
     AUTO_MIN_FRAMES,
     AUTO_MIN_LENGTH,
     HISTORY_FRAMES,
@@ -15,6 +17,7 @@ from hand_sog_tracker.core.autocalibration import (
     choose_fit_frames,
     usable_automatically,
 )
+from hand_sog_tracker.core.calibration import GUARD_FRAME_DROP, GUARD_MARGIN, Validation
 from hand_sog_tracker.core.hand_model import HandShape, chain_slice, rest_pose
 from hand_sog_tracker.core.types import Intrinsics
 
@@ -60,6 +63,10 @@ def test_fit_frames_come_from_the_newest_camera_open_hands_to_fit_others_to_chec
     assert not {id(f) for f in chosen.fit} & {id(f) for f in chosen.holdout}
     args, kwargs = chosen.calibrate_args(config="cfg", model="model")  # type: ignore[arg-type]
     assert args[1:] == (INTR, "cfg", "model") and len(kwargs["holdout_poses"]) == 4
+    assert "margin" not in kwargs and "frame_drop" not in kwargs  # ~/calibrate: the strict guard
+    _, auto = chosen.calibrate_args(config="cfg", model="model", automatic=True)  # type: ignore[arg-type]
+    assert (auto["margin"], auto["frame_drop"]) == (AUTO_GUARD_MARGIN, AUTO_FRAME_DROP)
+    assert AUTO_GUARD_MARGIN < GUARD_MARGIN and AUTO_FRAME_DROP > GUARD_FRAME_DROP
 
 
 def test_schedule_waits_for_a_full_history_retries_after_a_refusal_and_stops_after_success() -> None:
@@ -103,3 +110,13 @@ def test_an_automatic_fit_that_shrinks_the_hand_too_much_is_not_used() -> None:
     assert usable_automatically(HandShape(length=1.1, width=1.1))
     assert usable_automatically(HandShape(length=AUTO_MIN_LENGTH, width=0.9))
     assert not usable_automatically(HandShape(length=AUTO_MIN_LENGTH - 0.01, width=1.2))
+
+
+def test_the_guard_rules_follow_the_margin_and_frame_drop_given() -> None:
+    """One verdict, two guards: a fit whose mean held-out score falls by 0.005 and one frame's by
+    0.08 is refused by ~/calibrate's guard and passes the automatic fit's."""
+    common = dict(frames=4, score_current=0.800, score_fitted=0.795, worst_frame_gain=-0.08)
+    strict = Validation(margin=GUARD_MARGIN, frame_drop=GUARD_FRAME_DROP, **common)
+    lenient = Validation(margin=AUTO_GUARD_MARGIN, frame_drop=AUTO_FRAME_DROP, **common)
+    assert not strict.accepted and len(strict.failures()) == 2
+    assert lenient.accepted and lenient.failures() == []

@@ -505,6 +505,7 @@ def validate(
     current: HandModel,
     fitted: HandModel,
     margin: float = GUARD_MARGIN,
+    frame_drop: float = GUARD_FRAME_DROP,
 ) -> Validation:
     """Score the current and the fitted model on frames not used for the fit (the guard).
 
@@ -520,6 +521,8 @@ def validate(
         The model in use and the candidate.
     margin : float
         Required gain of the mean score.
+    frame_drop : float
+        Largest score loss allowed on any one held-out frame.
 
     Returns
     -------
@@ -564,7 +567,7 @@ def validate(
         score_fitted=float(sc[:, 1].mean()),
         margin=float(margin),
         worst_frame_gain=float((sc[:, 1] - sc[:, 0]).min()),
-        frame_drop=GUARD_FRAME_DROP,
+        frame_drop=float(frame_drop),
         tip_current=float(tp[:, 0].mean()) if len(tp) else float("nan"),
         tip_fitted=float(tp[:, 1].mean()) if len(tp) else float("nan"),
         tip_frames=len(tp),
@@ -626,6 +629,7 @@ def calibrate(
     holdout: Sequence[NDArray] = (),
     holdout_poses: Sequence[NDArray[np.float64] | None] | None = None,
     margin: float = GUARD_MARGIN,
+    frame_drop: float = GUARD_FRAME_DROP,
 ) -> CalibrationResult:
     """Fit the four scale factors of ``model`` to frames of an open hand.
 
@@ -652,6 +656,8 @@ def calibrate(
         Poses of the held-out frames, as for ``poses``.
     margin : float
         Required gain of the guard's mean held-out score.
+    frame_drop : float
+        Largest loss of the guard's score allowed on any one held-out frame.
 
     Raises
     ------
@@ -771,7 +777,7 @@ def calibrate(
         hp = list(holdout_poses) if holdout_poses is not None else [None] * len(holdout)
         if len(hp) != len(holdout):
             raise CalibrationError(f"got {len(hp)} poses for {len(holdout)} held-out frames")
-        validation = validate(holdout, hp, intrinsics, config, mirrored, fitted, margin)
+        validation = validate(holdout, hp, intrinsics, config, mirrored, fitted, margin, frame_drop)
         if measured is not None:
             validation = replace(
                 validation,

@@ -165,7 +165,7 @@ class CalibrationService:
     def _start_auto_fit(self, frames: FitFrames, model: HandModel, generation: int) -> None:
         """Run an automatic fit on a worker thread; switch to its model if the guard accepts it."""
         settings = self._settings
-        args, kwargs = frames.calibrate_args(settings.tracker, model)
+        args, kwargs = frames.calibrate_args(settings.tracker, model, automatic=True)
         attempt = self._auto_calib.attempts
         self.get_logger().info(
             f"automatic calibration (attempt {attempt}): fitting the hand model on {len(frames.fit)} "

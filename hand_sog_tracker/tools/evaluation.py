@@ -97,7 +97,7 @@ def _auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> dict[
     evaluation's ``auto_calibration``: ``accepted`` by the guard, ``used``)."""
     from hand_sog_tracker.core.calibration import calibrate
 
-    args, kwargs = frames.calibrate_args(config, tracker.model)  # type: ignore[attr-defined]
+    args, kwargs = frames.calibrate_args(config, tracker.model, automatic=True)  # type: ignore[attr-defined]
     t0 = time.perf_counter()
     info: dict[str, Any] = {"frames": len(frames.fit), "holdout_frames": len(frames.holdout)}
     try:
