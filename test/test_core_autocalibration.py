@@ -9,6 +9,7 @@ from hand_sog_tracker.core.autocalibration import (
     AUTO_ATTEMPTS,
     AUTO_FRAME_DROP,
     AUTO_GUARD_MARGIN,
+    AUTO_MIN_FIT_FRAMES,
     AUTO_MIN_FRAMES,
     AUTO_MIN_LENGTH,
     HISTORY_FRAMES,
@@ -103,6 +104,11 @@ def test_schedule_waits_for_a_full_history_retries_after_a_refusal_and_stops_aft
     for k in range(HISTORY_FRAMES + 2):
         fists.remember(DEPTH, INTR, _fist(k), k * PERIOD_NS)
     assert AutoCalibration().due(fists, 20 * PERIOD_NS) is None  # no open hand to fit on
+    one_open = FrameHistory()
+    for k in range(HISTORY_FRAMES + 2):
+        one_open.remember(DEPTH, INTR, _open(k) if k == 5 else _fist(k), k * PERIOD_NS)
+    assert choose_fit_frames(one_open.frames()).usable  # (~/calibrate would fit on it)
+    assert AUTO_MIN_FIT_FRAMES == 2 and AutoCalibration().due(one_open, 20 * PERIOD_NS) is None
     assert AutoCalibration(enabled=False).due(h, stamp) is None
 
 

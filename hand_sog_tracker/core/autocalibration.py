@@ -37,6 +37,7 @@ __all__ = [
     "AUTO_ATTEMPTS",
     "AUTO_FRAME_DROP",
     "AUTO_GUARD_MARGIN",
+    "AUTO_MIN_FIT_FRAMES",
     "AUTO_MIN_FRAMES",
     "AUTO_MIN_LENGTH",
     "AUTO_RETRY_S",
@@ -78,6 +79,10 @@ AUTO_MIN_LENGTH = 0.93
 #: at all gave 7.03 and 6.99 mm with 2 and 7 worse.
 AUTO_GUARD_MARGIN = -0.01
 AUTO_FRAME_DROP = 0.10
+#: Open-hand frames an automatic fit needs (count): a fit on a single frame of a half-curled hand
+#: returned length 0.80-0.88 and width 0.80 for hands 1.08-1.13x on dev renders (refused, but it
+#: spent an attempt; no dev or validation render scored differently with this rule).
+AUTO_MIN_FIT_FRAMES = 2
 #: Seconds between automatic fits after a refused or failed one.
 AUTO_RETRY_S = 1.0
 #: Automatic fits tried at most (count).
@@ -247,6 +252,8 @@ class AutoCalibration:
             return None
         chosen = choose_fit_frames(history.frames())
         if chosen is None or chosen.tracked < self.min_frames or not chosen.usable:
+            return None
+        if len(chosen.fit) < AUTO_MIN_FIT_FRAMES:
             return None
         return chosen
 
