@@ -5,14 +5,14 @@ fingertips a few millimetres short or long, and worse: a wide finger holds two m
 side by side, so that when a finger curls into the palm its neighbours take its place.  With
 ``auto_calibrate`` on (the node's default), the node fits the hand model by itself once, with
 the same fit as ``~/calibrate`` (:func:`~hand_sog_tracker.core.calibration.calibrate`) and a
-more lenient guard (:data:`AUTO_GUARD_MARGIN`, :data:`AUTO_FRAME_DROP`): as soon as its recent tracked frames
-hold :data:`AUTO_MIN_FRAMES` frames of one camera among which
+more lenient guard (:data:`AUTO_GUARD_MARGIN`, :data:`AUTO_FRAME_DROP`): as soon as its
+recent tracked frames hold :data:`AUTO_MIN_FRAMES` frames of one camera among which
 :func:`~hand_sog_tracker.core.calibration.select_frames` finds an open hand to fit on (on at
-least :data:`AUTO_MIN_FIT_FRAMES` frames) and frames to check the fit on.  An accepted fit replaces the model for the rest of the run if it does not
-shrink the hand below :data:`AUTO_MIN_LENGTH` (it is not saved: ``~/calibrate`` saves); a
-refused or failed one is tried again :data:`AUTO_RETRY_S` later, at most :data:`AUTO_ATTEMPTS`
-times.  A saved user model, or a
-successful ``~/calibrate``, turns it off.
+least :data:`AUTO_MIN_FIT_FRAMES` frames) and frames to check the fit on.  An accepted fit
+replaces the model for the rest of the run if it does not shrink the hand below
+:data:`AUTO_MIN_LENGTH` (it is not saved: ``~/calibrate`` saves); a refused or failed one is
+tried again :data:`AUTO_RETRY_S` later, at most :data:`AUTO_ATTEMPTS` times.  A saved user
+model, or a successful ``~/calibrate``, turns it off.
 
 This module holds what the node and ``evaluate_bag`` share: :class:`FrameHistory` (the
 frames ``~/calibrate`` and the automatic fit choose from), :func:`choose_fit_frames` and the
