@@ -164,15 +164,20 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
         if area_px < 20:
             continue
         z = float(np.median(depth[labels == lab]))
-        if area_px * (z / intr.fx) * (z / intr.fy) >= MIN_BLOB_AREA_MM2:
+        if _area_mm2(area_px, z, intr) >= MIN_BLOB_AREA_MM2:
             candidates.append((z, lab))
     for _, lab in sorted(candidates):
+        component = labels == lab
         for band_mm in (HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM):
-            blob = _hand_part(depth, labels == lab, intr, band_mm)
-            z = float(np.median(depth[blob]))
-            if int(np.count_nonzero(blob)) * (z / intr.fx) * (z / intr.fy) <= MAX_BLOB_AREA_MM2:
+            blob = _hand_part(depth, component, intr, band_mm)
+            if _area_mm2(np.count_nonzero(blob), float(np.median(depth[blob])), intr) <= MAX_BLOB_AREA_MM2:
                 return blob
     return None
+
+
+def _area_mm2(n_px: int, z_mm: float, intr: Intrinsics) -> float:
+    """Area (mm^2) of ``n_px`` pixels seen at depth ``z_mm``."""
+    return float(n_px) * (z_mm / intr.fx) * (z_mm / intr.fy)
 
 
 def _hand_part(
@@ -187,8 +192,7 @@ def _hand_part(
     if n <= 1:
         return blob
     largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    area_mm2 = stats[largest, cv2.CC_STAT_AREA] * (near / intr.fx) * (near / intr.fy)
-    return labels == largest if area_mm2 >= MIN_BLOB_AREA_MM2 else blob
+    return labels == largest if _area_mm2(stats[largest, cv2.CC_STAT_AREA], near, intr) >= MIN_BLOB_AREA_MM2 else blob
 
 
 def _in_plane(direction: NDArray[np.float64], angle: float) -> NDArray[np.float64]:
