@@ -19,6 +19,7 @@ from hand_sog_tracker.core.kinematics import gaussian_centres
 from hand_sog_tracker.core.restarts import _sq_distances
 from hand_sog_tracker.core.salient import Detections, assign_detections
 from hand_sog_tracker.core.silhouette import silhouette, silhouette_term
+from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig
 
 
@@ -133,3 +134,31 @@ def test_silhouette_term_with_the_shared_projection_is_the_same() -> None:
             assert v_own == v_shared
             assert g_own.tobytes() == g_shared.tobytes()
         assert v_own > 0.0
+
+
+def test_deferred_gradient_is_the_gradient_bit_for_bit_and_only_until_the_next_evaluation() -> None:
+    # Objective.value_then_gradient (the optimiser's possibly-last iterate): the same value and,
+    # on demand, the same gradient bits as one evaluation with gradient, every term active
+    # (data, dangling, collisions, salient targets, silhouette off the hand, limits, order).
+    frame, pre, model, roi, window = _first_frame("fistopen", 4)
+    tracker = Tracker(TrackerConfig())
+    data, det, sil = tracker._data_near(pre, frame.pose, detect=True)
+    assert det.n > 0 and sil is not None
+    obj = Objective(
+        model, data, tracker.config, previous=(frame.pose, frame.pose),
+        targets=tracker._targets(frame.pose, det), silhouette=sil,
+    )
+    rng = np.random.default_rng(5)
+    seen = set()
+    for _ in range(12):
+        theta = frame.pose + rng.normal(0.0, 1.0, frame.pose.size) * np.r_[[6.0] * 3, [0.08] * 3, [0.25] * 20]
+        v_full, g_full = obj(theta)
+        v_lazy, finish = obj.value_then_gradient(theta)
+        terms = obj.evaluate(theta, gradient=False)[0]
+        seen.update(name for name in ("dan", "sil", "lim", "ord", "sal") if getattr(terms, name) > 0)
+        with pytest.raises(RuntimeError):
+            finish()  # (evaluate() ran since: the buffers it read are gone)
+        v_lazy, finish = obj.value_then_gradient(theta)
+        assert v_lazy == v_full
+        assert finish().tobytes() == g_full.tobytes()
+    assert seen == {"dan", "sil", "lim", "ord", "sal"}, seen

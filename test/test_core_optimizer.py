@@ -61,3 +61,32 @@ def test_inactive_parameters_stay_and_settle_and_all_active_is_no_mask() -> None
     np.testing.assert_array_equal(a.history, b.history)
     np.testing.assert_array_equal(a.x, b.x)
     assert np.all(a.x[6:] <= hi[6:])
+
+
+class LazyBowl(Bowl):
+    """A :class:`Bowl` that can give its value first and its gradient on demand (as
+    ``Objective.value_then_gradient``); counts the gradients actually computed."""
+
+    def value_then_gradient(self, theta: np.ndarray):
+        value = self(theta, gradient=False)[0]
+
+        def finish() -> np.ndarray:
+            self.gradients += 1
+            return -2.0 * (theta - self.peak)
+
+        return value, finish
+
+
+def test_the_iterate_that_may_be_last_gets_its_gradient_only_when_the_fit_goes_on() -> None:
+    peak = np.linspace(-1.0, 1.0, N_PARAMS)
+    # Far from the peak the fit still climbs after 4 iterations; with a gain threshold no
+    # step can reach (|E| is 0 at the peak: any gain counts otherwise) it stops at 4.
+    for start, gain, more in ((peak + 20.0, 1e-3, True), (peak + 20.0, 1e9, False)):
+        eager, lazy = Bowl(peak), LazyBowl(peak)
+        a = maximise(eager, start, iterations=4, extra_iterations=3, extra_gain=gain)
+        b = maximise(lazy, start, iterations=4, extra_iterations=3, extra_gain=gain)
+        np.testing.assert_array_equal(a.history, b.history)  # the very same run
+        np.testing.assert_array_equal(a.x, b.x)
+        assert (a.nit > 4) == more
+        # Stopped at 4: the 4th iterate's gradient is never computed.
+        assert lazy.gradients == eager.gradients - (0 if more else 1)

@@ -59,13 +59,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.hand_model import FINGER_ABD, JOINTS, N_PARAMS, HandModel, rest_pose
-from hand_sog_tracker.core.kinematics import centres_with_pullback, gaussian_centres
+from hand_sog_tracker.core.kinematics import CentresPullback, centres_with_pullback, gaussian_centres
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette_term
 from hand_sog_tracker.core.types import TrackerConfig
 
@@ -112,6 +113,8 @@ _INV_SQRT2 = 1.0 / np.sqrt(2.0)
 #: ``x.sum(axis)`` without the method's Python layer (it calls exactly this): the objective
 #: runs a few dozen NumPy calls on small arrays per evaluation, where that layer counts.
 _sum = np.add.reduce
+#: A term's deferred gradient: adds its ``dE/dP`` (with sign and weight) into ``g3`` (m, 3).
+Backward = Callable[[NDArray[np.float64]], None]
 
 
 def _accumulate(index: NDArray[np.int64], weights: NDArray[np.float64], size: int) -> NDArray[np.float64]:
@@ -441,6 +444,7 @@ class Objective:
         # What :meth:`support` needs of the last evaluation: the pose's bytes, and per pair
         # (sorted by model Gaussian) ``Delta D`` with the pairs' row bounds and the depths z.
         self._support_key = b""
+        self._evaluations = 0  # (counts evaluations: a deferred gradient checks it is current)
         self._support_src: tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64]] | None = None
 
     def __call__(
@@ -449,6 +453,24 @@ class Objective:
         """Return ``E(theta)`` and, with ``gradient``, ``dE/dtheta`` of shape (26,)."""
         values, grad = self._evaluate(theta, gradient, False)
         return values[0], grad
+
+    def value_then_gradient(
+        self, theta: NDArray[np.float64]
+    ) -> tuple[float, Callable[[], NDArray[np.float64]]]:
+        """``E(theta)`` now and ``dE/dtheta`` (26,) on demand: the returned function computes
+        the gradient that ``self(theta)`` would return (the same bits) from what this
+        evaluation kept, at the cost of the gradient's share only (about a third of an
+        evaluation with gradient).
+
+        For an optimiser that decides from the value whether it needs the gradient (the last
+        iterate of :func:`~hand_sog_tracker.core.optimizer.maximise`).  The function must be
+        called before the objective is evaluated again (its buffers are reused): later it
+        raises :class:`RuntimeError`.
+        """
+        later: list[Backward] = []
+        values, finish = self._evaluate(theta, True, False, later)
+        assert finish is not None
+        return values[0], finish
 
     def evaluate(
         self, theta: NDArray[np.float64], gradient: bool = True
@@ -478,19 +500,28 @@ class Objective:
         return np.minimum(support, 1.0, out=support)
 
     def _evaluate(
-        self, theta: NDArray[np.float64], gradient: bool, terms: bool = True
-    ) -> tuple[tuple[float, ...], NDArray[np.float64] | None]:
+        self,
+        theta: NDArray[np.float64],
+        gradient: bool,
+        terms: bool = True,
+        later: list[Backward] | None = None,
+    ) -> tuple[tuple[float, ...], NDArray[np.float64] | Callable[[], NDArray[np.float64]] | None]:
         """``(total, sim, col, dan, lim, smo, ord, sal, sil)`` and the gradient (or None).
 
-        The shared body of :meth:`__call__` (the optimiser's path: no :class:`EnergyTerms`)
-        and :meth:`evaluate`.  Without ``terms`` (only the total and the gradient are read)
-        a term whose weight is 0 is not evaluated (reported as 0): the total and the
-        gradient are the same bits (it would add ``0 * value``).
+        The shared body of :meth:`__call__` (the optimiser's path: no :class:`EnergyTerms`),
+        :meth:`evaluate` and :meth:`value_then_gradient`.  Without ``terms`` (only the total
+        and the gradient are read) a term whose weight is 0 is not evaluated (reported as 0):
+        the total and the gradient are the same bits (it would add ``0 * value``).  With
+        ``later`` (an empty list) the terms append their gradients' functions there and the
+        function that finishes the gradient is returned in its place.
         """
         self._support_key = theta.tobytes()
         self._support_src = None
+        self._evaluations += 1
         cfg = self.config
-        if gradient:
+        if later is not None:
+            P, pullback, g3 = gaussian_centres(self.model, theta), None, None
+        elif gradient:
             P, pullback = centres_with_pullback(self.model, theta)
             g3 = np.zeros(P.shape)
         else:
@@ -500,19 +531,19 @@ class Objective:
         z = np.maximum(P[:, 2], 1.0)
         proj = np.multiply(self._fxy, P[:, :2].T)
         proj /= z
-        sim, dan = self._data_terms(P, g3, cfg.w_dan, z, proj)
-        col = self._collision(P, g3, cfg.w_col)
+        sim, dan = self._data_terms(P, g3, cfg.w_dan, z, proj, later)
+        col = self._collision(P, g3, cfg.w_col, later)
         lim, g_lim = self._limits(theta)
         if terms or cfg.w_smo != 0.0:
             smo, g_smo = self._smoothness(theta)
         else:  # (the default weight is 0: the optimiser's path skips the term)
             smo, g_smo = 0.0, None
         ordv, g_ord = self._order(theta)
-        sal = self._salient(P, g3, cfg.w_sal)
+        sal = self._salient(P, g3, cfg.w_sal, later)
         sil = 0.0
         if self.silhouette is not None and cfg.w_sil > 0:
             sil = silhouette_term(
-                self.silhouette, P, g3, cfg.w_sil, (z, proj) if self._sil_shares_projection else None
+                self.silhouette, P, g3, cfg.w_sil, (z, proj) if self._sil_shares_projection else None, later
             )
         total = (
             sim
@@ -525,8 +556,35 @@ class Objective:
             - cfg.w_sil * sil
         )
         values = (total, sim, col, dan, lim, smo, ordv, sal, sil)
+        if later is not None:
+            stamp = self._evaluations
+            theta = theta.copy()
+
+            def finish() -> NDArray[np.float64]:
+                if self._evaluations != stamp:
+                    raise RuntimeError("a deferred gradient was asked for after a later evaluation")
+                P2, pullback = centres_with_pullback(self.model, theta)
+                g3 = np.zeros(P2.shape)
+                for backward in later:
+                    backward(g3)
+                return self._gradient(pullback, g3, g_lim, g_smo, ordv, g_ord)
+
+            return values, finish
         if pullback is None:
             return values, None
+        return values, self._gradient(pullback, g3, g_lim, g_smo, ordv, g_ord)
+
+    def _gradient(
+        self,
+        pullback: CentresPullback,
+        g3: NDArray[np.float64],
+        g_lim: NDArray[np.float64] | None,
+        g_smo: NDArray[np.float64] | None,
+        ordv: float,
+        g_ord: NDArray[np.float64] | None,
+    ) -> NDArray[np.float64]:
+        """``dE/dtheta`` (26,) from ``dE/dP`` (m, 3) and the pose terms' gradients."""
+        cfg = self.config
         grad = pullback(g3)  # = einsum("mk,mkj->j", g3, J) up to rounding
         # (A zero g_lim or w_smo = 0: subtracting 0 would change no bit.)
         if g_smo is not None:
@@ -535,7 +593,7 @@ class Objective:
             grad -= cfg.w_lim * g_lim
         if ordv > 0.0:  # (else g_ord is 0)
             grad -= cfg.w_ord * g_ord
-        return values, grad
+        return grad
 
     # -- terms ---------------------------------------------------------------
     def _data_terms(
@@ -545,11 +603,13 @@ class Objective:
         w_dan: float,
         z: NDArray[np.float64] | None = None,
         proj: NDArray[np.float64] | None = None,
+        later: list[Backward] | None = None,
     ) -> tuple[float, float]:
         """``E_sim`` and ``E_dan``; adds ``dE/dP`` (with signs and weights) into ``g3``.
 
         ``z``, ``proj``: ``max(P_z, 1)`` (m,) mm and ``(fx x / z, fy y / z)`` (2, m) px when
-        already computed (the same operations as here: the same bits).
+        already computed (the same operations as here: the same bits).  ``later``: instead of
+        adding into ``g3`` now, append the function that does (see :meth:`value_then_gradient`).
 
         ``E_sim`` is summed over the pairs that can contribute: depth difference
         under ``2 sigma_h`` (else ``Delta = 0`` exactly) and image distance under
@@ -693,83 +753,97 @@ class Objective:
             er = np.exp(-0.5 * r2_r / s2r)
             per_row_dan = _sum(phi * (1.0 - er), axis=1) / n
             dan = float(_sum(wdang_r * per_row_dan))
-        if g3 is None:
+        if g3 is None and later is None:
             return sim, dan
-        # d/d(u, v, sigma_p, d_p) of E_sim, accumulated per model Gaussian.
-        # The pairs come sorted by model Gaussian (row-major order of the mask): the sums per
-        # Gaussian are one segmented sum over the rows of W.  Factors of a model Gaussian alone
-        # are taken out of its sums: with wD = Delta D / norm,
-        # dE/dsp = sum wD (2 / sp - 2 sp / s2 + r2 sp / s2^2)
-        #        = 2 / sp sum wD + sp sum wD / s2 (r2 / s2 - 2).
-        W = np.empty((5, flat.size))
-        sat *= SIM_GAIN  # (per image Gaussian: fewer products than per pair, the same bits)
-        w_pair = sat.take(qi)  # each pair's share of dE_sim/dS_q
-        np.multiply(delta_D, w_pair, out=W[2])
-        wD = np.multiply(W[2], inv_norm, out=W[2])
-        a = np.multiply(wD, inv_s2, out=inv_s2)
-        np.multiply(a, du, out=W[0])  # (two contiguous products: cheaper than one broadcast)
-        np.multiply(a, dv, out=W[1])
-        np.subtract(r2_s2, 2.0, out=r2_s2)
-        np.multiply(a, r2_s2, out=W[3])
-        np.copysign(D, dd, out=W[4])  # D sign(dd), weighted like wD
-        W[4] *= w_pair
-        if every_row:
-            g = np.add.reduceat(W, starts, axis=1)
+
+        def backward(g3: NDArray[np.float64]) -> None:
+            """Add the data terms' ``dE/dP`` into ``g3`` (m, 3) (only reads this evaluation's
+            values: valid until the objective's next evaluation reuses its buffers)."""
+            # d/d(u, v, sigma_p, d_p) of E_sim, accumulated per model Gaussian.
+            # The pairs come sorted by model Gaussian (row-major order of the mask): the sums per
+            # Gaussian are one segmented sum over the rows of W.  Factors of a model Gaussian alone
+            # are taken out of its sums: with wD = Delta D / norm,
+            # dE/dsp = sum wD (2 / sp - 2 sp / s2 + r2 sp / s2^2)
+            #        = 2 / sp sum wD + sp sum wD / s2 (r2 / s2 - 2).
+            W = np.empty((5, flat.size))
+            np.multiply(sat, SIM_GAIN, out=sat)  # (per image Gaussian: fewer products than per pair, the same bits)
+            w_pair = sat.take(qi)  # each pair's share of dE_sim/dS_q
+            np.multiply(delta_D, w_pair, out=W[2])
+            wD = np.multiply(W[2], inv_norm, out=W[2])
+            a = np.multiply(wD, inv_s2, out=inv_s2)
+            np.multiply(a, du, out=W[0])  # (two contiguous products: cheaper than one broadcast)
+            np.multiply(a, dv, out=W[1])
+            np.subtract(r2_s2, 2.0, out=r2_s2)
+            np.multiply(a, r2_s2, out=W[3])
+            np.copysign(D, dd, out=W[4])  # D sign(dd), weighted like wD
+            W[4] *= w_pair
+            if every_row:
+                g = np.add.reduceat(W, starts, axis=1)
+            else:
+                g = np.zeros((5, m))
+                if flat.size:
+                    g[:, nz] = np.add.reduceat(W, starts, axis=1)
+            # g[0:2] = -dE/d(u, v), then dE/dsp, dE/dp, and the explicit z-dependence of the
+            # dangle distances (rows 2-4 replaced in place by what they are made of).
+            g[2] = 2.0 * g[2] / sp + sp * g[3]
+            g[3] = g[4] / self._two_sh * -inv_norm
+            dangling = drows.size > 0 and w_dan > 0
+            if dangling:
+                g[4] = 0.0
+                wn = (w_dan * wdang_r / n)[:, None]
+                pe = wn * phi * er
+                inv_s2r = 1.0 / s2r
+                spr = sp[drows][:, None]
+                du_r, dv_r = du_U[sel], dv_U[sel]
+                # d(1 - e)/du = e du / s2 ; d(1 - e)/dsp = -e r2 sp / s2^2
+                pe_s2 = pe * inv_s2r
+                # Derivatives of the distance: lat = max(r - half, 0) z / f, behind = max(dq - dp, 0)
+                # (both terms vanish off the lateral part, where lat = 0).
+                lat_px_r, scale_r = lat_U[sel], scale_U[sel]
+                lat_r = lat_px_r * scale_r
+                r_r = np.maximum(r_U[sel], 1e-9)
+                inv_dist = 1.0 / np.maximum(dist_r, 1e-9)
+                k_u = lat_r * scale_r / r_r * inv_dist  # d dist / du per du
+                k_z = lat_r * lat_px_r / self._f * inv_dist
+                k_dp = nbeh_U[sel] * inv_dist  # d dist / d dp
+                ramp = (dist_r > TAU1_MM) & (dist_r < TAU2_MM)
+                c = wn * (ramp * (1.0 / (TAU2_MM - TAU1_MM))) * (1.0 - er)
+                # Through the dangling weight: d dmin / d(.) at the nearest data Gaussian.
+                dmin_r = dmin_U[sel]
+                on_ramp = (dmin_r > TAU1_MM) & (dmin_r < 2.0 * TAU1_MM)
+                nearest_r = dist2_U[sel].argmin(axis=1)
+                c[np.arange(drows.size), nearest_r] += w_dan * on_ramp * per_row_dan / TAU1_MM
+                k_uv = pe_s2 + c * k_u
+                rows_sums = np.empty((5, drows.size))
+                _sum(k_uv * du_r, axis=1, out=rows_sums[0])
+                _sum(k_uv * dv_r, axis=1, out=rows_sums[1])
+                _sum(pe_s2 * r2_r * spr * inv_s2r, axis=1, out=rows_sums[2])
+                np.negative(_sum(c * k_dp, axis=1), out=rows_sums[3])
+                np.negative(_sum(c * k_z, axis=1), out=rows_sums[4])
+                g[:, drows] += rows_sums
+            # Through u = fx x / z + cx, v = fy y / z + cy, sp = sh f / z, dp = z - sh.
+            t_uv = g[:2] * self._fxy / z  # (2, m): dE/d(x, y) at fixed z, negated
+            g3[:, :2] -= t_uv.T
+            g_z = (t_uv[0] * P[:, 0] + t_uv[1] * P[:, 1] - g[2] * self._shf / z) / z + g[3]
+            if dangling:  # (else g[4] is 0: g3, zeros before this first term, gets the same bits)
+                g_z += g[4]
+            g3[:, 2] += g_z
+
+        if later is None:
+            backward(g3)
         else:
-            g = np.zeros((5, m))
-            if flat.size:
-                g[:, nz] = np.add.reduceat(W, starts, axis=1)
-        # g[0:2] = -dE/d(u, v), then dE/dsp, dE/dp, and the explicit z-dependence of the
-        # dangle distances (rows 2-4 replaced in place by what they are made of).
-        g[2] = 2.0 * g[2] / sp + sp * g[3]
-        g[3] = g[4] / self._two_sh * -inv_norm
-        dangling = drows.size > 0 and w_dan > 0
-        if dangling:
-            g[4] = 0.0
-            wn = (w_dan * wdang_r / n)[:, None]
-            pe = wn * phi * er
-            inv_s2r = 1.0 / s2r
-            spr = sp[drows][:, None]
-            du_r, dv_r = du_U[sel], dv_U[sel]
-            # d(1 - e)/du = e du / s2 ; d(1 - e)/dsp = -e r2 sp / s2^2
-            pe_s2 = pe * inv_s2r
-            # Derivatives of the distance: lat = max(r - half, 0) z / f, behind = max(dq - dp, 0)
-            # (both terms vanish off the lateral part, where lat = 0).
-            lat_px_r, scale_r = lat_U[sel], scale_U[sel]
-            lat_r = lat_px_r * scale_r
-            r_r = np.maximum(r_U[sel], 1e-9)
-            inv_dist = 1.0 / np.maximum(dist_r, 1e-9)
-            k_u = lat_r * scale_r / r_r * inv_dist  # d dist / du per du
-            k_z = lat_r * lat_px_r / self._f * inv_dist
-            k_dp = nbeh_U[sel] * inv_dist  # d dist / d dp
-            ramp = (dist_r > TAU1_MM) & (dist_r < TAU2_MM)
-            c = wn * (ramp * (1.0 / (TAU2_MM - TAU1_MM))) * (1.0 - er)
-            # Through the dangling weight: d dmin / d(.) at the nearest data Gaussian.
-            dmin_r = dmin_U[sel]
-            on_ramp = (dmin_r > TAU1_MM) & (dmin_r < 2.0 * TAU1_MM)
-            nearest_r = dist2_U[sel].argmin(axis=1)
-            c[np.arange(drows.size), nearest_r] += w_dan * on_ramp * per_row_dan / TAU1_MM
-            k_uv = pe_s2 + c * k_u
-            rows_sums = np.empty((5, drows.size))
-            _sum(k_uv * du_r, axis=1, out=rows_sums[0])
-            _sum(k_uv * dv_r, axis=1, out=rows_sums[1])
-            _sum(pe_s2 * r2_r * spr * inv_s2r, axis=1, out=rows_sums[2])
-            np.negative(_sum(c * k_dp, axis=1), out=rows_sums[3])
-            np.negative(_sum(c * k_z, axis=1), out=rows_sums[4])
-            g[:, drows] += rows_sums
-        # Through u = fx x / z + cx, v = fy y / z + cy, sp = sh f / z, dp = z - sh.
-        t_uv = g[:2] * self._fxy / z  # (2, m): dE/d(x, y) at fixed z, negated
-        g3[:, :2] -= t_uv.T
-        g_z = (t_uv[0] * P[:, 0] + t_uv[1] * P[:, 1] - g[2] * self._shf / z) / z + g[3]
-        if dangling:  # (else g[4] is 0: g3, zeros before this first term, gets the same bits)
-            g_z += g[4]
-        g3[:, 2] += g_z
+            later.append(backward)
         return sim, dan
 
     def _collision(
-        self, P: NDArray[np.float64], g3: NDArray[np.float64] | None, w_col: float
+        self,
+        P: NDArray[np.float64],
+        g3: NDArray[np.float64] | None,
+        w_col: float,
+        later: list[Backward] | None = None,
     ) -> float:
-        """``E_col`` (eq. 6); adds ``-w_col dE_col/dP`` into ``g3``."""
+        """``E_col`` (eq. 6); adds ``-w_col dE_col/dP`` into ``g3`` (or appends the function
+        that does to ``later``)."""
         c = self._const
         # (In place where a value is not needed again: the same operations, fewer temporaries.)
         diff = P.take(c.pair_i, axis=0)  # (faster than P[idx])
@@ -782,16 +856,24 @@ class Objective:
         np.exp(D, out=D)
         D *= c.pair_amp  # pair_amp exp(-0.5 r2 / s2)
         col = float(_sum(D) / c.norm_h)
-        if g3 is not None and w_col > 0:
-            D *= w_col / c.norm_h
-            D /= c.pair_s2
+        if (g3 is None and later is None) or w_col <= 0:
+            return col
+
+        def backward(g3: NDArray[np.float64]) -> None:
+            D2 = np.multiply(D, w_col / c.norm_h, out=D)
+            D2 /= c.pair_s2
             # -w_col dE_col/dP_i (pairs, 3), then its negative: the weights of the incidence
             # product (+ g at each pair's i, - g at its j) as one bincount.
             k = diff.size
             weights = np.empty(2 * k)
-            np.multiply(D[:, None], diff, out=weights[:k].reshape(diff.shape))
+            np.multiply(D2[:, None], diff, out=weights[:k].reshape(diff.shape))
             np.negative(weights[:k], out=weights[k:])
             g3 += np.bincount(c.scatter, weights=weights, minlength=3 * P.shape[0]).reshape(-1, 3)
+
+        if later is None:
+            backward(g3)
+        else:
+            later.append(backward)
         return col
 
     def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
@@ -833,9 +915,14 @@ class Objective:
         return float(_sum(short * short)), g
 
     def _salient(
-        self, P: NDArray[np.float64], g3: NDArray[np.float64] | None, w_sal: float
+        self,
+        P: NDArray[np.float64],
+        g3: NDArray[np.float64] | None,
+        w_sal: float,
+        later: list[Backward] | None = None,
     ) -> float:
-        """``E_sal``; adds ``-w_sal dE_sal/dP`` into ``g3`` at the fingertip Gaussians."""
+        """``E_sal``; adds ``-w_sal dE_sal/dP`` into ``g3`` at the fingertip Gaussians (or
+        appends the function that does to ``later``)."""
         t = self.targets
         key, const = self._sal
         if t is not key:  # the targets' constants, once per targets object
@@ -850,8 +937,16 @@ class Objective:
         sq = diff * diff
         root = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2] + SALIENT_SOFT_MM**2)
         val = float(_sum(w * (root - SALIENT_SOFT_MM)))
-        if g3 is not None:
+        if g3 is None and later is None:
+            return val
+
+        def backward(g3: NDArray[np.float64]) -> None:
             g3[tips] -= w_sal * (w / root)[:, None] * diff  # (a slice: in place, no scatter)
+
+        if later is None:
+            backward(g3)
+        else:
+            later.append(backward)
         return val
 
     def _smoothness(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:

@@ -112,7 +112,9 @@ def maximise(
     ----------
     fun : callable
         ``fun(theta, gradient=True) -> (value, gradient)``.  The last possible iterate is
-        evaluated with ``gradient=False``: only its value is used.
+        evaluated with ``gradient=False``: only its value is used.  With ``extra_iterations``
+        and a method ``fun.value_then_gradient(theta) -> (value, gradient function)``, the
+        iterate that may be the last gets its gradient only when the fit goes on.
     x0 : array, shape (26,)
         Start pose.
     iterations : int
@@ -151,6 +153,9 @@ def maximise(
         x = np.minimum(np.maximum(x, low), high)  # = np.clip, cheaper
     val, grad = fun(x)
     assert grad is not None
+    # An objective that can give the value first and the gradient on demand
+    # (:meth:`~hand_sog_tracker.core.energy.Objective.value_then_gradient`).
+    deferred = getattr(fun, "value_then_gradient", None) if extra_iterations > 0 else None
     best_x, best_val = x.copy(), val
     history = [val]
     prev_sign = np.zeros(N_PARAMS)
@@ -171,7 +176,11 @@ def maximise(
         if bounds is not None:
             x = np.minimum(np.maximum(x, low), high)
         prev_sign = sign
-        if nit < iterations + extra_iterations:
+        finish = None
+        if nit == limit < iterations + extra_iterations and deferred is not None:
+            # The last iterate unless the fit is still climbing: its gradient only then.
+            val, finish = deferred(x)
+        elif nit < iterations + extra_iterations:
             val, grad = fun(x)
             assert grad is not None
         else:  # the last possible iterate: only its value is used
@@ -179,6 +188,8 @@ def maximise(
         history.append(val)
         if nit == limit < iterations + extra_iterations and val - history[-2] > extra_gain * abs(history[0]):
             limit += 1
+            if finish is not None:
+                grad = finish()
         if val > best_val:
             best_x, best_val = x.copy(), val
         if (step <= lo_settled).all():

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import FrozenInstanceError
-from typing import Final
+from typing import Callable, Final
 
 import cv2
 import numpy as np
@@ -240,12 +240,14 @@ def silhouette_term(
     g3: NDArray[np.float64] | None,
     weight: float,
     projected: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    later: list[Callable[[NDArray[np.float64]], None]] | None = None,
 ) -> float:
     """``E_sil`` at the model Gaussian centres ``P`` (m, 3) mm; adds ``-weight dE/dP`` into ``g3``.
 
     ``projected``: ``(z, q)`` when already computed with the silhouette's intrinsics, ``z =
     max(P_z, 1)`` (m,) mm and ``q = (fx x / z, fy y / z)`` (2, m) px (the same operations as
-    here: the same bits).
+    here: the same bits).  ``later``: instead of adding into ``g3`` now, append the function
+    that does (a deferred gradient, :meth:`hand_sog_tracker.core.energy.Objective.value_then_gradient`).
     """
     intr = sil.intrinsics
     k_fxy, k_off, top, corners, row_len, flat_map = _term_constants(sil)
@@ -289,24 +291,32 @@ def silhouette_term(
     s = over * z * k  # (m,)
     m = P.shape[0]
     val = float(np.add.reduce(s * s) / m)  # (= (s * s).sum(), without the method's Python layer)
-    if g3 is not None and weight > 0 and val > 0:
-        # dD/du = (1 - b)(d01 - d00) + b (d11 - d10), dD/dv = (1 - a)(d10 - d00) + a (d11 - d01),
-        # zero where the coordinate is clamped.  With steps[:, 0] = (d01 - d00, d11 - d10)
-        # and steps[:, 1] = (d10 - d00, d11 - d01): dD = (1 - (b, a)) steps[.., 0] + (b, a) steps[.., 1].
-        steps = np.empty((m, 2, 2))
-        np.subtract(d[:, :, 1], d[:, :, 0], out=steps[:, 0])
-        np.subtract(d[:, 1, :], d[:, 0, :], out=steps[:, 1])
-        dD = one_ab[:, ::-1] * steps[:, :, 0]
-        dD += ab[:, ::-1] * steps[:, :, 1]
-        dD *= (uv > 0.0) & (uv < top)
-        # dE/dD is 2 / m s z k (zero off the margin, where s = 0); per mm of P through (u, v):
-        c = (2.0 / m * k) * s  # (m,)
-        cz = c * z
-        if cell != 1:  # (a division by 1 changes no bit)
-            cz /= cell
-        g_uv = cz[:, None] * dD * k_fxy / zc  # d E / d(x, y) at fixed z, (m, 2): c z / cell ...
-        # z: through u = fx x / z + .. (-u' x / z) and the explicit z of the mm conversion.
-        g_z = c * over - (g_uv[:, 0] * P[:, 0] + g_uv[:, 1] * P[:, 1]) / z
-        g3[:, :2] -= weight * g_uv
-        g3[:, 2] -= weight * g_z
+    if (g3 is None and later is None) or weight <= 0 or val <= 0:
+        return val
+
+    def backward(g3: NDArray[np.float64]) -> None:
+            # dD/du = (1 - b)(d01 - d00) + b (d11 - d10), dD/dv = (1 - a)(d10 - d00) + a (d11 - d01),
+            # zero where the coordinate is clamped.  With steps[:, 0] = (d01 - d00, d11 - d10)
+            # and steps[:, 1] = (d10 - d00, d11 - d01): dD = (1 - (b, a)) steps[.., 0] + (b, a) steps[.., 1].
+            steps = np.empty((m, 2, 2))
+            np.subtract(d[:, :, 1], d[:, :, 0], out=steps[:, 0])
+            np.subtract(d[:, 1, :], d[:, 0, :], out=steps[:, 1])
+            dD = one_ab[:, ::-1] * steps[:, :, 0]
+            dD += ab[:, ::-1] * steps[:, :, 1]
+            dD *= (uv > 0.0) & (uv < top)
+            # dE/dD is 2 / m s z k (zero off the margin, where s = 0); per mm of P through (u, v):
+            c = (2.0 / m * k) * s  # (m,)
+            cz = c * z
+            if cell != 1:  # (a division by 1 changes no bit)
+                cz /= cell
+            g_uv = cz[:, None] * dD * k_fxy / zc  # d E / d(x, y) at fixed z, (m, 2): c z / cell ...
+            # z: through u = fx x / z + .. (-u' x / z) and the explicit z of the mm conversion.
+            g_z = c * over - (g_uv[:, 0] * P[:, 0] + g_uv[:, 1] * P[:, 1]) / z
+            g3[:, :2] -= weight * g_uv
+            g3[:, 2] -= weight * g_z
+
+    if later is None:
+        backward(g3)
+    else:
+        later.append(backward)
     return val
