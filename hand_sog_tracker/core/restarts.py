@@ -26,8 +26,8 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
 from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.energy import SALIENT_SCALE_MM, Objective, TipTargets
-from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, JOINTS, HandModel, chain_slice
-from hand_sog_tracker.core.kinematics import fingertips
+from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, FIRST_JOINT, FLEX2, FLEX3, JOINTS, HandModel, chain_slice
+from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.salient import Detections, assign_detections
 from hand_sog_tracker.core.types import TrackerConfig
@@ -44,6 +44,10 @@ __all__ = [
     "SHIFT_CHUNK",
     "SHIFT_SKIP_MM",
     "RESTART_COOLDOWN",
+    "HIDDEN_TIP_LAMBDA",
+    "HIDDEN_PALM_COS",
+    "OPEN_TIP_RAD",
+    "CURLED_TIP_RAD",
 ]
 
 # Tuning constants, documented like those of :mod:`hand_sog_tracker.core.tracker` (what, unit,
@@ -78,6 +82,20 @@ SHIFT_CHUNK = 3
 #: every score unchanged; the 7 candidates that won there had a fingertip without a detection
 #: or one 10.5 mm or more from it.)
 SHIFT_SKIP_MM = 10.0
+#: A fingertip without a detection costs ``ASSIGN_LAMBDA_MM`` in the assignment cost of the
+#: candidates (:meth:`RestartStrategies._assignment_cost`), except a curled one while the palm
+#: faces the camera (the palm normal within ``acos(HIDDEN_PALM_COS)`` of the camera's axis): its
+#: tip lies hidden against the palm, so that the detector cannot see it.  From ``OPEN_TIP_RAD``
+#: to ``CURLED_TIP_RAD`` of PIP + DIP flexion (rad) its cost falls linearly to
+#: ``HIDDEN_TIP_LAMBDA x ASSIGN_LAMBDA_MM`` (issue 11, chosen here).  With the full cost a
+#: finger counting hand's model finger that lies extended on its neighbour's data (one of two
+#: model tips on one seen tip: no detection) scored as well as the finger curled into the palm
+#: where it is (no detection either), and a restart pulling a curled finger onto a spurious
+#: detection won by the detection's false-positive cost it saved.
+HIDDEN_TIP_LAMBDA = 0.0
+HIDDEN_PALM_COS = 0.5
+OPEN_TIP_RAD = 1.0
+CURLED_TIP_RAD = 2.0
 #: After restarts triggered by an unexplained detection all lost, they are not tried again
 #: for this many frames (count; chosen here).
 RESTART_COOLDOWN = 5
@@ -343,13 +361,35 @@ class RestartStrategies:
         if det.n == 0:
             return 0.0
         tips = fingertips(self._model, theta)
-        assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
+        lam = _tip_lambdas(theta)
+        assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM, lam)
         has = assigned >= 0
         d = np.linalg.norm(tips[has] - det.points[assigned[has]], axis=1).sum()
         unused = np.ones(det.n, bool)
         unused[assigned[has]] = False
-        cost = d + ASSIGN_LAMBDA_MM * ((~has).sum() + det.confidence[unused].sum())
+        cost = d + lam[~has].sum() + ASSIGN_LAMBDA_MM * det.confidence[unused].sum()
         return float(cost / SALIENT_SCALE_MM)
+
+
+#: PIP and DIP flexions of index .. little inside the pose vector (strided slices, 4 values).
+_FINGER_PIP = slice(FIRST_JOINT + CHAIN_JOINTS + FLEX2, None, CHAIN_JOINTS)
+_FINGER_DIP = slice(FIRST_JOINT + CHAIN_JOINTS + FLEX3, None, CHAIN_JOINTS)
+
+
+def _tip_lambdas(theta: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cost (mm) of leaving each fingertip (5,) at ``theta`` (26,) without a detection.
+
+    ``ASSIGN_LAMBDA_MM``, but for a finger curled past ``OPEN_TIP_RAD`` (PIP + DIP flexion)
+    while the palm faces the camera it falls linearly to ``HIDDEN_TIP_LAMBDA x
+    ASSIGN_LAMBDA_MM`` at ``CURLED_TIP_RAD``: such a tip lies against the palm, hidden, and no
+    detection is expected for it.
+    """
+    lam = np.full(5, ASSIGN_LAMBDA_MM)
+    if HIDDEN_TIP_LAMBDA != 1.0 and -global_rotation(theta)[2, 2] > HIDDEN_PALM_COS:
+        curl = theta[_FINGER_PIP] + theta[_FINGER_DIP]  # index .. little, rad
+        share = np.clip((curl - OPEN_TIP_RAD) / (CURLED_TIP_RAD - OPEN_TIP_RAD), 0.0, 1.0)
+        lam[1:] *= 1.0 - (1.0 - HIDDEN_TIP_LAMBDA) * share
+    return lam
 
 
 def _sq_distances(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:

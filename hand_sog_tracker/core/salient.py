@@ -309,6 +309,7 @@ def assign_detections(
     tips_mm: NDArray[np.float64],
     det: Detections,
     lam_mm: float,
+    tip_lam_mm: NDArray[np.float64] | None = None,
 ) -> NDArray[np.int64]:
     """Optimal assignment of detections to model fingertips (seed 001, eq. 11, Table 1).
 
@@ -325,6 +326,8 @@ def assign_detections(
     lam_mm : float
         The cost ``lambda`` of a fingertip without a detection (mm); a detection declared a
         false positive costs ``lambda * confidence``.
+    tip_lam_mm : array, shape (T,), optional
+        Per fingertip, the cost of leaving it without a detection (mm) instead of ``lam_mm``.
 
     Returns
     -------
@@ -351,7 +354,7 @@ def assign_detections(
     # contiguous rows; the choice itself is read only along the path the backtracking takes.
     cand = np.empty((T, S + 1, n_masks))
     for t in range(T):
-        np.add(best[t, :n_masks], lam_mm, out=cand[t, 0])
+        np.add(best[t, :n_masks], lam_mm if tip_lam_mm is None else tip_lam_mm[t], out=cand[t, 0])
         np.add(best[t].take(prev), cost[t][:, None], out=cand[t, 1:])  # (inf + cost = inf off D)
         np.minimum.reduce(cand[t], axis=0, out=best[t + 1, :n_masks])
     # Detections left unused are false positives.

@@ -1,0 +1,78 @@
+"""A curled fingertip hidden against the palm costs no missing detection (issue 11)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from hand_sog_tracker.core import restarts
+from hand_sog_tracker.core.articulations import FINGER_CURLED
+from hand_sog_tracker.core.hand_model import chain_slice, rest_pose
+from hand_sog_tracker.core.kinematics import fingertips
+from hand_sog_tracker.core.salient import Detections, assign_detections
+from hand_sog_tracker.core.tracker import Tracker
+
+
+def _brute_force(tips: np.ndarray, det: Detections, lam: float, tip_lam: np.ndarray) -> float:
+    cost = np.linalg.norm(tips[:, None] - det.points[None], axis=-1)
+    best = np.inf
+    for choice in itertools.product(range(-1, det.n), repeat=tips.shape[0]):
+        used = [s for s in choice if s >= 0]
+        if len(used) != len(set(used)):
+            continue
+        c = sum(cost[t, s] if s >= 0 else tip_lam[t] for t, s in enumerate(choice))
+        best = min(best, c + lam * sum(det.confidence[s] for s in range(det.n) if s not in used))
+    return best
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_assignment_with_per_fingertip_costs_is_optimal(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    tips = rng.normal(0.0, 40.0, (5, 3))
+    S = int(rng.integers(1, 5))
+    det = Detections(
+        tips[rng.integers(0, 5, S)] + rng.normal(0.0, 25.0, (S, 3)),
+        np.zeros((S, 2)), rng.uniform(0.2, 1.0, S), np.zeros(S, bool),
+    )
+    tip_lam = rng.choice([0.0, 10.0, 30.0], 5)
+    a = assign_detections(tips, det, 30.0, tip_lam)
+    got = sum(np.linalg.norm(tips[t] - det.points[s]) if s >= 0 else tip_lam[t] for t, s in enumerate(a))
+    got += 30.0 * sum(det.confidence[s] for s in range(S) if s not in a)
+    assert got == pytest.approx(_brute_force(tips, det, 30.0, tip_lam))
+
+
+def _curled_middle_ring(theta: np.ndarray) -> np.ndarray:
+    x = theta.copy()
+    for c in (2, 3):
+        x[chain_slice(c)] = FINGER_CURLED
+    return x
+
+
+def test_curled_fingers_facing_the_camera_cost_no_missing_detection() -> None:
+    lam = restarts.ASSIGN_LAMBDA_MM
+    open_hand = rest_pose()  # palm toward the camera
+    np.testing.assert_array_equal(restarts._tip_lambdas(open_hand), [lam] * 5)
+    curled = _curled_middle_ring(open_hand)
+    expected = [lam, lam, restarts.HIDDEN_TIP_LAMBDA * lam, restarts.HIDDEN_TIP_LAMBDA * lam, lam]
+    np.testing.assert_allclose(restarts._tip_lambdas(curled), expected)
+    # The back of the hand toward the camera: curled tips are not known to be hidden there.
+    back = curled.copy()
+    back[3:6] = 0.0  # identity rotation: the palm faces away from the camera
+    np.testing.assert_array_equal(restarts._tip_lambdas(back), [lam] * 5)
+
+
+def test_two_model_tips_on_one_seen_tip_score_worse_than_a_curled_finger() -> None:
+    """Finger counting: index extended, middle curled.  A model whose middle lies extended
+    beside the index (one seen tip for two model tips) must cost more in the assignment than
+    the model with the middle curled where it is, as neither middle tip has a detection."""
+    tracker = Tracker()
+    right = _curled_middle_ring(rest_pose())
+    wrong = right.copy()
+    wrong[chain_slice(2)] = right[chain_slice(1)]  # middle extended like the index
+    wrong[chain_slice(2).start + 1] = -0.2  # and turned toward it
+    tips = fingertips(tracker.model, right)
+    seen = tips[[0, 1]] + 2.0  # thumb and index detected
+    det = Detections(seen, np.zeros((2, 2)), np.ones(2), np.zeros(2, bool))
+    assert tracker._assignment_cost(wrong, det) > tracker._assignment_cost(right, det) + 0.2
