@@ -102,6 +102,16 @@ def test_finger_curled_toward_the_camera_is_found(mirror: bool) -> None:
     assert err.max() < 25.0, err.round(1)
 
 
+@pytest.mark.parametrize(("frame", "bound_mm"), [(4, 12.0), (7, 30.0)])
+def test_crossed_fingers_and_a_fist_from_the_back_keep_their_side(frame: int, bound_mm: float) -> None:
+    """Frames 4 and 7 are not within 15 mm per fingertip (README, known limitations), but the
+    hand is found the right way round: mean 7.5 and 22.6 mm.  (Scoring initialisation's
+    candidates with the hidden-tip cost of the tracked frames turned them palm-first: 32 and
+    80 mm.)"""
+    err = _static_tip_errors(frame, False)
+    assert err.mean() < bound_mm, err.round(1)
+
+
 @pytest.mark.skipif(not NYU.is_dir(), reason="../shared/realdata/nyu-test-frame1 is not here")
 def test_kinect_hand_at_arm_length_is_tracked_with_the_default_depth_window() -> None:
     """NYU test frame 1 (Kinect, 640x480, an open right hand at 0.74 m, the body behind it):

@@ -427,7 +427,7 @@ class Tracker(RestartStrategies):
             obj = Objective(self._model, data, cfg)
             res = self._maximise(obj, x, iterations=eff.full_iterations, initial_scale=2.0)
             # :meth:`_score` without evaluating the objective again (no salient term here).
-            scored.append((res.fun - cfg.w_sal * self._assignment_cost(res.x, det), rank, res.x))
+            scored.append((res.fun - cfg.w_sal * self._assignment_cost(res.x, det, hidden_tips=False), rank, res.x))
         if not scored:
             return None
         scored.sort(key=lambda s: s[:2], reverse=True)
@@ -455,7 +455,7 @@ class Tracker(RestartStrategies):
                 continue
             obj = Objective(self._model, data_x, cfg, targets=self._targets(x, det), silhouette=sil)
             cand = self._maximise(obj, x, iterations=INIT_SEARCH.final_iterations)
-            score = self._score(self._plain(obj), cand.x, det)
+            score = self._score(self._plain(obj), cand.x, det, hidden_tips=False)
             if best is None or score > best[0]:
                 best = (score, cand, data_x, obj)
         if best is None:
