@@ -67,7 +67,7 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.hand_model import FINGER_ABD, JOINTS, N_PARAMS, HandModel, rest_pose
 from hand_sog_tracker.core.kinematics import CentresPullback, centres_with_pullback, gaussian_centres
-from hand_sog_tracker.core.silhouette import Silhouette, silhouette_term
+from hand_sog_tracker.core.silhouette import Silhouette, run_or_defer, silhouette_term
 from hand_sog_tracker.core.types import TrackerConfig
 
 __all__ = [
@@ -829,10 +829,7 @@ class Objective:
                 g_z += g[4]
             g3[:, 2] += g_z
 
-        if later is None:
-            backward(g3)
-        else:
-            later.append(backward)
+        run_or_defer(backward, g3, later)
         return sim, dan
 
     def _collision(
@@ -870,10 +867,7 @@ class Objective:
             np.negative(weights[:k], out=weights[k:])
             g3 += np.bincount(c.scatter, weights=weights, minlength=3 * P.shape[0]).reshape(-1, 3)
 
-        if later is None:
-            backward(g3)
-        else:
-            later.append(backward)
+        run_or_defer(backward, g3, later)
         return col
 
     def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
@@ -943,10 +937,7 @@ class Objective:
         def backward(g3: NDArray[np.float64]) -> None:
             g3[tips] -= w_sal * (w / root)[:, None] * diff  # (a slice: in place, no scatter)
 
-        if later is None:
-            backward(g3)
-        else:
-            later.append(backward)
+        run_or_defer(backward, g3, later)
         return val
 
     def _smoothness(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:

@@ -38,6 +38,7 @@ __all__ = [
     "Silhouette",
     "silhouette",
     "silhouette_term",
+    "run_or_defer",
 ]
 
 # The term is not in the papers: both constants are chosen here.
@@ -234,6 +235,20 @@ def _term_constants(sil: Silhouette) -> tuple:
     return const
 
 
+def run_or_defer(
+    backward: Callable[[NDArray[np.float64]], None],
+    g3: NDArray[np.float64] | None,
+    later: list[Callable[[NDArray[np.float64]], None]] | None,
+) -> None:
+    """Add a term's gradient into ``g3`` now, or, with ``later``, append the function that does
+    (a deferred gradient, see :meth:`hand_sog_tracker.core.energy.Objective.value_then_gradient`)."""
+    if later is None:
+        assert g3 is not None
+        backward(g3)
+    else:
+        later.append(backward)
+
+
 def silhouette_term(
     sil: Silhouette,
     P: NDArray[np.float64],
@@ -295,28 +310,25 @@ def silhouette_term(
         return val
 
     def backward(g3: NDArray[np.float64]) -> None:
-            # dD/du = (1 - b)(d01 - d00) + b (d11 - d10), dD/dv = (1 - a)(d10 - d00) + a (d11 - d01),
-            # zero where the coordinate is clamped.  With steps[:, 0] = (d01 - d00, d11 - d10)
-            # and steps[:, 1] = (d10 - d00, d11 - d01): dD = (1 - (b, a)) steps[.., 0] + (b, a) steps[.., 1].
-            steps = np.empty((m, 2, 2))
-            np.subtract(d[:, :, 1], d[:, :, 0], out=steps[:, 0])
-            np.subtract(d[:, 1, :], d[:, 0, :], out=steps[:, 1])
-            dD = one_ab[:, ::-1] * steps[:, :, 0]
-            dD += ab[:, ::-1] * steps[:, :, 1]
-            dD *= (uv > 0.0) & (uv < top)
-            # dE/dD is 2 / m s z k (zero off the margin, where s = 0); per mm of P through (u, v):
-            c = (2.0 / m * k) * s  # (m,)
-            cz = c * z
-            if cell != 1:  # (a division by 1 changes no bit)
-                cz /= cell
-            g_uv = cz[:, None] * dD * k_fxy / zc  # d E / d(x, y) at fixed z, (m, 2): c z / cell ...
-            # z: through u = fx x / z + .. (-u' x / z) and the explicit z of the mm conversion.
-            g_z = c * over - (g_uv[:, 0] * P[:, 0] + g_uv[:, 1] * P[:, 1]) / z
-            g3[:, :2] -= weight * g_uv
-            g3[:, 2] -= weight * g_z
+        # dD/du = (1 - b)(d01 - d00) + b (d11 - d10), dD/dv = (1 - a)(d10 - d00) + a (d11 - d01),
+        # zero where the coordinate is clamped.  With steps[:, 0] = (d01 - d00, d11 - d10)
+        # and steps[:, 1] = (d10 - d00, d11 - d01): dD = (1 - (b, a)) steps[.., 0] + (b, a) steps[.., 1].
+        steps = np.empty((m, 2, 2))
+        np.subtract(d[:, :, 1], d[:, :, 0], out=steps[:, 0])
+        np.subtract(d[:, 1, :], d[:, 0, :], out=steps[:, 1])
+        dD = one_ab[:, ::-1] * steps[:, :, 0]
+        dD += ab[:, ::-1] * steps[:, :, 1]
+        dD *= (uv > 0.0) & (uv < top)
+        # dE/dD is 2 / m s z k (zero off the margin, where s = 0); per mm of P through (u, v):
+        c = (2.0 / m * k) * s  # (m,)
+        cz = c * z
+        if cell != 1:  # (a division by 1 changes no bit)
+            cz /= cell
+        g_uv = cz[:, None] * dD * k_fxy / zc  # d E / d(x, y) at fixed z, (m, 2): c z / cell ...
+        # z: through u = fx x / z + .. (-u' x / z) and the explicit z of the mm conversion.
+        g_z = c * over - (g_uv[:, 0] * P[:, 0] + g_uv[:, 1] * P[:, 1]) / z
+        g3[:, :2] -= weight * g_uv
+        g3[:, 2] -= weight * g_z
 
-    if later is None:
-        backward(g3)
-    else:
-        later.append(backward)
+    run_or_defer(backward, g3, later)
     return val
