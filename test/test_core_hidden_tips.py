@@ -76,3 +76,24 @@ def test_two_model_tips_on_one_seen_tip_score_worse_than_a_curled_finger() -> No
     seen = tips[[0, 1]] + 2.0  # thumb and index detected
     det = Detections(seen, np.zeros((2, 2)), np.ones(2), np.zeros(2, bool))
     assert tracker._assignment_cost(wrong, det) > tracker._assignment_cost(right, det) + 0.2
+
+
+@pytest.mark.parametrize("side", [1, -1])
+def test_scheduled_shift_goes_to_the_side_the_detections_point_to(side: int) -> None:
+    """The fingers of the fit sit one place over from the seen ones (finger counting: index,
+    middle and ring extended where index and middle are).  The scheduled shift candidate takes
+    the side whose shifted pose meets the detections; without detections the sides alternate."""
+    tracker = Tracker()
+    fit = rest_pose()
+    for c in (3, 4):
+        fit[chain_slice(c)] = FINGER_CURLED
+    fit[chain_slice(2 if side == 1 else 1)] = FINGER_CURLED  # 1 1 0 0 or 1 0 1 0 (index .. little)
+    truth = restarts._shifted(fit, side)
+    seen = [0] + [c for c in range(1, 5) if truth[chain_slice(c)][2] < 0.5]  # thumb, extended fingers
+    n = len(seen)
+    det = Detections(fingertips(tracker.model, truth)[seen], np.zeros((n, 2)), np.ones(n), np.zeros(n, bool))
+    assert tracker._shift_side(fit, det) == side
+    tracker._frame_count = 0
+    first = tracker._shift_side(fit, Detections.empty())
+    tracker._frame_count = restarts.SHIFT_EVERY
+    assert tracker._shift_side(fit, Detections.empty()) == -first
