@@ -420,3 +420,19 @@ def _saturated_inverse(data: ImageSoG, sim: float) -> float:
     """The overlap ``S`` of a single image Gaussian that :func:`_saturated` maps to ``sim``."""
     k = SIM_SATURATION * np.pi * data.sigma[0] ** 2
     return float(-k * np.log(1.0 - sim * data.norm / (SIM_GAIN * k)))
+
+
+def test_palm_presses_on_distal_segments_weigh_less_in_the_collision_term() -> None:
+    """``E_col``: the palm against a distal segment weighs ``PALM_DISTAL_COLLISION`` (a fist
+    presses the finger pads into the palm), every other pair 1; no pair within one chain."""
+    from hand_sog_tracker.core.energy import PALM_DISTAL_COLLISION, _collision_pairs
+
+    model = default_hand_model()
+    i, j, weight = _collision_pairs(model)
+    ch, sg = model.g_chain, model.g_segment
+    assert not np.any(ch[i] == ch[j])
+    palm_distal = ((ch[i] < 0) & (sg[j] == 2)) | ((ch[j] < 0) & (sg[i] == 2))
+    assert palm_distal.any() and (~palm_distal).any()
+    assert 0.0 < PALM_DISTAL_COLLISION < 1.0
+    np.testing.assert_array_equal(weight[palm_distal], PALM_DISTAL_COLLISION)
+    np.testing.assert_array_equal(weight[~palm_distal], 1.0)

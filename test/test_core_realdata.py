@@ -97,15 +97,16 @@ def test_labelled_fingertips_are_within_15_mm(frame: int, mirror: bool) -> None:
 def test_finger_curled_toward_the_camera_is_found(mirror: bool) -> None:
     """Frame 2: the middle finger points at the camera in front of the palm.  The unexplained
     end-on detection pulls the model's middle finger onto it (before the finger-only pull the
-    model's middle finger lay on the ring finger's data, 60 mm off).  Not yet within 15 mm."""
+    model's middle finger lay on the ring finger's data, 60 mm off).  Its tip is 14.7 mm off,
+    too close to 15 mm to count as within."""
     err = _static_tip_errors(2, mirror)
     assert err.max() < 25.0, err.round(1)
 
 
-@pytest.mark.parametrize(("frame", "bound_mm"), [(4, 12.0), (7, 30.0)])
+@pytest.mark.parametrize(("frame", "bound_mm"), [(4, 12.0), (7, 25.0)])
 def test_crossed_fingers_and_a_fist_from_the_back_keep_their_side(frame: int, bound_mm: float) -> None:
     """Frames 4 and 7 are not within 15 mm per fingertip (README, known limitations), but the
-    hand is found the right way round: mean 7.5 and 22.6 mm.  (Scoring initialisation's
+    hand is found the right way round: mean 7.7 and 19.4 mm.  (Scoring initialisation's
     candidates with the hidden-tip cost of the tracked frames turned them palm-first: 32 and
     80 mm.)"""
     err = _static_tip_errors(frame, False)
