@@ -144,9 +144,13 @@ FAST_CAMERA_HZ = 45.0
 FAST_CAMERA_RESTART_INTERVAL_S = 0.2
 #: When the hand was found on an image and no newer image has arrived (a single image, a
 #: slow stream), the new track is refined on the same image this many more times before the
-#: answer is published (each pass costs one tracked frame, 8-20 ms; on the labelled real
-#: frames the first answer's fingertips come from a 3-pass refinement like a static scene).
-IDLE_REFINE_PASSES = 3
+#: answer is published, as the tracker would be on a static scene; a newer image stops it.
+#: Each pass costs one tracked frame (4-25 ms on the labelled real frames, 40-180 ms for all
+#: nine; the first passes are dearer while restarts still fire).  With 3 passes the labelled
+#: real frames scored 7.6 mm mean and 33 of 40 fingertips within 15 mm, with 9: 6.7 mm and 35
+#: (shifted by a pixel or 3 mm in depth, 96 runs: 16.7 -> 15.6 mm); a finger-shift candidate
+#: needs 4 passes to be judged.  (Chosen here, issue 11.)
+IDLE_REFINE_PASSES = 9
 _NUMBERS = re.compile(r"\d+(\.\d+)?")
 
 
