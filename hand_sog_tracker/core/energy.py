@@ -198,7 +198,11 @@ class _ModelConstants:
     pair_s2: NDArray[np.float64]  # sigma_i^2 + sigma_j^2, mm^2
     pair_amp: NDArray[np.float64]  # overlap at zero distance, (2 pi s_i^2 s_j^2 / s2)^1.5, x weight
     incidence: NDArray[np.float64]  # (m, pairs): +1 at i, -1 at j
-    scatter: NDArray[np.int64]  # (2 pairs 3,): flat index into (m, 3) of i's then j's coordinates
+    # Flat indices into (m, 3) centres: (3, pairs) of the i's and the j's coordinates (row x
+    # of every pair, then y, then z), and both as the scatter (2 3 pairs,) of the gradient.
+    gather_i: NDArray[np.int64]
+    gather_j: NDArray[np.int64]
+    scatter: NDArray[np.int64]
     norm_h: float
     fan: NDArray[np.float64]  # (4,) rest direction of index .. little in the palm plane, rad
 
@@ -236,13 +240,17 @@ def model_constants(model: HandModel) -> _ModelConstants:
     incidence = np.zeros((model.n_gaussians, pi.size))
     incidence[pi, np.arange(pi.size)] = 1.0
     incidence[pj, np.arange(pi.size)] = -1.0
+    gather_i = 3 * pi[None, :] + np.arange(3)[:, None]
+    gather_j = 3 * pj[None, :] + np.arange(3)[:, None]
     const = _ModelConstants(
         pair_i=pi,
         pair_j=pj,
         pair_s2=s2p,
         pair_amp=(_TWO_PI * s2[pi] * s2[pj] / s2p) ** 1.5 * weight,
         incidence=incidence,
-        scatter=np.concatenate([(3 * pi[:, None] + np.arange(3)).ravel(), (3 * pj[:, None] + np.arange(3)).ravel()]),
+        gather_i=gather_i,
+        gather_j=gather_j,
+        scatter=np.concatenate([gather_i.ravel(), gather_j.ravel()]),
         norm_h=norm_h,
         fan=np.arctan2(model.rest_rotations[1:, 1, 0], model.rest_rotations[1:, 0, 0]),
     )
@@ -725,7 +733,7 @@ class Objective:
         bound_c += beh_c
         near_c = bound_c <= _NEAR_SAFE
         nz = per_row > 0
-        every_row = bool(nz.all())  # (typical: then the segmented sums need no scatter)
+        every_row = bool(np.logical_and.reduce(nz))  # (typical: then the segmented sums need no scatter)
         starts = bounds[:-1] if every_row else bounds[:-1][nz]
         if every_row:
             settled = np.logical_or.reduceat(near_c, starts)
@@ -857,12 +865,15 @@ class Objective:
         """``E_col`` (eq. 6); adds ``-w_col dE_col/dP`` into ``g3`` (or appends the function
         that does to ``later``)."""
         c = self._const
-        # (In place where a value is not needed again: the same operations, fewer temporaries.)
-        diff = P.take(c.pair_i, axis=0)  # (faster than P[idx])
-        diff -= P.take(c.pair_j, axis=0)
+        # The pairs' differences as rows x, y, z (3, pairs): every step below runs along
+        # contiguous rows.  (In place where a value is not needed again: the same operations,
+        # fewer temporaries.)
+        flat = P.reshape(-1)
+        diff = flat.take(c.gather_i)
+        diff -= flat.take(c.gather_j)
         sq = diff * diff
-        r2 = sq[:, 0] + sq[:, 1]
-        r2 += sq[:, 2]  # = sq.sum(1), several times cheaper
+        r2 = sq[0] + sq[1]
+        r2 += sq[2]  # = sq.sum(0), several times cheaper
         D = np.multiply(r2, -0.5, out=r2)
         D /= c.pair_s2
         np.exp(D, out=D)
@@ -874,13 +885,14 @@ class Objective:
         def backward(g3: NDArray[np.float64]) -> None:
             D2 = np.multiply(D, w_col / c.norm_h, out=D)
             D2 /= c.pair_s2
-            # -w_col dE_col/dP_i (pairs, 3), then its negative: the weights of the incidence
-            # product (+ g at each pair's i, - g at its j) as one bincount.
-            k = diff.size
-            weights = np.empty(2 * k)
-            np.multiply(D2[:, None], diff, out=weights[:k].reshape(diff.shape))
-            np.negative(weights[:k], out=weights[k:])
-            g3 += np.bincount(c.scatter, weights=weights, minlength=3 * P.shape[0]).reshape(-1, 3)
+            # -w_col dE_col/dP_i (3, pairs), then its negative: the weights of the incidence
+            # product (+ g at each pair's i, - g at its j) as one bincount.  (Every centre
+            # coordinate sums its pairs in the same order as with the pairs' rows (pairs, 3):
+            # the i's in pair order, then the j's.)
+            weights = np.empty((2,) + diff.shape)
+            np.multiply(D2, diff, out=weights[0])
+            np.negative(weights[0], out=weights[1])
+            g3 += np.bincount(c.scatter, weights=weights.reshape(-1), minlength=3 * P.shape[0]).reshape(-1, 3)
 
         run_or_defer(backward, g3, later)
         return col

@@ -163,7 +163,10 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
         area_px = stats[lab, cv2.CC_STAT_AREA]
         if area_px < 20:
             continue
-        z = float(np.median(depth[labels == lab]))
+        # (Its depths inside its bounding box: the same values, without a full-image pass.)
+        x, y, bw, bh = stats[lab, :4]
+        box = (slice(y, y + bh), slice(x, x + bw))
+        z = float(np.median(depth[box][labels[box] == lab]))
         if _area_mm2(area_px, z, intr) >= MIN_BLOB_AREA_MM2:
             candidates.append((z, lab))
     for _, lab in sorted(candidates):

@@ -30,6 +30,7 @@ __all__ = [
     "chain_frames",
     "attached_points",
     "gaussian_centres",
+    "posed_centres",
     "fingertips",
     "skeleton_points",
     "SKELETON_CHAINS",
@@ -138,37 +139,55 @@ def chain_frames(model: HandModel, theta: NDArray[np.float64]) -> ChainFrames:
     Within a chain all flexion axes coincide (the first segment's x axis), so
     segment ``s`` is ``B @ Rx(f1 + ... + f_{s+1})`` with ``B = R0 @ Rz(abd)``.
     """
-    rots, o, bz = _frames(_model_kinematics(model), theta)
-    return ChainFrames(origins=o, rotations=rots, abd_axes=bz)
+    mk = _model_kinematics(model)
+    axes, o, _ = _frames(mk, theta)
+    rots = np.ascontiguousarray(axes.transpose(0, 1, 3, 2))
+    return ChainFrames(origins=o, rotations=rots, abd_axes=mk.r0z)
 
 
 def _frames(
     mk: _ModelKinematics, theta: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Rotations (5, 3, 3, 3), origins (5, 4, 3) and abduction axes (5, 3) of all chains."""
+    """The segments' axes (5, 3, 3, 3) (chain, segment, axis x / y / z, coordinate: the
+    rotations of :class:`ChainFrames` transposed), the origins (5, 4, 3) and the first
+    segments' x axes (5, 3) of all chains.
+
+    In a chain of base ``B = (bx, by, bz)``, segment ``s`` has the axes ``bx``,
+    ``y_s = c_s by + s_s bz`` and ``z_s = c_s bz - s_s by`` (``c_s, s_s``: cosine and sine
+    of its summed flexions ``phi_s``), with ``bx = ca r0x + sa r0y``, ``by = ca r0y - sa r0x``
+    and ``bz = r0z`` (``ca, sa``: of the abduction; ``r0``: the rest rotation).  The
+    differences are computed as sums with a negated factor (``a - b`` and ``a + (-b)`` are the
+    same IEEE operation, and ``x (-y) = -(x y)`` exactly): every product and sum of a kind is
+    then one NumPy call over all chains (a few dozen calls on tiny arrays cost more than their
+    arithmetic).
+    """
     # Each chain's abduction, then its flexions summed along the chain (phi): one cos and
-    # one sin for all 20 angles.
+    # one sin for all 20 angles, as trig[0] and trig[1].
     ang = theta.take(mk.angle_idx)  # (5, 4)
     np.add.accumulate(ang[:, 1:], axis=1, out=ang[:, 1:])  # (= np.cumsum, without its wrapper)
-    cos, sin = np.cos(ang), np.sin(ang)
-    # (bx, by) = (ca r0x + sa r0y, ca r0y - sa r0x) from two products of (5, 1) by (2, 5, 3).
-    ca_r0, sa_r0 = cos[:, :1] * mk.r0xy, sin[:, :1] * mk.r0yx
-    bx = ca_r0[0] + sa_r0[0]
-    by = ca_r0[1] - sa_r0[1]  # (= -sa r0x + ca r0y exactly)
-    bz = mk.r0z
-    cp, sp = cos[:, 1:, None], sin[:, 1:, None]
-    by3, bz3 = by[:, None, :], bz[:, None, :]
-    rots = np.empty((5, 3, 3, 3))
-    rots[:, :, :, 0] = bx[:, None, :]
-    y_axes = np.multiply(cp, by3, out=rots[:, :, :, 1])
-    y_axes += sp * bz3
-    z_axes = np.multiply(cp, bz3, out=rots[:, :, :, 2])
-    z_axes -= sp * by3  # (= -sp by + cp bz exactly)
+    trig = np.empty((2, 5, 4))
+    np.cos(ang, out=trig[0])
+    np.sin(ang, out=trig[1])
+    # base[k] = ca r0_mix[0, k] + sa r0_mix[1, k]: bx, -by, (unused), by; then base[2] = bz.
+    prod = trig[:, None, :, :1] * mk.r0_mix  # (2, 4, 5, 3)
+    base = np.add(prod[0], prod[1], out=prod[0])
+    base[2] = mk.r0z
+    # pairs[a, c, 0, b] (a: cos / sin of phi, b: y / z): (by, bz) and (bz, -by) of chain c.
+    pairs = base.take(_PAIR_ROWS, axis=0).transpose(0, 2, 1, 3)[:, :, None]  # (2, 5, 1, 2, 3)
+    prod2 = trig[:, :, 1:, None, None] * pairs  # (2, 5, 3, 2, 3)
+    axes = np.empty((5, 3, 3, 3))
+    np.add(prod2[0], prod2[1], out=axes[:, :, 1:])  # y_s, z_s
+    bx = base[0]
+    axes[:, :, 0] = bx[:, None, :]
     o = np.empty((5, 4, 3))
     o[:, 0] = mk.bases
-    tail = np.add.accumulate(y_axes * mk.lengths3, axis=1, out=o[:, 1:])  # (= cumsum, cheaper)
+    tail = np.add.accumulate(axes[:, :, 1] * mk.lengths3, axis=1, out=o[:, 1:])  # (= cumsum, cheaper)
     tail += mk.bases3
-    return rots, o, bz
+    return axes, o, bx
+
+
+#: Rows of ``base`` in :func:`_frames` that make the pairs (by, bz) and (bz, -by).
+_PAIR_ROWS = np.array([[3, 2], [2, 1]])
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,8 +195,8 @@ class _ModelKinematics:
     """Per-model constants of the kinematics (cached per model object, see below)."""
 
     angle_idx: NDArray[np.int64]  # (5, 4) pose index of each chain's abduction and flexions
-    r0xy: NDArray[np.float64]  # (2, 5, 3) columns x and y of the rest rotations
-    r0yx: NDArray[np.float64]  # (2, 5, 3) columns y and x
+    # (2, 4, 5, 3) columns of the rest rotations: (r0x, -r0y, 0, r0y) and (r0y, r0x, 0, -r0x)
+    r0_mix: NDArray[np.float64]
     r0z: NDArray[np.float64]  # (5, 3) column z
     bases: NDArray[np.float64]  # (5, 3)
     bases3: NDArray[np.float64]  # (5, 1, 3)
@@ -219,8 +238,12 @@ def _model_kinematics(model: HandModel) -> _ModelKinematics:
             groups[CHAIN_JOINTS * cc + j] = finger & (c == cc) & (s >= first_seg[j])
     mk = _ModelKinematics(
         angle_idx=first[:, None] + np.array([1, 0, 2, 3])[None, :],
-        r0xy=np.ascontiguousarray(r0[:, :, :2].transpose(2, 0, 1)),
-        r0yx=np.ascontiguousarray(r0[:, :, 1::-1].transpose(2, 0, 1)),
+        r0_mix=np.array(
+            [
+                [r0[:, :, 0], -r0[:, :, 1], np.zeros((5, 3)), r0[:, :, 1]],
+                [r0[:, :, 1], r0[:, :, 0], np.zeros((5, 3)), -r0[:, :, 0]],
+            ]
+        ),
         r0z=np.ascontiguousarray(r0[:, :, 2]),
         bases=np.array(model.bases, dtype=np.float64),
         bases3=np.array(model.bases, dtype=np.float64)[:, None, :],
@@ -484,7 +507,7 @@ class _Posed:
 
     def __init__(self, mk: _ModelKinematics, key: bytes, theta: NDArray[np.float64], pullback: bool) -> None:
         self.mk, self.key = mk, key
-        self.p_hand, self.org20, self.bx = _centres_hand(mk, theta)
+        self.p_hand, self.org20, self.bx = _hand_frame(mk, key, theta)
         if pullback:
             R, dR = global_rotation(theta, derivatives=True)
         else:
@@ -532,6 +555,33 @@ def _posed(model: HandModel, theta: NDArray[np.float64], pullback: bool = False)
     return posed
 
 
+#: The last few articulations' :func:`_centres_hand` by ``(model constants id, joint angles'
+#: bytes)``, oldest first, with their model constants (which keep the ids valid): a rigid fit
+#: (the initialisation's first stage) moves only the wrist, the hand frame's centres stay.
+_HAND: dict[tuple[int, bytes], tuple[_ModelKinematics, tuple]] = {}
+_HAND_SIZE = 4
+#: Bytes of the global parameters (translation, rotation) at the start of a pose's bytes.
+_GLOBAL_BYTES = FIRST_JOINT * 8
+
+
+def _hand_frame(
+    mk: _ModelKinematics, key: bytes, theta: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`_centres_hand` of ``theta`` (its bytes ``key``), cached by its joint angles
+    (read-only arrays: shared by the poses with these angles)."""
+    hkey = (id(mk), key[_GLOBAL_BYTES:])
+    hit = _HAND.get(hkey)
+    if hit is not None:
+        return hit[1]
+    hand = _centres_hand(mk, theta)
+    for arr in hand:
+        arr.setflags(write=False)
+    if len(_HAND) >= _HAND_SIZE:
+        del _HAND[next(iter(_HAND))]
+    _HAND[hkey] = (mk, hand)
+    return hand
+
+
 def _centres_hand(
     mk: _ModelKinematics, theta: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
@@ -540,11 +590,17 @@ def _centres_hand(
     The same arithmetic as :func:`attached_points` (bit-identical), with the model's index
     arrays cached.
     """
-    rots, o, _ = _frames(mk, theta)
+    axes, o, bx = _frames(mk, theta)
     org20 = o.reshape(20, 3)
-    local = np.einsum("kij,kj->ki", rots.reshape(15, 3, 3).take(mk.g_rot, axis=0), mk.g_offsets)
+    # (The rotation of each Gaussian's segment, transposed: its axes as rows.)
+    local = np.einsum("kji,kj->ki", axes.reshape(15, 3, 3).take(mk.g_rot, axis=0), mk.g_offsets)
     local += org20.take(mk.g_org, axis=0)
-    return np.where(mk.g_finger, local, mk.g_offsets), org20, rots[:, 0, :, 0]
+    return np.where(mk.g_finger, local, mk.g_offsets), org20, bx
+
+
+def posed_centres(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`gaussian_centres` without the copy: the cached centres (m, 3) mm, read-only."""
+    return _posed(model, theta).pts
 
 
 def fingertips(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:

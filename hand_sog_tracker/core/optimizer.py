@@ -77,6 +77,9 @@ class OptimizeResult:
     steps: NDArray[np.float64] | None = None
 
 
+#: ``a.all()`` of a boolean array without the method's Python layer.
+_all = np.logical_and.reduce
+
 _LIMITS: dict[StepSizes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
 
 
@@ -159,6 +162,7 @@ def maximise(
     best_x, best_val = x.copy(), val
     history = [val]
     prev_sign = np.zeros(N_PARAMS)
+    grow, shrink = steps.grow, steps.shrink
     status, nit, limit = 0, 0, iterations
     while nit < limit:
         nit += 1
@@ -169,12 +173,13 @@ def maximise(
         grows, shrinks = agree > 0, agree < 0
         # (In place where the step changes: the values of
         # np.where(grows, np.minimum(step * grow, hi), step), then likewise for shrinks.)
-        np.minimum(step * steps.grow, hi, out=step, where=grows)
-        np.maximum(step * steps.shrink, lo, out=step, where=shrinks)
-        sign[shrinks] = 0.0
+        np.minimum(step * grow, hi, out=step, where=grows)
+        np.maximum(step * shrink, lo, out=step, where=shrinks)
+        np.copyto(sign, 0.0, where=shrinks)  # (= sign[shrinks] = 0.0, cheaper)
         x = x + step * sign
         if bounds is not None:
-            x = np.minimum(np.maximum(x, low), high)
+            np.maximum(x, low, out=x)  # (x is a new array: clipped in place)
+            np.minimum(x, high, out=x)
         prev_sign = sign
         finish = None
         if nit == limit < iterations + extra_iterations and deferred is not None:
@@ -192,7 +197,7 @@ def maximise(
                 grad = finish()
         if val > best_val:
             best_x, best_val = x.copy(), val
-        if (step <= lo_settled).all():
+        if _all(step <= lo_settled):
             status = 1
             break
     start = history[0]

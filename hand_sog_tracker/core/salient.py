@@ -155,10 +155,6 @@ def detect_fingertips(
     # The windowed depth around the ROI, shared with the quadtree and the silhouette.
     hw = hand_window(pre, roi, window_mm)
     d = hw.view(u0, v0, u1, v1)
-    # (Inside the image the window holds no negative values: its nonzero pixels are the
-    # valid ones, counted by OpenCV without a boolean image.)
-    if cv2.countNonZero(d) < 20:
-        return Detections.empty()
     intr = pre.intrinsics
     # Candidates: valid pixels on a 2-pixel grid (a tip region is several pixels wide),
     # anchored on the pixel nearest the principal point (not on the ROI): the mirror image
@@ -169,6 +165,12 @@ def detect_fingertips(
     grid_valid = d[cv::2, cu::2] > 0  # (a quarter of the comparisons; contiguous)
     gw = grid_valid.shape[1]
     cell = grid_valid.ravel().nonzero()[0]
+    # Fewer than 20 valid pixels in the ROI: no detections.  The grid's valid pixels are some
+    # of them: only with fewer than 20 on the grid are all counted.  (Inside the image the
+    # window holds no negative values: its nonzero pixels are the valid ones, counted by
+    # OpenCV without a boolean image.)
+    if cell.size < 20 and cv2.countNonZero(d) < 20:
+        return Detections.empty()
     gv = cell // gw  # (row and column of the grid cells: cheaper than np.divmod and 2-d nonzero)
     gu = cell - gv * gw
     # The candidates' depths, gathered from the shared window (flat indices ``centre`` of the
@@ -284,7 +286,11 @@ def _median(a: NDArray[np.float32]) -> float:
         return float(part[k])
     # The lower middle value is the largest of the first k after the partition; the mean of
     # the two as np.median takes it.
-    return float(np.mean(np.array([part[:k].max(), part[k]], dtype=a.dtype)))
+    lo, hi = part[:k].max(), part[k]
+    if a.dtype == np.float32:
+        # (np.mean of two float32 values: their float32 sum, halved; halving is exact.)
+        return float(lo + hi) / 2.0
+    return float(np.mean(np.array([lo, hi], dtype=a.dtype)))
 
 
 _SUBSETS: dict[int, tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]] = {}

@@ -18,6 +18,7 @@ After each frame's fit the restart strategies of :mod:`.restarts` (a mixin of
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -34,6 +35,7 @@ from hand_sog_tracker.core.kinematics import (
     fingertips,
     gaussian_centres,
     global_rotation,
+    posed_centres,
     skeleton_points,
 )
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
@@ -100,7 +102,7 @@ def coverage(
         support = gaussian_support(model, theta, data, centres)
     support = np.sort(support)[::-1]
     keep = max(1, (2 * support.size) // 3)
-    return float(support[:keep].mean())
+    return float(np.add.reduce(support[:keep]) / keep)  # (= .mean(), without its Python layer)
 
 
 def hand_roi(
@@ -114,16 +116,19 @@ def hand_roi(
         End-exclusive pixel box at the resolution of ``intr``.
     window : (near_mm, far_mm)
     """
-    P = gaussian_centres(model, theta)
-    c = P.mean(axis=0)
+    P = posed_centres(model, theta)
+    c = np.add.reduce(P, axis=0) / P.shape[0]  # (= P.mean(axis=0), without its Python layer)
     z = max(c[2], 50.0)
-    uv = intr.project(c[None, :])[0]
+    # The centre's pixel as Intrinsics.project computes it, by Python floats (the same IEEE
+    # operations in the same order).
+    x, y, zc = c.tolist()
+    u, v = intr.fx * x / zc + intr.cx, intr.fy * y / zc + intr.cy
     r_px = radius_mm * max(intr.fx, intr.fy) / max(z - radius_mm * 0.5, 50.0)
     roi = (
-        int(np.floor(uv[0] - r_px)),
-        int(np.floor(uv[1] - r_px)),
-        int(np.ceil(uv[0] + r_px)) + 1,
-        int(np.ceil(uv[1] + r_px)) + 1,
+        math.floor(u - r_px),
+        math.floor(v - r_px),
+        math.ceil(u + r_px) + 1,
+        math.ceil(v + r_px) + 1,
     )
     return roi, (c[2] - radius_mm, c[2] + radius_mm)
 
