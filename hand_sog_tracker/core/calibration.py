@@ -154,6 +154,11 @@ GUARD_FRAME_DROP = 0.05
 #: A model fingertip without a detection within this (mm) counts as this far (assignment cost).
 GUARD_TIP_LAMBDA_MM = 30.0
 #: Search rounds: span and step of the grid each factor is searched on about the best so far.
+#: A third round like the second (poses refitted and widths measured again with the second
+#: round's model, the length searched again) was tried on ``calibration_benchmark``: on the dev
+#: hands the factors came closer (largest errors mesh 2.6/4.5/2.8% -> 1.7/4.2/2.8%, capsule
+#: 4.0/1.8/3.1% -> 2.8/1.9/2.7%), on the test hands not (mesh length up to 3.9% instead of 2.8%,
+#: capsule width 4.4% instead of 2.4%; mesh tracking 4.25 -> 4.36 mm): not kept.
 _ROUNDS = ((0.2, 0.05), (0.045, 0.015))
 #: Searched in this order in each round (with measured widths the second round searches
 #: ``length`` alone): ``size`` scales all four factors together,
@@ -698,6 +703,8 @@ def calibrate(
             continue
         # The user holds an open hand: the joints are set open (a wrongly sized model bends
         # and spreads the fingers to make up for it: abduction trades off against width).
+        # The thumb too: keeping its tracked angles made the length 4-5% too long on average
+        # (dev hands of ``calibration_benchmark``; up to 18%).
         th[JOINTS] = OPEN
         fr.pose = _refine(mirrored, th, fr.data, config, _REFIT_ITERATIONS, _RIGID)
         fits.append(fr)
