@@ -51,6 +51,7 @@ setup(
             f"replay_bag = {PACKAGE}.tools.replay_bag:main",
             f"make_sample_bags = {PACKAGE}.tools.make_sample_bags:main",
             f"benchmark = {PACKAGE}.tools.benchmark:main",
+            f"calibration_benchmark = {PACKAGE}.tools.calibration_benchmark:main",
             f"demo = {PACKAGE}.tools.demo:main",
         ],
     },

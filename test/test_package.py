@@ -23,6 +23,7 @@ CONSOLE_SCRIPTS = {
     "replay_bag": "hand_sog_tracker.tools.replay_bag:main",
     "make_sample_bags": "hand_sog_tracker.tools.make_sample_bags:main",
     "benchmark": "hand_sog_tracker.tools.benchmark:main",
+    "calibration_benchmark": "hand_sog_tracker.tools.calibration_benchmark:main",
     "demo": "hand_sog_tracker.tools.demo:main",
 }
 
