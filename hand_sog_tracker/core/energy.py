@@ -193,11 +193,8 @@ class TipTargets:
 
 @dataclass(frozen=True, eq=False)
 class _ModelConstants:
-    pair_i: NDArray[np.int64]
-    pair_j: NDArray[np.int64]
     pair_s2: NDArray[np.float64]  # sigma_i^2 + sigma_j^2, mm^2
     pair_amp: NDArray[np.float64]  # overlap at zero distance, (2 pi s_i^2 s_j^2 / s2)^1.5, x weight
-    incidence: NDArray[np.float64]  # (m, pairs): +1 at i, -1 at j
     # Flat indices into (m, 3) centres: (3, pairs) of the i's and the j's coordinates (row x
     # of every pair, then y, then z), and both as the scatter (2 3 pairs,) of the gradient.
     gather_i: NDArray[np.int64]
@@ -237,17 +234,11 @@ def model_constants(model: HandModel) -> _ModelConstants:
     ss = s2[:, None] + s2[None, :]
     norm_h = float(((_TWO_PI * s2[:, None] * s2[None, :] / ss) ** 1.5 * np.exp(-0.5 * d2 / ss)).sum())
     s2p = s2[pi] + s2[pj]
-    incidence = np.zeros((model.n_gaussians, pi.size))
-    incidence[pi, np.arange(pi.size)] = 1.0
-    incidence[pj, np.arange(pi.size)] = -1.0
     gather_i = 3 * pi[None, :] + np.arange(3)[:, None]
     gather_j = 3 * pj[None, :] + np.arange(3)[:, None]
     const = _ModelConstants(
-        pair_i=pi,
-        pair_j=pj,
         pair_s2=s2p,
         pair_amp=(_TWO_PI * s2[pi] * s2[pj] / s2p) ** 1.5 * weight,
-        incidence=incidence,
         gather_i=gather_i,
         gather_j=gather_j,
         scatter=np.concatenate([gather_i.ravel(), gather_j.ravel()]),
