@@ -11,7 +11,13 @@ from hand_sog_tracker.core import tracker as tracker_module
 from hand_sog_tracker.core.depth_sog import preprocess
 from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import default_hand_model
-from hand_sog_tracker.core.initialise import INIT_SEARCH, find_hand
+from hand_sog_tracker.core.initialise import (
+    DETECTION_DIRECTION_MIN_DEG,
+    INIT_SEARCH,
+    HandBlob,
+    detection_direction,
+    find_hand,
+)
 from hand_sog_tracker.core.kinematics import gaussian_centres
 from hand_sog_tracker.core.tracker import Tracker, _balanced
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
@@ -86,8 +92,8 @@ def test_each_stage_stays_within_its_budget_of_objective_evaluations(
     tracker.process(frames[1].depth_mm, INTR)
     finish = calls[0] - search
     s = INIT_SEARCH
-    hypotheses = tracker.config.init_hypotheses
-    assert search <= hypotheses * (s.rigid_iterations + 1) + s.kept * (s.full_iterations + 2) <= 110, search
+    hypotheses = tracker.config.init_hypotheses + 2  # (+ the detection direction's two)
+    assert search <= hypotheses * (s.rigid_iterations + 1) + (s.kept + 1) * (s.full_iterations + 2) <= 130, search
     assert finish <= 100, finish
 
 
@@ -99,6 +105,21 @@ def test_the_articulated_start_poses_keep_both_palm_sides() -> None:
     one_side = [(10 - k, -k, None, True) for k in range(3)]
     assert len(_balanced(one_side, 4)) == 3
     assert [a[1] for a in _balanced(one_side + [(0, -9, None, False)], 4)] == [0, -1, -2, -9]
+
+
+def test_the_detection_direction_is_a_new_in_plane_direction_from_enough_detections() -> None:
+    palm = np.array([10.0, 20.0, 400.0])
+    blob = HandBlob(palm=palm, directions=[np.array([0.0, -1.0, 0.0]), np.array([1.0, 0.0, 0.0])])
+    turned = np.deg2rad(DETECTION_DIRECTION_MIN_DEG + 15.0)
+    ahead = palm + 80.0 * np.array([np.sin(turned), -np.cos(turned), 0.0])
+    # Three fingertips around a point ahead of the palm, nearer the camera than the palm.
+    points = ahead + np.array([[-15.0, 0.0, -30.0], [0.0, -5.0, -20.0], [15.0, 5.0, -10.0]])
+    d = detection_direction(blob, points)
+    assert d is not None and d[2] == 0.0
+    np.testing.assert_allclose(d, [np.sin(turned), -np.cos(turned), 0.0], atol=1e-9)
+    assert detection_direction(blob, points[:2]) is None  # too few detections
+    along = palm + np.array([[-15.0, -80.0, -20.0], [0.0, -85.0, -20.0], [15.0, -80.0, -20.0]])
+    assert detection_direction(blob, along) is None  # the blob offers it already
 
 
 def test_the_tracker_module_uses_the_initialise_effort() -> None:

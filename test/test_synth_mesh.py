@@ -408,3 +408,24 @@ def test_extra_motions_in_view_and_within_limits(name: str) -> None:
         normal = R[:, :, 2]  # hand z in the camera frame
         away = np.degrees(np.arccos(np.clip(-normal[:, 2], -1.0, 1.0)))
         assert 50.0 < away.max() < 85.0
+
+
+@pytest.mark.parametrize("right", [True, False])
+def test_the_forearm_turns_at_the_wrist_and_the_hand_stays(right: bool) -> None:
+    """MeshRenderOptions' wrist angles turn only the forearm, about the wrist, by their angle."""
+    theta = motion_poses("abdadd", 1, seed=2)[0]
+    straight = pose_mesh(theta, right=right)
+    options = MeshRenderOptions(wrist_deviation_deg=30.0, wrist_flexion_deg=-20.0)
+    bent = pose_mesh(theta, right=right, wrist_rad=options.wrist_rad)
+    n = straight.n_hand_vertices
+    np.testing.assert_array_equal(bent.vertices[:n], straight.vertices[:n])
+    np.testing.assert_array_equal(bent.fingertips, straight.fingertips)
+    # The forearm's end (its cap centre, the last vertex) seen from the wrist (the hand origin).
+    a = straight.vertices[-1] - theta[:3]
+    b = bent.vertices[-1] - theta[:3]
+    assert np.linalg.norm(a) == pytest.approx(np.linalg.norm(b))
+    cos = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+    expected = np.cos(np.deg2rad(30.0)) * np.cos(np.deg2rad(20.0))  # (a along -y: z then x turn)
+    assert cos == pytest.approx(expected, abs=1e-9)
+    with pytest.raises(InputError, match="wrist_deviation_deg"):
+        MeshRenderOptions(wrist_deviation_deg=75.0)

@@ -30,7 +30,14 @@ from hand_sog_tracker.core.hand_model import (
     HandModel,
     default_hand_model,
 )
-from hand_sog_tracker.core.initialise import INIT_SEARCH, InitFinalists, find_hand, initial_hypotheses
+from hand_sog_tracker.core.initialise import (
+    INIT_SEARCH,
+    HandBlob,
+    InitFinalists,
+    detection_direction,
+    find_hand,
+    initial_hypotheses,
+)
 from hand_sog_tracker.core.kinematics import (
     fingertips,
     gaussian_centres,
@@ -411,6 +418,11 @@ class Tracker(RestartStrategies):
         det = detect_fingertips(pre, roi, window)
         if det.n:
             det = det.subset(self._on_hand_side(det.points, starts[0]))
+        n_blob = len(starts)
+        toward = detection_direction(blob, det.points)
+        if toward is not None:
+            # Open hand along the detections, palm toward and away (issue 11).
+            starts += initial_hypotheses(self._model, HandBlob(blob.palm, [toward]), 2)
         rigid = np.zeros(starts[0].size, dtype=bool)
         rigid[:6] = True
         aligned = []
@@ -424,8 +436,15 @@ class Tracker(RestartStrategies):
                 iterations=eff.rigid_iterations, initial_scale=2.0, active=rigid,
             )
             aligned.append((res.fun, -i, res.x, bool(global_rotation(x0)[2, 2] > 0)))
+        # The blob's start poses compete for ``kept``; the better of the detection direction's
+        # two is articulated besides them (taking a slot, it had displaced the right pose of
+        # a far hand whose detections missed two fingers).
+        blob_aligned = [a for a in aligned if -a[1] < n_blob]
+        kept = _balanced(sorted(blob_aligned, key=lambda a: a[:2], reverse=True), eff.kept)
+        if len(blob_aligned) < len(aligned):
+            kept.append(max((a for a in aligned if -a[1] >= n_blob), key=lambda a: a[:2]))
         scored = []
-        for _, rank, x, _ in _balanced(sorted(aligned, key=lambda a: a[:2], reverse=True), eff.kept):
+        for _, rank, x, _ in kept:
             data = self._hand_side(fine, x)
             if data.n == 0:
                 continue

@@ -91,6 +91,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.hand_model import default_hand_model
 from hand_sog_tracker.core.kinematics import chain_frames, check_pose, global_rotation
+from hand_sog_tracker.core.rotations import rot_x, rot_z
 from hand_sog_tracker.core.types import Intrinsics
 from hand_sog_tracker.errors import InputError
 from hand_sog_tracker.synth.gltf import read_glb
@@ -194,15 +195,32 @@ class MeshRenderOptions:
         Render the tapered elliptic forearm (250 mm along -hand-y).
     background_mm : float or None
         Depth (mm) of a fronto-parallel wall; ``None`` = no return (0) off the hand.
+    wrist_deviation_deg, wrist_flexion_deg : float
+        The forearm's turn at the wrist (degrees, at most 60 each): in the palm plane (about
+        hand z, positive toward hand +x) and out of it (about hand x).  0: the forearm
+        continues the hand's long axis.  Real wrists bend both ways (by 20-30 degrees in
+        the labelled real frames), so that the blob of hand and forearm is not aligned with
+        the hand.
     """
 
     sensor: str = "tof"
     forearm: bool = True
     background_mm: float | None = None
+    wrist_deviation_deg: float = 0.0
+    wrist_flexion_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.sensor not in SENSORS:
             raise InputError(f"unknown sensor {self.sensor!r}; choose one of {', '.join(SENSORS)}")
+        for name in ("wrist_deviation_deg", "wrist_flexion_deg"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and abs(value) <= 60.0):
+                raise InputError(f"{name} must be within [-60, 60] degrees, got {value!r}")
+
+    @property
+    def wrist_rad(self) -> tuple[float, float]:
+        """``(wrist_deviation, wrist_flexion)`` in radians, as :func:`pose_mesh` takes them."""
+        return float(np.deg2rad(self.wrist_deviation_deg)), float(np.deg2rad(self.wrist_flexion_deg))
         if self.background_mm is not None and not (np.isfinite(self.background_mm) and self.background_mm > 0):
             raise InputError(f"background_mm must be None or > 0, got {self.background_mm!r}")
 
@@ -444,8 +462,12 @@ def pose_mesh(
     shape: MeshShape = MeshShape(),
     right: bool = True,
     forearm: bool = True,
+    wrist_rad: tuple[float, float] = (0.0, 0.0),
 ) -> PosedMesh:
-    """Skin the mesh hand to pose ``theta`` (26,) (mm, rad); camera optical frame, mm."""
+    """Skin the mesh hand to pose ``theta`` (26,) (mm, rad); camera optical frame, mm.
+
+    ``wrist_rad``: the forearm's deviation and flexion at the wrist (rad, see
+    :class:`MeshRenderOptions`)."""
     theta = check_pose(theta)
     hand = load_mesh_hand(bool(right))
     local, bases, lengths, tip, fore_v, fore_t = _shaped(bool(right), shape)
@@ -465,6 +487,9 @@ def pose_mesh(
     verts = [v_hand]
     tris = [hand.triangles]
     if forearm:
+        if wrist_rad != (0.0, 0.0):
+            # (About the wrist, the hand frame's origin.)
+            fore_v = fore_v @ (rot_z(wrist_rad[0]) @ rot_x(wrist_rad[1])).T
         verts.append(fore_v)
         tris.append(fore_t + v_hand.shape[0])
     allv = np.concatenate(verts + [tips_hand, piv.reshape(20, 3)])
@@ -522,7 +547,7 @@ def render_mesh_depth(
     """
     if rng is None:
         rng = np.random.default_rng(0)
-    pm = pose_mesh(theta, shape, right, options.forearm) if posed is None else posed
+    pm = pose_mesh(theta, shape, right, options.forearm, options.wrist_rad) if posed is None else posed
     zbuf, tri_id = rasterise(pm.vertices, pm.triangles, intrinsics)
     hit = np.isfinite(zbuf)
     if options.background_mm is not None:
@@ -566,7 +591,7 @@ def mesh_sequence(
     poses = motion_poses(motion, n_frames, fps=fps, seed=seed)
     rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(3)[2])
     for k, pose in enumerate(poses):
-        pm = pose_mesh(pose, shape, right, options.forearm)
+        pm = pose_mesh(pose, shape, right, options.forearm, options.wrist_rad)
         depth = render_mesh_depth(pose, intr, shape, right, options, rng, posed=pm)
         yield SyntheticFrame(
             index=k, stamp_s=k / float(fps), depth_mm=depth, pose=pose.copy(), fingertips_mm=pm.fingertips.copy()
