@@ -43,9 +43,10 @@ pose and finger angles), and each finger's length factor
 (:attr:`~hand_sog_tracker.core.hand_model.HandShape.fingers`) is searched alone on the same
 score (:func:`_fit_finger_lengths`); the four are then divided by their mean (a finger's factor
 also makes up for an error of the palm's length, which ``length`` scales too) and those within
-:data:`FINGER_DEADBAND` of 1 set to 1; unless the result scores higher on the fit frames than
-the four factors alone (at the open poses), the fingers keep the starting model's factors.  The
-guard judges the model with them.  About 0.1 s more.
+:data:`FINGER_DEADBAND` of 1 set to 1.  The guard judges the model with them.  The fit frames'
+score after the fit (``score_after``) is taken at the refitted finger poses, so it can be lower
+than ``score_before`` (open poses) even when the fit is better; the guard decides.  About 0.1 s
+more.
 
 Score.  The tracking objective's similarity term is normalised by the data
 alone, so a larger model always covers more data and scores higher; fitting
@@ -811,17 +812,10 @@ def calibrate(
         # exactly straight and together; a model finger beside its data is fitted short), the
         # thumb kept open; then each finger's length searched at those poses.
         ref_model = mirrored.scaled(best_shape)
-        kept = (best_shape, best_val, best_poses, [fr.pose for fr in fits])
         for fr, th in zip(fits, best_poses):
             fr.pose = _refine(ref_model, th, fr.data, config, _REFIT_ITERATIONS, _RIGID_FINGERS)
         best_val, best_poses = evaluate(best_shape, ref_model)
         best_shape, best_val, best_poses = _fit_finger_lengths(best_shape, best_val, best_poses, evaluate, ref_model)
-        if not best_val > kept[1]:
-            # Not better on the fit frames than the four factors at the open poses: the data do
-            # not support other proportions.
-            best_shape, best_val, best_poses = kept[:3]
-            for fr, th in zip(fits, kept[3]):
-                fr.pose = th
     fitted = mirrored.scaled(best_shape)
     after = best_val
     if not after > before and not (widths_fixed and len(holdout)):
