@@ -18,7 +18,7 @@ flexion, MCP abduction, PIP flexion, DIP flexion).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Final
+from typing import Final, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,6 +42,8 @@ __all__ = [
     "FINGER_ABD",
     "chain_slice",
     "chain_joint_slice",
+    "FINGER_RANGE",
+    "UNIFORM_FINGERS",
     "HandShape",
     "HandModel",
     "default_hand_model",
@@ -81,6 +83,10 @@ _CHAIN_SLICES: Final = tuple(
 _CHAIN_JOINT_SLICES: Final = tuple(slice(CHAIN_JOINTS * c, CHAIN_JOINTS * (c + 1)) for c in range(5))
 
 
+#: Allowed range of each per-finger length factor (:attr:`HandShape.fingers`, unitless).
+FINGER_RANGE: Final[tuple[float, float]] = (0.5, 2.0)
+
+
 def chain_slice(c: int) -> slice:
     """Slice of chain ``c``'s (0 thumb .. 4 little) four angles in the pose vector (26,)."""
     return _CHAIN_SLICES[c]
@@ -91,30 +97,79 @@ def chain_joint_slice(c: int) -> slice:
     return _CHAIN_JOINT_SLICES[c]
 
 
+#: Per-finger length factors of the default model (thumb .. little, unitless).
+UNIFORM_FINGERS: Final[tuple[float, float, float, float, float]] = (1.0, 1.0, 1.0, 1.0, 1.0)
+
+
 @dataclass(frozen=True)
 class HandShape:
-    """The four user-specific scale factors of paper 000, sec. 5.4 (unitless).
+    """The four user-specific scale factors of paper 000, sec. 5.4, and per-finger lengths (unitless).
 
     ``length`` scales lengths along the fingers and palm (hand y), ``width``
     scales positions across the palm (hand x), ``depth`` scales the palm
     thickness (the palm Gaussians' standard deviation) and ``sigma`` scales
     the finger Gaussians' standard deviation (finger thickness).
+    ``fingers`` (5 values, thumb .. little; optional, default all 1.0) scales
+    each chain's three segment lengths (and its Gaussians' positions along
+    them) on top of ``length``: real hands do not have the default model's
+    finger proportions.  All 1.0 leaves the model bit-identical to a shape
+    without them.
     """
 
     length: float = 1.0
     width: float = 1.0
     depth: float = 1.0
     sigma: float = 1.0
+    fingers: tuple[float, float, float, float, float] = UNIFORM_FINGERS
 
     def as_array(self) -> NDArray[np.float64]:
-        """Return ``[length, width, depth, sigma]``, shape (4,)."""
+        """Return ``[length, width, depth, sigma]``, shape (4,) (without :attr:`fingers`)."""
         return np.array([self.length, self.width, self.depth, self.sigma])
+
+    def as_dict(self) -> dict[str, float]:
+        """The factors by name: ``length``, ``width``, ``depth``, ``sigma`` and, unless all are
+        1.0, ``finger_thumb`` .. ``finger_little`` (flat floats, e.g. for JSON)."""
+        out = {k: float(getattr(self, k)) for k in ("length", "width", "depth", "sigma")}
+        if not self.uniform_fingers:
+            out.update({f"finger_{name}": float(v) for name, v in zip(FINGERS, self.fingers)})
+        return out
+
+    def describe(self) -> str:
+        """One line, e.g. ``length=1.020 width=0.980 depth=1.000 sigma=1.010`` and, unless all
+        are 1.0, `` fingers=1.000/1.050/1.000/0.970/0.960`` (thumb .. little)."""
+        text = f"length={self.length:.3f} width={self.width:.3f} depth={self.depth:.3f} sigma={self.sigma:.3f}"
+        if not self.uniform_fingers:
+            text += " fingers=" + "/".join(f"{v:.3f}" for v in self.fingers)
+        return text
+
+    def finger_array(self) -> NDArray[np.float64]:
+        """Return the per-finger length factors (thumb .. little), shape (5,)."""
+        return np.array(self.fingers, dtype=np.float64)
+
+    @property
+    def uniform_fingers(self) -> bool:
+        """Whether every per-finger length factor is exactly 1.0 (the default model's proportions)."""
+        return all(v == 1.0 for v in self.fingers)
+
+    def with_fingers(self, fingers: "Sequence[float]") -> "HandShape":
+        """This shape with the per-finger length factors ``fingers`` (5 values, thumb .. little)."""
+        return replace(self, fingers=tuple(float(v) for v in fingers))
 
     def __post_init__(self) -> None:
         for name in ("length", "width", "depth", "sigma"):
             v = float(getattr(self, name))
             if not (0.3 <= v <= 3.0) or not np.isfinite(v):
                 raise InputError(f"HandShape.{name} must be in [0.3, 3.0], got {v!r}")
+        try:
+            fingers = tuple(float(v) for v in self.fingers)
+        except (TypeError, ValueError) as err:
+            raise InputError(f"HandShape.fingers must be 5 numbers, got {self.fingers!r}") from err
+        if len(fingers) != 5:
+            raise InputError(f"HandShape.fingers must have 5 values (thumb .. little), got {len(fingers)}")
+        for v in fingers:
+            if not (np.isfinite(v) and FINGER_RANGE[0] <= v <= FINGER_RANGE[1]):
+                raise InputError(f"HandShape.fingers values must be in {list(FINGER_RANGE)}, got {v!r}")
+        object.__setattr__(self, "fingers", fingers)
 
 
 @dataclass(frozen=True, eq=False)
@@ -192,10 +247,16 @@ def _apply_shape(base: HandModel, shape: HandShape) -> HandModel:
     palm = base.g_chain < 0
     offsets[palm] *= s
     offsets[~palm, 1] *= shape.length
+    lengths = base.lengths * shape.length
+    if not shape.uniform_fingers:
+        # Per-finger lengths: each chain's segments and its Gaussians' positions along them.
+        fingers = shape.finger_array()
+        lengths = lengths * fingers[:, None]
+        offsets[~palm, 1] *= fingers[base.g_chain[~palm]]
     out = replace(
         base,
         bases=base.bases * s,
-        lengths=base.lengths * shape.length,
+        lengths=lengths,
         g_offsets=offsets,
         g_sigmas=base.g_sigmas * np.where(palm, shape.depth, shape.sigma),
         shape=shape,

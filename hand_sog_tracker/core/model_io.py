@@ -1,8 +1,10 @@
 """Reading and writing the user's calibrated hand model (a small flat YAML file).
 
 The file stores the four :class:`~hand_sog_tracker.core.hand_model.HandShape`
-scale factors and the handedness, plus optional flat ``key: value`` extras
-(e.g. calibration energies)::
+scale factors, the five per-finger length factors (``finger_thumb`` .. ``finger_little``,
+:attr:`~hand_sog_tracker.core.hand_model.HandShape.fingers`; optional when reading: a file
+without them, as written before they existed, loads with all five at 1.0) and the handedness,
+plus optional flat ``key: value`` extras (e.g. calibration energies)::
 
     # hand_sog_tracker user hand model
     format: hand_sog_tracker/hand_model
@@ -12,6 +14,11 @@ scale factors and the handedness, plus optional flat ``key: value`` extras
     width: 0.98
     depth: 1.0
     sigma: 1.01
+    finger_thumb: 1.0
+    finger_index: 1.03
+    finger_middle: 1.0
+    finger_ring: 0.98
+    finger_little: 1.01
     fit_score_before: 0.512
     holdout_score_fitted: 0.861
 
@@ -36,12 +43,13 @@ import time
 from pathlib import Path
 from typing import Any, Mapping, Sequence, Union
 
-from hand_sog_tracker.core.hand_model import HandShape
+from hand_sog_tracker.core.hand_model import FINGERS, HandShape
 from hand_sog_tracker.errors import InputError, ModelFileError
 
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "FINGER_KEYS",
     "default_model_path",
     "save_hand_shape",
     "load_hand_shape",
@@ -53,7 +61,9 @@ __all__ = [
 FORMAT_NAME = "hand_sog_tracker/hand_model"
 FORMAT_VERSION = 1
 _SHAPE_KEYS = ("length", "width", "depth", "sigma")
-_RESERVED = ("format", "version", "handedness") + _SHAPE_KEYS
+#: Keys of the per-finger length factors (thumb .. little); optional when reading.
+FINGER_KEYS = tuple(f"finger_{f}" for f in FINGERS)
+_RESERVED = ("format", "version", "handedness") + _SHAPE_KEYS + FINGER_KEYS
 _KEY_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 Scalar = Union[bool, int, float, str]
@@ -96,7 +106,7 @@ def save_hand_shape(
     path : str or path-like
         Target file; ``~`` is expanded.
     shape : HandShape
-        The four scale factors (unitless).
+        The four scale factors and the five per-finger length factors (unitless).
     right : bool
         Handedness the shape was calibrated on.
     extra : mapping of str to bool, int, float or str, optional
@@ -123,6 +133,7 @@ def save_hand_shape(
         f"handedness: {'right' if right else 'left'}",
     ]
     lines += [f"{k}: {float(getattr(shape, k))!r}" for k in _SHAPE_KEYS]
+    lines += [f"{k}: {float(v)!r}" for k, v in zip(FINGER_KEYS, shape.fingers)]
     for key, value in (extra or {}).items():
         if not _KEY_RE.match(key) or key in _RESERVED:
             raise InputError(f"invalid or reserved extra key {key!r}")
@@ -217,15 +228,18 @@ def load_hand_shape(path: PathLike) -> tuple[HandShape, bool]:
     Returns
     -------
     shape : HandShape
-        The four scale factors.
+        The four scale factors and the per-finger length factors (all 1.0 when the file has
+        none of ``finger_thumb`` .. ``finger_little``).
     right : bool
         ``True`` for a right hand.
 
     Raises
     ------
     ModelFileError
-        Missing or malformed file, wrong format or version, missing keys,
-        unknown handedness or scale factors outside [0.3, 3.0].
+        Missing or malformed file, wrong format or version, missing keys (of the per-finger
+        factors: some but not all five), unknown handedness, scale factors outside [0.3, 3.0]
+        or per-finger factors outside
+        :data:`~hand_sog_tracker.core.hand_model.FINGER_RANGE`.
     """
     p = Path(path).expanduser()
     values = read_model_file(p)
@@ -248,8 +262,19 @@ def load_hand_shape(path: PathLike) -> tuple[HandShape, bool]:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise ModelFileError(f"{p}: {k} must be a number, got {v!r}")
         factors[k] = float(v)
+    present = [k for k in FINGER_KEYS if k in values]
+    fingers = [1.0] * len(FINGER_KEYS)
+    if present:
+        if len(present) != len(FINGER_KEYS):
+            missing = [k for k in FINGER_KEYS if k not in values]
+            raise ModelFileError(f"{p}: missing keys {', '.join(missing)} (all five per-finger factors or none)")
+        for i, k in enumerate(FINGER_KEYS):
+            v = values[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ModelFileError(f"{p}: {k} must be a number, got {v!r}")
+            fingers[i] = float(v)
     try:
-        shape = HandShape(**factors)
+        shape = HandShape(**factors, fingers=tuple(fingers))  # type: ignore[arg-type]
     except InputError as err:
         raise ModelFileError(f"{p}: {err}") from err
     return shape, hand == "right"

@@ -179,7 +179,7 @@ class CalibrationService:
                 res = _run_fit(args, kwargs)
                 s = res.shape
                 fitted = (
-                    f"length={s.length:.3f} width={s.width:.3f} depth={s.depth:.3f} sigma={s.sigma:.3f}; "
+                    f"{s.describe()}; "
                     f"{res.validation.describe() if res.validation else ''} ({res.seconds:.2f} s)"
                 )
                 accepted = True  # by the guard: no further attempts
@@ -313,7 +313,7 @@ class CalibrationService:
             self.get_logger().warning(f"calibrated model could not be saved: {err}")
         response.success = True
         response.message = (
-            f"length={s.length:.3f} width={s.width:.3f} depth={s.depth:.3f} sigma={s.sigma:.3f}; "
+            f"{s.describe()}; "
             f"fit score {res.score_before:.4f} -> {res.score_after:.4f} "
             f"({len(res.used_frames)} frames, {res.seconds:.2f} s); {v.describe()}; {saved}"
         )

@@ -53,6 +53,10 @@ history (15 frames at 16.7 Hz here; 30 at 30 Hz keeping every other one, the his
 known.  Everything is deterministic (seeded renders, deterministic tracker and fit); only the
 fit times vary between runs (CPU time on a shared machine).
 
+The fitted per-finger length factors (thumb .. little) follow the fitted factors on a hand's
+line when they are not all 1.0; they have no truth here (the hands have the model's or the
+mesh's own finger proportions, not drawn ones) and are not in the table.
+
 The summary row per renderer: accepted fits; the largest |error| of each factor over the
 accepted fits; how many of those have all three within 5%; the mean fingertip error over all
 hands, default -> calibrated, and the mean gain over the accepted hands; how many accepted fits
@@ -160,6 +164,9 @@ class HandResult:
         The same with the fitted shape whether accepted or not (NaN without a shape).
     tip_truth_mm : float
         The same with the model at the true factors (:attr:`truth`; depth = sigma).
+    fingers : tuple of float or None
+        Fitted per-finger length factors (thumb .. little; all 1.0 when the fit left the
+        default proportions), None without a fitted shape.
     """
 
     renderer: str
@@ -180,6 +187,7 @@ class HandResult:
     tip_calibrated_mm: float
     tip_fitted_mm: float = float("nan")
     tip_truth_mm: float = float("nan")
+    fingers: tuple[float, float, float, float, float] | None = None
 
     @property
     def within_5pct(self) -> bool:
@@ -329,6 +337,7 @@ def run_hand(renderer: str, seed: int, track: bool = True) -> HandResult:
         poses.append(out.pose if out.status is TrackerStatus.TRACKING else None)
     fit_i, hold_i = select_frames(poses, DEFAULT_FIT_FRAMES, DEFAULT_HOLDOUT_FRAMES)
     fitted: tuple[float, float, float, float] | None = None
+    shape: HandShape | None = None
     accepted, reason, model = False, "", default
     gain = worst = float("nan")
     t0 = time.process_time()
@@ -342,12 +351,14 @@ def run_hand(renderer: str, seed: int, track: bool = True) -> HandResult:
                 holdout=[depth[i] for i in hold_i], holdout_poses=[poses[i] for i in hold_i],
             )
         except CalibrationRejected as err:
+            shape = err.shape
             fitted = tuple(float(v) for v in err.shape.as_array())  # type: ignore[assignment]
             reason = "; ".join(err.validation.failures()) or "refused"
             gain, worst = err.validation.gain, err.validation.worst_frame_gain
         except CalibrationError as err:
             reason = str(err)
         else:
+            shape = res.shape
             fitted = tuple(float(v) for v in res.shape.as_array())  # type: ignore[assignment]
             accepted, model = True, res.model
             if res.validation is not None:
@@ -362,7 +373,7 @@ def run_hand(renderer: str, seed: int, track: bool = True) -> HandResult:
         seq = _frames(renderer, drawn, TRACK_FRAMES, seed + TRACK_SEED_OFFSET, TRACK_FPS)
         tip_default = _track_error(default, seq)
         if fitted is not None:
-            tip_fitted = _track_error(model if accepted else default.scaled(HandShape(*fitted)), seq)
+            tip_fitted = _track_error(model if accepted else default.scaled(shape), seq)
         tip_calibrated = tip_fitted if accepted else tip_default
         tip_truth = _track_error(default.scaled(HandShape(truth[0], truth[1], truth[2], truth[2])), seq)
     return HandResult(
@@ -384,6 +395,7 @@ def run_hand(renderer: str, seed: int, track: bool = True) -> HandResult:
         tip_calibrated_mm=float(tip_calibrated),
         tip_fitted_mm=float(tip_fitted),
         tip_truth_mm=float(tip_truth),
+        fingers=None if shape is None else shape.fingers,
     )
 
 
@@ -428,6 +440,8 @@ def format_hand(r: HandResult) -> str:
     fit = "-" if r.fitted is None else "/".join(f"{v:.3f}" for v in (r.fitted[0], r.fitted[1], r.fitted[3]))
     err = "-" if r.errors is None else " ".join(_pct(e) for e in r.errors)
     verdict = "accepted" if r.accepted else f"refused ({r.reason})"
+    if r.fingers is not None and any(v != 1.0 for v in r.fingers):
+        fit += " fingers " + "/".join(f"{v:.3f}" for v in r.fingers)
     return (
         f"{r.renderer:7s} seed {r.seed}: drawn L/W/T {drawn}, truth L/W/s {truth}, fitted {fit}, "
         f"error {err}; {verdict}; guard gain {r.guard_gain:+.4f} worst {r.guard_worst_frame:+.4f}; "

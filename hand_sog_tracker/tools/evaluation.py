@@ -79,7 +79,7 @@ def _calibrate_model(
         return model, info
     info.update(
         accepted=True,
-        shape={k: float(v) for k, v in dataclasses.asdict(res.shape).items()},
+        shape=res.shape.as_dict(),
         fit_score_before=res.score_before,
         fit_score_after=res.score_after,
         seconds=res.seconds,
@@ -108,7 +108,7 @@ def _auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> dict[
         used = usable_automatically(res.shape)
         if used:
             tracker.set_model(res.model)  # type: ignore[attr-defined]
-        info.update(accepted=True, used=used, shape={k: float(v) for k, v in dataclasses.asdict(res.shape).items()})
+        info.update(accepted=True, used=used, shape=res.shape.as_dict())
     info["seconds"] = time.perf_counter() - t0
     return info
 
