@@ -232,11 +232,31 @@ class HandModel:
         Scaling is always applied to the unscaled default geometry, so
         ``m.scaled(a).scaled(b)`` equals ``m.scaled(b)``.
         """
-        return _apply_shape(default_hand_model(self.right), shape)
+        return _apply_shape(_base_model(self.right), shape)
 
     def mirrored(self, right: bool) -> "HandModel":
         """Return this model as a right (``True``) or left (``False``) hand."""
         return replace(self, right=right)
+
+
+_BASE_MODELS: dict[bool, HandModel] = {}
+
+
+def _base_model(right: bool) -> HandModel:
+    """The unscaled default model of a handedness, built once (a calibration scales hundreds).
+
+    Its arrays are read-only: the models scaled from it share those that scaling keeps
+    (chains, segments, rest rotations, tips, limits), which also keeps the kinematics'
+    caches keyed by those arrays warm.
+    """
+    base = _BASE_MODELS.get(right)
+    if base is None:
+        base = default_hand_model(right)
+        for value in vars(base).values():
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+        _BASE_MODELS[right] = base
+    return base
 
 
 def _apply_shape(base: HandModel, shape: HandShape) -> HandModel:

@@ -31,6 +31,7 @@ __all__ = [
     "attached_points",
     "gaussian_centres",
     "posed_centres",
+    "chain_bases",
     "fingertips",
     "skeleton_points",
     "SKELETON_CHAINS",
@@ -223,6 +224,37 @@ def _model_kinematics(model: HandModel) -> _ModelKinematics:
     hit = _KIN_CACHE.get(id(model))
     if hit is not None and hit[0] is model:
         return hit[1]
+    mk = _ModelKinematics(
+        **_layout_kinematics(model),
+        bases=np.array(model.bases, dtype=np.float64),
+        bases3=np.array(model.bases, dtype=np.float64)[:, None, :],
+        lengths3=np.array(model.lengths, dtype=np.float64)[:, :, None],
+        g_offsets=np.array(model.g_offsets, dtype=np.float64),
+        M=_mirror(model),
+        right=bool(model.right),
+    )
+    for arr in vars(mk).values():
+        if isinstance(arr, np.ndarray):
+            arr.setflags(write=False)
+    if len(_KIN_CACHE) > 32:
+        _KIN_CACHE.clear()
+    _KIN_CACHE[id(model)] = (model, mk)
+    return mk
+
+
+#: :func:`_layout_kinematics` by the identity of a model's rest rotations, chains and segments
+#: (with the arrays themselves, which keep the ids valid): the models a calibration scales
+#: from one default model share these arrays (:meth:`HandModel.scaled`).
+_LAYOUT_CACHE: dict[tuple[int, int, int], tuple[tuple[NDArray, NDArray, NDArray], dict[str, NDArray]]] = {}
+
+
+def _layout_kinematics(model: HandModel) -> dict[str, NDArray]:
+    """The fields of :class:`_ModelKinematics` that the hand's shape does not change (read-only)."""
+    arrays = (model.rest_rotations, model.g_chain, model.g_segment)
+    key = (id(arrays[0]), id(arrays[1]), id(arrays[2]))
+    hit = _LAYOUT_CACHE.get(key)
+    if hit is not None and all(a is b for a, b in zip(hit[0], arrays)):
+        return hit[1]
     first = FIRST_JOINT + CHAIN_JOINTS * np.arange(5)
     r0 = np.asarray(model.rest_rotations, dtype=np.float64)
     chain = np.asarray(model.g_chain)
@@ -236,35 +268,28 @@ def _model_kinematics(model: HandModel) -> _ModelKinematics:
     for cc in range(5):
         for j in range(CHAIN_JOINTS):
             groups[CHAIN_JOINTS * cc + j] = finger & (c == cc) & (s >= first_seg[j])
-    mk = _ModelKinematics(
-        angle_idx=first[:, None] + np.array([1, 0, 2, 3])[None, :],
-        r0_mix=np.array(
+    layout = {
+        "angle_idx": first[:, None] + np.array([1, 0, 2, 3])[None, :],
+        "r0_mix": np.array(
             [
                 [r0[:, :, 0], -r0[:, :, 1], np.zeros((5, 3)), r0[:, :, 1]],
                 [r0[:, :, 1], r0[:, :, 0], np.zeros((5, 3)), -r0[:, :, 0]],
             ]
         ),
-        r0z=np.ascontiguousarray(r0[:, :, 2]),
-        bases=np.array(model.bases, dtype=np.float64),
-        bases3=np.array(model.bases, dtype=np.float64)[:, None, :],
-        lengths3=np.array(model.lengths, dtype=np.float64)[:, :, None],
-        g_rot=3 * c + s,
-        g_org=4 * c + s,
-        g_finger=finger[:, None],
-        g_offsets=np.array(model.g_offsets, dtype=np.float64),
-        groups=groups,
-        pivot=(4 * np.arange(5)[:, None] + first_seg[None, :]).ravel(),
-        axis_row=(np.arange(5)[:, None] + np.array([0, 5, 0, 0])[None, :]).ravel(),
-        M=_mirror(model),
-        right=bool(model.right),
-    )
-    for arr in vars(mk).values():
-        if isinstance(arr, np.ndarray):
-            arr.setflags(write=False)
-    if len(_KIN_CACHE) > 32:
-        _KIN_CACHE.clear()
-    _KIN_CACHE[id(model)] = (model, mk)
-    return mk
+        "r0z": np.ascontiguousarray(r0[:, :, 2]),
+        "g_rot": 3 * c + s,
+        "g_org": 4 * c + s,
+        "g_finger": finger[:, None],
+        "groups": groups,
+        "pivot": (4 * np.arange(5)[:, None] + first_seg[None, :]).ravel(),
+        "axis_row": (np.arange(5)[:, None] + np.array([0, 5, 0, 0])[None, :]).ravel(),
+    }
+    for arr in layout.values():
+        arr.setflags(write=False)
+    if len(_LAYOUT_CACHE) >= 8:
+        _LAYOUT_CACHE.clear()
+    _LAYOUT_CACHE[key] = (arrays, layout)
+    return layout
 
 
 #: The mirror ``M`` of a right (identity) and a left hand (x negated) as its diagonal, shape
@@ -601,6 +626,19 @@ def _centres_hand(
 def posed_centres(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:
     """:func:`gaussian_centres` without the copy: the cached centres (m, 3) mm, read-only."""
     return _posed(model, theta).pts
+
+
+#: Rows of the joint origins (20, 3) that are each chain's first joint (thumb CMC, the MCPs).
+_CHAIN_FIRST = np.arange(0, 20, CHAIN_JOINTS)
+
+
+def chain_bases(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each chain's first joint, shape (5, 3), mm, camera frame (thumb .. little), from the
+    cached posed model; the same values as :func:`attached_points` of the five chains at
+    segment 0 with zero offsets."""
+    theta = check_pose(theta)
+    posed = _posed(model, theta)
+    return posed.org20.take(_CHAIN_FIRST, axis=0) @ posed.G.T + theta[:3]
 
 
 def fingertips(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -141,6 +141,8 @@ def _run(
 ) -> tuple[int, int, int] | None:
     """First and last sample index of the run through ``start`` and how many of its two ends are
     where the data end (not at a crest); None when ``start`` is not on the hand."""
+    z = z.tolist()  # (the walk below reads single samples: Python floats are read fastest)
+    n = len(z)
 
     def on(i: int) -> bool:
         return near <= z[i] <= far
@@ -152,7 +154,7 @@ def _run(
         i, top, top_i = start, z[start], start
         while True:
             j = i + step
-            if j < 0 or j >= z.size or not on(j) or abs(z[j] - z[i]) > JUMP_MM:
+            if j < 0 or j >= n or not on(j) or abs(z[j] - z[i]) > JUMP_MM:
                 ends.append(i)
                 lost += 1
                 break
@@ -212,7 +214,12 @@ def _finger_widths(
     p = attached_points(model, theta, ch, sg, np.array(offs))
     q = attached_points(model, theta, ch, sg, np.array(nxt))
     puv, quv = _project(p, intr), _project(q, intr)
-    sigmas = [float(np.median(model.g_sigmas[(model.g_chain == c) & (model.g_segment == g)])) for c, g in zip(ch, sg)]
+    seg_sigma = {
+        (c, g): float(np.median(model.g_sigmas[(model.g_chain == c) & (model.g_segment == g)]))
+        for c in range(1, 5)
+        for g in (0, 1)
+    }
+    sigmas = [seg_sigma[c, g] for c, g in zip(chains, segs)]
     out: list[list[float]] = [[] for _ in range(4)]
     centres: list[list[NDArray[np.float64]]] = [[] for _ in range(4)]
     for c in range(1, 5):

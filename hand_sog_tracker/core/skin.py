@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import Preprocessed
 from hand_sog_tracker.core.hand_model import HandModel
-from hand_sog_tracker.core.kinematics import attached_points, gaussian_centres, global_rotation
+from hand_sog_tracker.core.kinematics import chain_bases, global_rotation, posed_centres
 from hand_sog_tracker.core.types import Intrinsics
 
 __all__ = ["SCORE_TOLERANCE_MM", "ScoreData", "draw_skin", "overlap_score", "score_data", "shape_score"]
@@ -33,12 +33,8 @@ def _skin(model: HandModel, theta: NDArray[np.float64]):
     Gaussians are joined too, so the palm is a filled plate.
     """
     ia, ib, extra_radius_of = _skin_topology(model)
-    m = model.n_gaussians
-    centres = gaussian_centres(model, theta)
-    bases = attached_points(model, theta, np.arange(5), np.zeros(5, np.int64), np.zeros((5, 3)))
     radii = np.concatenate([model.g_sigmas, model.g_sigmas[extra_radius_of]])
-    assert radii.size == m + 5
-    return np.concatenate([centres, bases]), radii, ia, ib
+    return np.concatenate([posed_centres(model, theta), chain_bases(model, theta)]), radii, ia, ib
 
 
 _TOPOLOGY_CACHE: dict[tuple[int, bool], tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]] = {}
@@ -84,6 +80,27 @@ def _palm_pairs(model: HandModel, ia: NDArray[np.int64], ib: NDArray[np.int64]) 
     return (pa & pb & (ia != ib)).tolist()
 
 
+_DRAW_CACHE: dict[tuple[int, bool], tuple[list[bool], list[tuple[int, ...]]]] = {}
+
+
+def _draw_lists(
+    model: HandModel, ia: NDArray[np.int64], ib: NDArray[np.int64]
+) -> tuple[list[bool], list[tuple[int, ...]]]:
+    """Per capsule of :func:`_skin_topology`: whether its quad is drawn (two different ends)
+    and the points whose discs it draws (none for a palm quad: the palm's own discs are drawn
+    by its one-Gaussian capsules); cached with the topology."""
+    key = (model.n_gaussians, bool(model.right))
+    hit = _DRAW_CACHE.get(key)
+    if hit is not None:
+        return hit
+    ia_l, ib_l = ia.tolist(), ib.tolist()
+    quad_only = _palm_pairs(model, ia, ib)
+    has_quad = [a != b for a, b in zip(ia_l, ib_l)]
+    discs = [() if q else ((a,) if a == b else (a, b)) for a, b, q in zip(ia_l, ib_l, quad_only)]
+    _DRAW_CACHE[key] = (has_quad, discs)
+    return has_quad, discs
+
+
 _SUBPIXEL_BITS = 3
 _SUB = float(1 << _SUBPIXEL_BITS)
 
@@ -111,24 +128,20 @@ def draw_skin(
     quads = np.stack(
         [uv[ia] + ra * normal, uv[ib] + rb * normal, uv[ib] - rb * normal, uv[ia] - ra * normal], 1
     )
-    quads_i = np.round(quads * _SUB).astype(np.int32)
+    quads_i = list(np.round(quads * _SUB).astype(np.int32))
     centres_i = np.round(uv * _SUB).astype(np.int64).tolist()
     radii_i = np.round(r_px * _SUB).astype(np.int64).tolist()
     has_disc = (radii > 0).tolist()
-    order = np.argsort(-front).tolist()
     front_l = front.tolist()
-    ia_l, ib_l = ia.tolist(), ib.tolist()
-    quad_only = _palm_pairs(model, ia, ib)
-    for k in order:
+    has_quad, discs = _draw_lists(model, ia, ib)
+    fill, circle, line8 = cv2.fillConvexPoly, cv2.circle, cv2.LINE_8
+    for k in np.argsort(-front).tolist():
         value = front_l[k]
-        a_k, b_k = ia_l[k], ib_l[k]
-        if a_k != b_k:
-            cv2.fillConvexPoly(out, quads_i[k], value, cv2.LINE_8, _SUBPIXEL_BITS)
-        if quad_only[k]:
-            continue  # the palm's own discs are drawn by its one-Gaussian capsules
-        for e in (a_k,) if a_k == b_k else (a_k, b_k):
+        if has_quad[k]:
+            fill(out, quads_i[k], value, line8, _SUBPIXEL_BITS)
+        for e in discs[k]:
             if has_disc[e]:
-                cv2.circle(out, centres_i[e], radii_i[e], value, -1, cv2.LINE_8, _SUBPIXEL_BITS)
+                circle(out, centres_i[e], radii_i[e], value, -1, line8, _SUBPIXEL_BITS)
     return out
 
 
