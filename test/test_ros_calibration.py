@@ -165,3 +165,33 @@ def test_no_automatic_fit_with_a_saved_user_model_or_when_switched_off(ros_conte
         finally:
             rig.close()
     assert load_hand_shape(tmp_path / "hand_model.yaml")[0] == saved
+
+
+def test_the_fit_worker_serves_fits_one_after_the_other_in_one_child_process() -> None:
+    """The node's fits run in one child process that stays between fits (no start-up per fit);
+    the child's exceptions reach the caller, and a child that died is started again."""
+    from hand_sog_tracker.core.types import TrackerConfig
+    from hand_sog_tracker.errors import CalibrationError
+    from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
+
+    intr = default_intrinsics()
+    truth = HandShape(length=1.1, width=1.05, depth=1.05, sigma=1.05)
+    frames = [f.depth_mm for f in synthetic_sequence("abdadd", 3, intr, shape=truth, seed=2)]
+    worker = calibration_service.FitWorker()
+    try:
+        worker.start()
+        pid = worker._proc.pid
+        res = worker.run((frames, intr, TrackerConfig(), default_hand_model(True)), {})
+        assert res.shape.length == pytest.approx(1.1, rel=0.05)
+        with pytest.raises(CalibrationError, match="no depth frames"):
+            worker.run(([], intr, TrackerConfig(), default_hand_model(True)), {})
+        again = worker.run((frames, intr, TrackerConfig(), default_hand_model(True)), {})
+        assert again.shape == res.shape and worker._proc.pid == pid  # the same child served all three
+        worker._proc.kill()
+        worker._proc.wait()
+        third = worker.run((frames, intr, TrackerConfig(), default_hand_model(True)), {})
+        assert third.shape == res.shape and worker._proc.pid != pid  # started again
+        proc = worker._proc
+    finally:
+        worker.close()
+    assert proc.poll() is not None  # closed: the child has ended

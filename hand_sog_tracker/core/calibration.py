@@ -906,18 +906,23 @@ def _fit_finger_lengths(
 
 
 def calibrate_pickled_stdio() -> None:
-    """Entry of a child process that runs :func:`calibrate` (the node's ``~/calibrate``).
+    """Entry of a child process that runs :func:`calibrate` (the node's fits).
 
-    Reads ``pickle((args, kwargs))`` from stdin and writes ``pickle((True, result))`` or
-    ``pickle((False, exception))`` to stdout.
+    Serves until stdin ends: reads ``pickle((args, kwargs))`` from stdin and writes
+    ``pickle((True, result))`` or ``pickle((False, exception))`` to stdout, one fit after the
+    other.
     """
     import pickle
     import sys
 
-    args, kwargs = pickle.loads(sys.stdin.buffer.read())
-    try:
-        out: tuple[bool, object] = (True, calibrate(*args, **kwargs))
-    except Exception as err:  # noqa: BLE001 - handed to the parent process
-        out = (False, err)
-    sys.stdout.buffer.write(pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL))
-    sys.stdout.buffer.flush()
+    while True:
+        try:
+            args, kwargs = pickle.load(sys.stdin.buffer)
+        except EOFError:
+            return
+        try:
+            out: tuple[bool, object] = (True, calibrate(*args, **kwargs))
+        except Exception as err:  # noqa: BLE001 - handed to the parent process
+            out = (False, err)
+        pickle.dump(out, sys.stdout.buffer, protocol=pickle.HIGHEST_PROTOCOL)
+        sys.stdout.buffer.flush()

@@ -11,8 +11,13 @@ the service callback :meth:`CalibrationService._on_calibrate` lives here.
 
 from __future__ import annotations
 
+import os
+import pickle
+import subprocess
+import sys
+import tempfile
 import threading
-from typing import TYPE_CHECKING
+from typing import IO, TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,7 +52,15 @@ if TYPE_CHECKING:
     from hand_sog_tracker.core.tracker import Tracker
     from hand_sog_tracker.ros.params import NodeSettings
 
-__all__ = ["CALIB_HISTORY", "CALIB_SPACING_S", "CALIB_HOLDOUT", "FIT_IN_PROCESS", "CalibFrame", "CalibrationService"]
+__all__ = [
+    "CALIB_HISTORY",
+    "CALIB_SPACING_S",
+    "CALIB_HOLDOUT",
+    "FIT_IN_PROCESS",
+    "CalibFrame",
+    "CalibrationService",
+    "FitWorker",
+]
 
 #: Tracked frames kept for ~/calibrate (one at least CALIB_SPACING_S after the previous).
 CALIB_HISTORY = HISTORY_FRAMES
@@ -78,52 +91,104 @@ def _lower_priority(tid: int = 0) -> None:
         pass
 
 
-def _fit_in_child_process(args: tuple, kwargs: dict) -> CalibrationResult:
-    """:func:`~hand_sog_tracker.core.calibration.calibrate` in a fresh child Python process.
+class FitWorker:
+    """A child Python process that runs :func:`~hand_sog_tracker.core.calibration.calibrate`,
+    kept between fits.
 
     A plain ``python -c`` child (not ``multiprocessing``: that would fork the node's DDS
     threads, or re-import the node and rclpy in the child) that lowers its priority by
     :data:`FIT_NICE` and asks for Linux's idle scheduling class (it runs only on a core nothing
     else wants; fed at 100 Hz on 2 cores the node's latency p95 per bag was 9.4-12.9 ms in runs
-    with an automatic fit, 8.2-11.3 ms without) first, imports only the NumPy core, reads the pickled arguments from
-    stdin and writes the pickled result or exception to stdout (0.2-0.5 s of start-up, then
-    the fit).  The exception raised in the child (e.g. :class:`CalibrationRejected`) is
-    raised here.
+    with an automatic fit, 8.2-11.3 ms without), imports only the NumPy core and then serves
+    fits: pickled arguments in on its stdin, the pickled result or exception out on its stdout
+    (:func:`~hand_sog_tracker.core.calibration.calibrate_pickled_stdio`).  :meth:`start` ahead
+    of the first fit takes its start-up (0.2-0.6 s of imports) off the fit's time: the node
+    starts it with the first tracked frame, half a second before the automatic fit is due.
+    The exception raised in the child (e.g. :class:`CalibrationRejected`) is raised by
+    :meth:`run`; a child that died is started again by the next fit.
     """
-    import os
-    import pickle
-    import subprocess
-    import sys
 
-    import hand_sog_tracker
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._proc: subprocess.Popen | None = None
+        self._stderr: IO[bytes] | None = None
 
-    root = os.path.dirname(os.path.dirname(os.path.abspath(hand_sog_tracker.__file__)))
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        env.setdefault(var, "1")  # one core for the fit: the other is tracking's
-    code = (
-        f"import os; os.nice({int(FIT_NICE)})\n"
-        "try:\n"
-        "    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))\n"
-        "except (AttributeError, OSError):\n"
-        "    pass\n"
-        "from hand_sog_tracker.core.calibration import calibrate_pickled_stdio; calibrate_pickled_stdio()"
-    )
-    proc = subprocess.run(
-        [sys.executable, "-c", code],
-        input=pickle.dumps((args, kwargs), protocol=pickle.HIGHEST_PROTOCOL),
-        capture_output=True,
-        env=env,
-        check=False,
-    )
-    if proc.returncode != 0 or not proc.stdout:
-        tail = proc.stderr.decode(errors="replace").strip().splitlines()[-3:]
-        raise RuntimeError(f"calibration process failed (exit {proc.returncode}): {' | '.join(tail)}")
-    ok, value = pickle.loads(proc.stdout)
-    if not ok:
-        raise value
-    return value
+    def start(self) -> None:
+        """Start the child unless it runs (cheap when it does)."""
+        with self._lock:
+            self._start()
+
+    def _start(self) -> subprocess.Popen:
+        if self._proc is not None and self._proc.poll() is None:
+            return self._proc
+        self._stop()
+        import hand_sog_tracker
+
+        root = os.path.dirname(os.path.dirname(os.path.abspath(hand_sog_tracker.__file__)))
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            env.setdefault(var, "1")  # one core for the fit: the other is tracking's
+        code = (
+            f"import os; os.nice({int(FIT_NICE)})\n"
+            "try:\n"
+            "    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))\n"
+            "except (AttributeError, OSError):\n"
+            "    pass\n"
+            "from hand_sog_tracker.core.calibration import calibrate_pickled_stdio; calibrate_pickled_stdio()"
+        )
+        self._stderr = tempfile.TemporaryFile()  # (a pipe nobody reads could fill up and block it)
+        self._proc = subprocess.Popen(
+            [sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            stderr=self._stderr, env=env,
+        )
+        return self._proc
+
+    def run(self, args: tuple, kwargs: dict) -> CalibrationResult:
+        """``calibrate(*args, **kwargs)`` in the child (one fit at a time)."""
+        with self._lock:
+            proc = self._start()
+            assert proc.stdin is not None and proc.stdout is not None
+            try:
+                pickle.dump((args, kwargs), proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+                proc.stdin.flush()
+                ok, value = pickle.load(proc.stdout)
+            except (OSError, EOFError, pickle.UnpicklingError) as err:
+                problem = self._stderr_tail() or repr(err)
+                self._stop()
+                raise RuntimeError(f"calibration process failed: {problem}") from err
+        if not ok:
+            raise value
+        return value
+
+    def _stderr_tail(self) -> str:
+        if self._stderr is None:
+            return ""
+        self._stderr.seek(0)
+        return " | ".join(self._stderr.read().decode(errors="replace").strip().splitlines()[-3:])
+
+    def close(self) -> None:
+        """End the child (a fit under way fails with RuntimeError)."""
+        with self._lock:
+            self._stop()
+
+    def _stop(self) -> None:
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            for stream in (proc.stdin, proc.stdout):
+                try:
+                    if stream is not None:
+                        stream.close()  # (its stdin at EOF: the child ends by itself)
+                except OSError:
+                    pass
+            try:
+                proc.wait(timeout=1.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        if self._stderr is not None:
+            self._stderr.close()
+            self._stderr = None
 
 
 class CalibrationService:
@@ -143,7 +208,16 @@ class CalibrationService:
     _calib_history: FrameHistory
     _auto_calib: AutoCalibration
     _calib_wake: GuardCondition
+    _fit_worker: FitWorker
     _model_generation: int = 0
+
+    def _run_fit(self, args: tuple, kwargs: dict) -> CalibrationResult:
+        """:func:`~hand_sog_tracker.core.calibration.calibrate` in the child process
+        (:data:`FIT_IN_PROCESS`) or on this thread at a lower OS priority."""
+        if FIT_IN_PROCESS:
+            return self._fit_worker.run(args, kwargs)
+        _lower_priority(threading.get_native_id())
+        return calibrate(*args, **kwargs)
 
     def _remember(
         self, depth: NDArray[np.float32], intr: Intrinsics, pose: NDArray[np.float64] | None, stamp: int
@@ -156,6 +230,8 @@ class CalibrationService:
             return
         auto = self._auto_calib
         auto.enabled = auto.enabled and self._settings.auto_calibrate
+        if FIT_IN_PROCESS and auto.enabled and not auto.accepted and auto.attempts < auto.max_attempts:
+            self._fit_worker.start()  # (its imports done before the fit is due)
         frames = auto.due(self._calib_history, stamp)
         if frames is None:
             return
@@ -176,7 +252,7 @@ class CalibrationService:
             logger = self.get_logger()
             accepted = False
             try:
-                res = _run_fit(args, kwargs)
+                res = self._run_fit(args, kwargs)
                 s = res.shape
                 fitted = (
                     f"{s.describe()}; "
@@ -258,7 +334,7 @@ class CalibrationService:
 
         def work() -> None:
             try:
-                future.set_result(_run_fit(args, kwargs))
+                future.set_result(self._run_fit(args, kwargs))
             except BaseException as err:  # noqa: BLE001 - handed to the service callback
                 future.set_exception(err)
             finally:
@@ -319,12 +395,3 @@ class CalibrationService:
         )
         self.get_logger().info(f"calibrated: {response.message}")
         return response
-
-
-def _run_fit(args: tuple, kwargs: dict) -> CalibrationResult:
-    """:func:`~hand_sog_tracker.core.calibration.calibrate` in a child process
-    (:data:`FIT_IN_PROCESS`) or on this thread at a lower OS priority."""
-    if FIT_IN_PROCESS:
-        return _fit_in_child_process(args, kwargs)
-    _lower_priority(threading.get_native_id())
-    return calibrate(*args, **kwargs)

@@ -108,7 +108,7 @@ from hand_sog_tracker.interface import (
     image_to_depth_mm,
     stamp_to_ns,
 )
-from hand_sog_tracker.ros.calibration_service import CalibrationService
+from hand_sog_tracker.ros.calibration_service import CalibrationService, FitWorker
 from hand_sog_tracker.ros.conversions import (
     bgr_to_image_msg,
     delete_all_markers,
@@ -304,11 +304,19 @@ class TrackerNode(CalibrationService, Node):
         # Triggered by the calibration worker when it is done: wakes the executor, which then
         # resumes the waiting (async) service callback.
         self._calib_wake = self.create_guard_condition(lambda: None)
+        self._fit_worker = FitWorker()  # the fits' child process, started with tracking
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f"tracking the {'right' if self._settings.tracker.right_hand else 'left'} hand from "
             f"{self._image_sub.topic_name} + {self._info_sub.topic_name}"
         )
+
+    def destroy_node(self) -> None:
+        """Destroy the node and end the fits' child process."""
+        worker = getattr(self, "_fit_worker", None)  # (absent when __init__ failed early)
+        if worker is not None:
+            worker.close()
+        super().destroy_node()
 
     # -- public -----------------------------------------------------------------
     @property
