@@ -273,3 +273,25 @@ def test_scheduled_shift_does_not_start_when_every_fingertip_is_seen_at_its_fing
     fewer = Detections(det.points[keep], det.uv[keep], det.confidence[keep], det.end_on[keep])
     assert tracker._scheduled_shift(obj, res, fewer) is res
     assert calls == [SHIFT_CHUNK] and tracker._shift_pending is not None
+
+
+def test_deferred_restarts_answer_before_the_restarts_and_the_track_is_the_same() -> None:
+    """defer_restarts (the node): a frame's result is its fit, its restarts run on finish_frame,
+    and a restart that wins there continues the track exactly as without deferral."""
+    from hand_sog_tracker.synth.mesh import mesh_sequence
+
+    intr = default_intrinsics()
+    plain, deferred = Tracker(), Tracker()
+    deferred.defer_restarts = True
+    won = []
+    for k, f in enumerate(mesh_sequence("fingercount", 38, intr, seed=2)):
+        a = plain.process(f.depth_mm, intr)
+        b = deferred.process(f.depth_mm, intr)
+        if deferred.finish_frame():
+            won.append(k)
+            assert b.pose is not None and a.pose is not None and not np.array_equal(b.pose, a.pose)
+        elif a.pose is not None:
+            assert b.pose is not None and np.array_equal(b.pose, a.pose)
+        assert np.array_equal(deferred.last_pose, plain.last_pose)  # the same track
+        assert not deferred.finish_frame()  # nothing left to run
+    assert won == [35]

@@ -185,6 +185,15 @@ class Tracker(RestartStrategies):
     #: every frame, so that it keeps up and runs them a few times a second.
     restart_interval_s: float | None = None
     _last_restarts_s: float = -np.inf
+    #: Run a tracked frame's restarts after its result instead of before (issue 14): the
+    #: result of :meth:`process` is the frame's fit, and the restarts run on
+    #: :meth:`finish_frame` (or at the start of the next :meth:`process`); a candidate that wins
+    #: there continues the track from the next frame on.  The node sets it for fast cameras,
+    #: where it answers a frame before the restarts' 5-20 ms; off (the default), a frame's
+    #: result includes its restarts.
+    defer_restarts: bool = False
+    #: (objective, fit, data, detections, previous pose) of the frame whose restarts are due.
+    _deferred: tuple[Objective, OptimizeResult, ImageSoG, Detections, NDArray[np.float64]] | None = None
     #: (model, low, high) of :meth:`_maximise`: the joint limits as bounds (26,) each, read-only.
     _bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
 
@@ -212,6 +221,23 @@ class Tracker(RestartStrategies):
         """Use another hand model (e.g. after calibration); keeps the track."""
         self._model = model.mirrored(self._config.right_hand)
         self._shift_pending = None
+        self._deferred = None
+
+    def finish_frame(self) -> bool:
+        """Run the restarts that :attr:`defer_restarts` left for after the last frame's result.
+
+        Returns whether a restart won: the track then continues from its pose.  Nothing to do
+        (False) when none are due.
+        """
+        deferred, self._deferred = self._deferred, None
+        if deferred is None:
+            return False
+        obj, res, data, det, p1 = deferred
+        best = self._restarts(obj, res, data, det)
+        if best is res or self._prev is None or self._prev[0] is not res.x:
+            return False
+        self._prev = (best.x, p1)
+        return True
 
     def set_config(self, config: TrackerConfig) -> None:
         """Change the configuration; a handedness change also resets the track."""
@@ -226,6 +252,7 @@ class Tracker(RestartStrategies):
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
         self._pending = None
+        self._deferred = None
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
         """Track the hand in one depth frame.
@@ -245,6 +272,7 @@ class Tracker(RestartStrategies):
         t0 = time.perf_counter()
         cfg = self._config
         pre = preprocess(depth_mm, intrinsics, cfg)  # raises before any state change
+        self.finish_frame()  # (the last frame's deferred restarts, unless the caller ran them)
         t1 = time.perf_counter()
         if self._prev is not None:
             result = self._track(pre)
@@ -322,9 +350,11 @@ class Tracker(RestartStrategies):
         )
         self._steps = res.steps if WARM_GROW > 0 else None
         now = time.perf_counter()
-        if self.restart_interval_s is None or now - self._last_restarts_s >= self.restart_interval_s:
-            res = self._restarts(obj, res, data, det)
+        restarts = self.restart_interval_s is None or now - self._last_restarts_s >= self.restart_interval_s
+        if restarts:
             self._last_restarts_s = now
+            if not self.defer_restarts:
+                res = self._restarts(obj, res, data, det)
         centres = gaussian_centres(self._model, res.x)
         conf = coverage(self._model, res.x, data, centres, obj.support(res.x))
         if conf < cfg.lost_confidence:
@@ -338,6 +368,8 @@ class Tracker(RestartStrategies):
             return self._result(None, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3})
         self._prev = (res.x, p1)
         self._status = TrackerStatus.TRACKING
+        if restarts and self.defer_restarts:
+            self._deferred = (obj, res, data, det, p1)
         return self._result(res.x, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3}, centres)
 
     def _maximise(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> OptimizeResult:

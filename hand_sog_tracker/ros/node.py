@@ -246,6 +246,7 @@ class TrackerNode(CalibrationService, Node):
         user_model = self._initial_model()
         self._tracker = Tracker(self._settings.tracker, user_model)
         self._tracker.split_initialisation = True  # issue 14: see _process
+        self._tracker.defer_restarts = True  # issue 14: a frame is answered before its restarts
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
         self._markers_shown = False
@@ -589,6 +590,7 @@ class TrackerNode(CalibrationService, Node):
         )
         self._window.processed += 1
         self._window.latency_ms += latency_ms
+        self._tracker.finish_frame()  # this frame's restarts, after its answer (defer_restarts)
         return True
 
     def _image_waiting(self) -> bool:
