@@ -188,9 +188,9 @@ class Tracker(RestartStrategies):
     #: Run a tracked frame's restarts after its result instead of before (issue 14): the
     #: result of :meth:`process` is the frame's fit, and the restarts run on
     #: :meth:`finish_frame` (or at the start of the next :meth:`process`); a candidate that wins
-    #: there continues the track from the next frame on.  The node sets it for fast cameras,
-    #: where it answers a frame before the restarts' 5-20 ms; off (the default), a frame's
-    #: result includes its restarts.
+    #: there continues the track from the next frame on.  The node sets it: it answers a frame
+    #: before the restarts (up to 5-20 ms on the frames where they fire); off (the default), a
+    #: frame's result includes its restarts.
     defer_restarts: bool = False
     #: (objective, fit, data, detections, previous pose) of the frame whose restarts are due.
     _deferred: tuple[Objective, OptimizeResult, ImageSoG, Detections, NDArray[np.float64]] | None = None
@@ -269,10 +269,10 @@ class Tracker(RestartStrategies):
         DepthImageError, IntrinsicsError
             When the frame cannot be used; the track is left untouched.
         """
+        self.finish_frame()  # (the last frame's deferred restarts, unless the caller ran them)
         t0 = time.perf_counter()
         cfg = self._config
-        pre = preprocess(depth_mm, intrinsics, cfg)  # raises before any state change
-        self.finish_frame()  # (the last frame's deferred restarts, unless the caller ran them)
+        pre = preprocess(depth_mm, intrinsics, cfg)  # raises before any change of this frame's state
         t1 = time.perf_counter()
         if self._prev is not None:
             result = self._track(pre)
