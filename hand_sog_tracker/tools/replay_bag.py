@@ -296,6 +296,19 @@ class BagPublisher:
         """Publish ``payload`` (bytes or message) on ``topic``."""
         self.publishers[topic].publish(payload)
 
+    def flush(self, timeout_s: float = 2.0) -> bool:
+        """Wait until the subscribers have acknowledged every message published (the publishers
+        are reliable: a message lost on the way is sent again, which needs the publisher to
+        live), at most ``timeout_s`` in all; whether all were acknowledged."""
+        from rclpy.duration import Duration
+
+        deadline = time.monotonic() + timeout_s
+        acked = True
+        for p in self.publishers.values():
+            left = max(deadline - time.monotonic(), 0.0)
+            acked = p.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))) and acked
+        return acked
+
     def wait_for_subscribers(self, timeout_s: float, settle_s: float = 0.5) -> bool:
         """Wait for subscribers before publishing.
 
@@ -429,6 +442,8 @@ def replay(
                     loops += 1
                     if not loop:
                         break
+            if context.ok() and not stop.is_set():
+                pub.flush()  # (the last messages reach their subscribers before the node goes)
             skipped = dict(pub.skipped)
     finally:
         if node is not None:
