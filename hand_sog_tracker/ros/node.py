@@ -28,8 +28,9 @@ Every output is stamped with the input image's header (stamp and frame_id).
 Real time: the subscriptions use sensor-data QoS with depth 1 (overridable via
 ``qos_overrides.*`` parameters), so DDS keeps only the newest image while a
 frame is being processed and there is never a backlog.  The image callback
-only stores the newest frame and wakes the processing callback through a
-guard condition.  Frames that are never processed are counted: ``dropped``
+takes a CameraInfo waiting in its subscription and tracks the image at once; an image
+that arrives meanwhile is taken from the subscription by the tracking itself (a frame
+that finds the hand is answered on the next one).  Frames that are never processed are counted: ``dropped``
 (received but replaced by a newer one before processing) and ``missed`` (replaced inside
 DDS, so never received; estimated
 from gaps in the image stamps against the shortest stamp interval seen).
@@ -52,7 +53,7 @@ import time
 import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import rclpy
@@ -70,6 +71,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.subscription import Subscription
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_msgs.msg import Header, String
@@ -269,7 +271,7 @@ class TrackerNode(CalibrationService, Node):
         compressed = self._settings.input_transport == "compressedDepth"
         self._image_sub = self.create_subscription(
             CompressedImage if compressed else Image, COMPRESSED_TOPIC if compressed else IMAGE_TOPIC,
-            self._on_image, sensor_qos, qos_overriding_options=overrides,
+            self._on_image_message, sensor_qos, qos_overriding_options=overrides,
         )
         self._info_sub = self.create_subscription(
             CameraInfo, INFO_TOPIC, self._on_camera_info, sensor_qos, qos_overriding_options=overrides,
@@ -298,7 +300,6 @@ class TrackerNode(CalibrationService, Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self._publish_description(None)
 
-        self._frame_ready = self.create_guard_condition(self._process_pending)
         self._calibrate_srv = self.create_service(
             Trigger, CALIBRATE_SERVICE, self._on_calibrate, callback_group=self._calib_group
         )
@@ -307,6 +308,8 @@ class TrackerNode(CalibrationService, Node):
         self._calib_wake = self.create_guard_condition(lambda: None)
         self._fit_worker = FitWorker()  # the fits' child process, started with tracking
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
+        # Wakes the executor to track an image the tracking took from the subscription.
+        self._frame_ready = self.create_guard_condition(self._track_pending)
         self.get_logger().info(
             f"tracking the {'right' if self._settings.tracker.right_hand else 'left'} hand from "
             f"{self._image_sub.topic_name} + {self._info_sub.topic_name}"
@@ -372,7 +375,20 @@ class TrackerNode(CalibrationService, Node):
         self.get_logger().info(f"loaded hand model {shape} from {path}")
         return default_hand_model(right).scaled(shape)
 
-    # -- input group ------------------------------------------------------------
+    # -- input ------------------------------------------------------------------
+    def _on_image_message(self, msg: Image | CompressedImage) -> None:
+        """The image subscription's callback: track the image now (issue 14).
+
+        A CameraInfo waiting in its subscription is taken first (it may belong to this image).
+        Tracking in this callback, not in one the executor runs next, saves an executor round
+        trip per frame; an image that arrives meanwhile waits in the subscription (depth 1:
+        the newest) and is taken by the tracking itself (:meth:`_image_waiting`) or by the
+        executor afterwards.
+        """
+        self._on_image(msg)
+        self._take_waiting(self._info_sub, self._on_camera_info)
+        self._track_pending()
+
     def _on_image(self, msg: Image | CompressedImage) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         s = self._stats
@@ -384,7 +400,13 @@ class TrackerNode(CalibrationService, Node):
         )
         self._window.received += 1
         self._pending = msg
-        self._frame_ready.trigger()
+
+    def _track_pending(self) -> None:
+        """Track the pending image; an image that the tracking took from the subscription
+        meanwhile is tracked when the executor has done its other work (:attr:`_frame_ready`)."""
+        self._process_pending()
+        if self._pending is not None:
+            self._frame_ready.trigger()
 
     def _missed_before(self, stamp: int) -> int:
         """Frames the camera must have sent between the last received image and this one.
@@ -457,7 +479,7 @@ class TrackerNode(CalibrationService, Node):
             )
         )
 
-    # -- work group -------------------------------------------------------------
+    # -- tracking ---------------------------------------------------------------
     def _process_pending(self) -> None:
         msg, self._pending = self._pending, None
         intr, intr_problem = self._intrinsics, self._intrinsics_problem
@@ -595,16 +617,16 @@ class TrackerNode(CalibrationService, Node):
 
     def _image_waiting(self) -> bool:
         """Whether a newer image than the one being processed has arrived."""
-        return self._pending is not None or self._take_waiting_image()
+        return self._pending is not None or self._take_waiting(self._image_sub, self._on_image)
 
-    def _take_waiting_image(self) -> bool:
-        """Hand an image waiting in the image subscription to :meth:`_on_image`; whether there was one.
+    @staticmethod
+    def _take_waiting(sub: Subscription, callback: Callable[[Any], None]) -> bool:
+        """Hand a message waiting in ``sub`` to ``callback``; whether there was one.
 
-        The single-threaded executor runs one callback at a time, so an image that arrived
-        while this frame was processed is still in the subscription (issue 14); the executor
+        The single-threaded executor runs one callback at a time, so a message that arrived
+        while a frame was processed is still in its subscription (issue 14); the executor
         takes from it the same way and finds it empty afterwards.
         """
-        sub = self._image_sub
         try:
             with sub.handle:
                 taken = sub.handle.take_message(sub.msg_type, sub.raw)
@@ -612,7 +634,7 @@ class TrackerNode(CalibrationService, Node):
             return False
         if taken is None:
             return False
-        self._on_image(taken[0])
+        callback(taken[0])
         return True
 
     def _reset_track(self, header: Header) -> None:
