@@ -181,11 +181,18 @@ def overlap_score(
     covered = np.isfinite(model_depth)
     axis = global_rotation(theta)[:, 1]
     key = axis.tobytes()
-    if data.cache.get("axis") != key:  # the rotation rarely changes between candidates
-        data.cache["axis"], data.cache["along"] = key, data.points @ axis
-    hand = (data.depth > 0) & (data.cache["along"] > float(theta[:3] @ axis))
-    both = covered & hand & (np.abs(model_depth - data.depth) < tolerance_mm)
-    return float(both.sum() / max((covered | hand).sum(), 1))
+    cache = data.cache
+    if cache.get("axis") != key:  # the rotation rarely changes between candidates
+        cache["axis"], cache["along"] = key, data.points @ axis
+    if "valid" not in cache:
+        cache["valid"] = data.depth > 0
+    hand = cache["along"] > float(theta[:3] @ axis)
+    hand &= cache["valid"]
+    both = np.abs(model_depth - data.depth) < tolerance_mm
+    both &= covered
+    both &= hand
+    covered |= hand
+    return float(np.count_nonzero(both) / max(np.count_nonzero(covered), 1))
 
 
 def shape_score(
