@@ -17,11 +17,12 @@ def test_stages_include_detector_quadtree_and_assignment() -> None:
     st = r["stages_ms"]
     assert r["frames_timed"] == 3
     for key in ("preprocess", "quadtree", "detector", "quadtree_only", "assignment",
-                "model_update", "energy_gradient", "total"):
+                "model_update", "energy_gradient", "answer", "total"):
         assert np.isfinite(st[key]["median"]) and st[key]["median"] > 0, key
-    # The parts timed alone are each below the frame's total.
+    # The parts timed alone are each below the frame's total; the answer is a part of it.
     assert st["detector"]["median"] < st["total"]["median"]
     assert st["quadtree_only"]["median"] < st["total"]["median"]
+    assert st["answer"]["median"] <= st["total"]["median"] and st["answer"]["p95"] <= st["total"]["p95"]
 
 
 def test_compare_runs_both_trees_and_prints_the_ratio(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
