@@ -295,3 +295,20 @@ def test_deferred_restarts_answer_before_the_restarts_and_the_track_is_the_same(
         assert np.array_equal(deferred.last_pose, plain.last_pose)  # the same track
         assert not deferred.finish_frame()  # nothing left to run
     assert won == [35]
+
+
+def test_the_joint_pull_sends_the_other_fingertips_to_their_own_detections() -> None:
+    """The detection restart's whole-pose pull (issue 11): fingertip ``c`` onto the unexplained
+    detection, the others onto the detections the optimal assignment gives them without it
+    (none on one seen end-on, none for a fingertip left without a detection)."""
+    tracker = Tracker()
+    theta = rest_pose((0.0, 20.0, 400.0))
+    tips = fingertips(tracker.model, theta)
+    lonely = tips[2] + np.array([0.0, 60.0, -30.0])  # where the model's middle finger is not
+    # Detections near the thumb, index (seen end-on) and ring tips, and the lonely one; the
+    # little finger has none.
+    points = np.array([tips[0] + 2.0, tips[1], tips[3] - 3.0, lonely])
+    det = Detections(points, np.zeros((4, 2)), np.array([0.9, 0.8, 0.7, 0.95]), np.array([False, True, False, False]))
+    targets = tracker._joint_targets(theta, det, 2, 3)
+    np.testing.assert_array_equal(targets.points[[0, 2, 3]], points[[0, 3, 2]])
+    np.testing.assert_array_equal(targets.weights, [0.9, 0.0, 1.0, 0.7, 0.0])

@@ -281,11 +281,15 @@ class RestartStrategies:
         while the model finger lies on its neighbour).  Each of the two model fingers
         nearest to it is pulled onto it by the salient term, strongly weighted, for
         ``RESTART_ITERATIONS``, twice: with only that finger's joints free (the other fingers
-        stay on their data) and with the whole pose free (when the hand itself sits wrong);
-        each pull is then released into the objective without the salient term (which would
-        favour the assignment the frame started with); a candidate is kept only if its
-        :meth:`_score` is higher than before.  ``lonely``: :meth:`_lonely` at ``res.x``
-        when already known.
+        stay on their data), and with the whole pose free (when the hand itself sits wrong)
+        while every other finger is pulled onto its own detection as well (the optimal
+        assignment of the other fingertips to the remaining detections, :meth:`_joint_targets`:
+        a model finger that lay on its neighbour's data moves back; issue 11: labelled real
+        frame 2, started one finger over, stayed there when the one finger was pulled alone
+        with the whole pose free, as before); each pull is then released into the objective
+        without the salient term (which would favour the assignment the frame started with); a
+        candidate is kept only if its :meth:`_score` is higher than before.  ``lonely``:
+        :meth:`_lonely` at ``res.x`` when already known.
         """
         if lonely is None:
             lonely = self._lonely(res.x, det)
@@ -307,9 +311,14 @@ class RestartStrategies:
             )
             finger = np.zeros(res.x.size, dtype=bool)
             finger[chain_slice(c)] = True
+            joint = Objective(
+                self._model, obj.data, replace_config(cfg, w_sal=max(cfg.w_sal, 1.0) * 20.0),
+                previous=obj.previous, targets=self._joint_targets(res.x, det, int(c), s),
+                silhouette=obj.silhouette,
+            )
             starts = [
-                self._maximise(pull, res.x, iterations=RESTART_ITERATIONS, active=active).x
-                for active in (finger, None)
+                self._maximise(pull, res.x, iterations=RESTART_ITERATIONS, active=finger).x,
+                self._maximise(joint, res.x, iterations=RESTART_ITERATIONS).x,
             ]
             if det.end_on[s] and c > 0:
                 # A finger seen end-on is curled toward the camera: also try it curled.
@@ -322,6 +331,24 @@ class RestartStrategies:
                 if val > best_val:
                     best, best_val = cand, val
         return best
+
+    def _joint_targets(self, theta: NDArray[np.float64], det: Detections, c: int, s: int) -> TipTargets:
+        """Targets for fingertip ``c`` on detection ``s`` (weight 1) and for the other fingertips
+        at ``theta`` (26,) on the detections the optimal assignment (:func:`assign_detections`)
+        gives them among the others (their confidence; none for a detection seen end-on, as
+        in the tracked frames' salient term)."""
+        rest = np.ones(det.n, dtype=bool)
+        rest[s] = False
+        others = np.flatnonzero(np.arange(5) != c)
+        sub = det.subset(rest)
+        assigned = assign_detections(fingertips(self._model, theta)[others], sub, ASSIGN_LAMBDA_MM)
+        points = np.zeros((5, 3))
+        weights = np.zeros(5)
+        points[c], weights[c] = det.points[s], 1.0
+        for o, a in zip(others, assigned):
+            if a >= 0 and not sub.end_on[a]:
+                points[o], weights[o] = sub.points[a], sub.confidence[a]
+        return TipTargets(points, weights)
 
     def _tips_seen(self, theta: NDArray[np.float64], det: Detections) -> bool:
         """Whether every fingertip at ``theta`` (26,) has a detection of its own (the optimal

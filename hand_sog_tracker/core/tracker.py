@@ -451,10 +451,11 @@ class Tracker(RestartStrategies):
         if det.n:
             det = det.subset(self._on_hand_side(det.points, starts[0]))
         n_blob = len(starts)
-        toward = detection_direction(blob, det.points)
-        if toward is not None:
-            # Open hand along the detections, palm toward and away (issue 11).
-            starts += initial_hypotheses(self._model, HandBlob(blob.palm, [toward]), 2)
+        # Open hands along the hand end's own axis and toward the detections, palm toward and
+        # away (issue 11: a wrist bent sideways turns the blob's axis off the hand's).
+        for d in (blob.hand_direction, detection_direction(blob, det.points)):
+            if d is not None:
+                starts += initial_hypotheses(self._model, HandBlob(blob.palm, [d]), 2)
         rigid = np.zeros(starts[0].size, dtype=bool)
         rigid[:6] = True
         aligned = []
@@ -468,9 +469,10 @@ class Tracker(RestartStrategies):
                 iterations=eff.rigid_iterations, initial_scale=2.0, active=rigid,
             )
             aligned.append((res.fun, -i, res.x, bool(global_rotation(x0)[2, 2] > 0)))
-        # The blob's start poses compete for ``kept``; the better of the detection direction's
-        # two is articulated besides them (taking a slot, it had displaced the right pose of
-        # a far hand whose detections missed two fingers).
+        # The blob's start poses compete for ``kept``; the best of the hand axis' and the
+        # detection direction's is articulated besides them (taking a slot, the detection
+        # direction's had displaced the right pose of a far hand whose detections missed two
+        # fingers).
         blob_aligned = [a for a in aligned if -a[1] < n_blob]
         kept = _balanced(sorted(blob_aligned, key=lambda a: a[:2], reverse=True), eff.kept)
         if len(blob_aligned) < len(aligned):
