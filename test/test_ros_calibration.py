@@ -169,7 +169,8 @@ def test_no_automatic_fit_with_a_saved_user_model_or_when_switched_off(ros_conte
 
 def test_the_fit_worker_serves_fits_one_after_the_other_in_one_child_process() -> None:
     """The node's fits run in one child process that stays between fits (no start-up per fit);
-    the child's exceptions reach the caller, and a child that died is started again."""
+    the child's exceptions reach the caller, start() does not wait for a fit under way (the
+    tracking calls it), and a child that died is started again."""
     from hand_sog_tracker.core.types import TrackerConfig
     from hand_sog_tracker.errors import CalibrationError
     from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
@@ -187,6 +188,16 @@ def test_the_fit_worker_serves_fits_one_after_the_other_in_one_child_process() -
             worker.run(([], intr, TrackerConfig(), default_hand_model(True)), {})
         again = worker.run((frames, intr, TrackerConfig(), default_hand_model(True)), {})
         assert again.shape == res.shape and worker._proc.pid == pid  # the same child served all three
+        # A fit under way holds the child; start() (called by the tracking) must not wait for it.
+        import threading
+
+        fitting = threading.Thread(target=worker.run, args=((frames, intr, TrackerConfig(), default_hand_model(True)), {}))
+        fitting.start()
+        time.sleep(0.05)
+        t0 = time.monotonic()
+        worker.start()
+        assert time.monotonic() - t0 < 0.02 and fitting.is_alive()
+        fitting.join()
         worker._proc.kill()
         worker._proc.wait()
         third = worker.run((frames, intr, TrackerConfig(), default_hand_model(True)), {})

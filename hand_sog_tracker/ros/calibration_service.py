@@ -114,9 +114,14 @@ class FitWorker:
         self._stderr: IO[bytes] | None = None
 
     def start(self) -> None:
-        """Start the child unless it runs (cheap when it does)."""
-        with self._lock:
+        """Start the child unless it runs (cheap when it does); returns at once while a fit
+        holds the child (the caller may be tracking: it must never wait for a fit)."""
+        if not self._lock.acquire(blocking=False):
+            return
+        try:
             self._start()
+        finally:
+            self._lock.release()
 
     def _start(self) -> subprocess.Popen:
         if self._proc is not None and self._proc.poll() is None:
@@ -230,8 +235,9 @@ class CalibrationService:
             return
         auto = self._auto_calib
         auto.enabled = auto.enabled and self._settings.auto_calibrate
-        if FIT_IN_PROCESS and auto.enabled and not auto.accepted and auto.attempts < auto.max_attempts:
-            self._fit_worker.start()  # (its imports done before the fit is due)
+        idle = not (auto.accepted or auto.running) and auto.attempts < auto.max_attempts
+        if FIT_IN_PROCESS and auto.enabled and idle:
+            self._fit_worker.start()  # (its imports done before the fit is due; never waits)
         frames = auto.due(self._calib_history, stamp)
         if frames is None:
             return
