@@ -191,7 +191,8 @@ def test_the_fit_worker_serves_fits_one_after_the_other_in_one_child_process() -
         # A fit under way holds the child; start() (called by the tracking) must not wait for it.
         import threading
 
-        fitting = threading.Thread(target=worker.run, args=((frames, intr, TrackerConfig(), default_hand_model(True)), {}))
+        job = ((frames, intr, TrackerConfig(), default_hand_model(True)), {})
+        fitting = threading.Thread(target=worker.run, args=job)
         fitting.start()
         time.sleep(0.05)
         t0 = time.monotonic()
