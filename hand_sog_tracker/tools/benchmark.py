@@ -126,8 +126,10 @@ def run_benchmark(
     config = TrackerConfig()
     tracker = Tracker(config)
     # As the node: a frame is answered before its restarts, which run after it (the same track
-    # and the same work as without; "answer" times the first part, "total" both).
+    # and the same work as without; "answer" times the first part, "total" both).  A tracker
+    # without deferred restarts (another tree's, --compare) answers with its restarts.
     tracker.defer_restarts = True
+    finish_frame = getattr(tracker, "finish_frame", lambda: False)
     stages = (
         "preprocess", "quadtree", "detector", "quadtree_only", "silhouette", "assignment",
         "model_update", "energy_gradient", "answer", "total", "initialise",
@@ -144,7 +146,7 @@ def run_benchmark(
             t0 = time.perf_counter()
             res = tracker.process(depth, intr)
             t_answer = time.perf_counter() - t0
-            tracker.finish_frame()
+            finish_frame()
             dt = time.perf_counter() - t0
             poses.append(tracker.last_pose)
             if k == 0:
