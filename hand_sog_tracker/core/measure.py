@@ -143,27 +143,30 @@ def _run(
     where the data end (not at a crest); None when ``start`` is not on the hand."""
     z = z.tolist()  # (the walk below reads single samples: Python floats are read fastest)
     n = len(z)
-
-    def on(i: int) -> bool:
-        return near <= z[i] <= far
-
-    if not on(start):
+    z0 = z[start]
+    if not near <= z0 <= far:
         return None
     ends, lost = [], 0
     for step in (-1, 1):
-        i, top, top_i = start, z[start], start
+        i, zi, top, top_i = start, z0, z0, start
         while True:
             j = i + step
-            if j < 0 or j >= n or not on(j) or abs(z[j] - z[i]) > JUMP_MM:
+            if j < 0 or j >= n:
                 ends.append(i)
                 lost += 1
                 break
-            if crest and z[j] > top:
-                top, top_i = z[j], j
-            if crest and top - z[start] >= CREST_MM and top - z[j] >= CREST_MM:
-                ends.append(top_i)
+            zj = z[j]
+            if not near <= zj <= far or abs(zj - zi) > JUMP_MM:
+                ends.append(i)
+                lost += 1
                 break
-            i = j
+            if crest:
+                if zj > top:
+                    top, top_i = zj, j
+                if top - z0 >= CREST_MM and top - zj >= CREST_MM:
+                    ends.append(top_i)
+                    break
+            i, zi = j, zj
     return ends[0], ends[1], lost
 
 
