@@ -203,7 +203,24 @@ def test_the_fit_worker_serves_fits_one_after_the_other_in_one_child_process() -
         worker._proc.wait()
         third = worker.run((frames, intr, TrackerConfig(), default_hand_model(True)), {})
         assert third.shape == res.shape and worker._proc.pid != pid  # started again
+        # close() during a fit ends the child at once; the fit fails.
+        failed: list[BaseException] = []
+
+        def fit() -> None:
+            try:
+                worker.run(*job)
+            except RuntimeError as err:
+                failed.append(err)
+
+        fitting = threading.Thread(target=fit)
+        fitting.start()
+        time.sleep(0.05)
         proc = worker._proc
+        t0 = time.monotonic()
+        worker.close()
+        assert time.monotonic() - t0 < 0.3
+        fitting.join(timeout=5.0)
+        assert len(failed) == 1 and not fitting.is_alive()
     finally:
         worker.close()
     assert proc.poll() is not None  # closed: the child has ended

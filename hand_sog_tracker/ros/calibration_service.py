@@ -173,7 +173,10 @@ class FitWorker:
         return " | ".join(self._stderr.read().decode(errors="replace").strip().splitlines()[-3:])
 
     def close(self) -> None:
-        """End the child (a fit under way fails with RuntimeError)."""
+        """End the child at once: a fit under way fails with RuntimeError (the node is going)."""
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            proc.kill()  # (the fit's run() then reads the end of the pipe and lets go of the lock)
         with self._lock:
             self._stop()
 
