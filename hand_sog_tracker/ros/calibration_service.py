@@ -112,6 +112,7 @@ class FitWorker:
         self._lock = threading.Lock()
         self._proc: subprocess.Popen | None = None
         self._stderr: IO[bytes] | None = None
+        self.closed = False  # set by close(): the node is going
 
     def start(self) -> None:
         """Start the child unless it runs (cheap when it does); returns at once while a fit
@@ -174,6 +175,7 @@ class FitWorker:
 
     def close(self) -> None:
         """End the child at once: a fit under way fails with RuntimeError (the node is going)."""
+        self.closed = True
         proc = self._proc
         if proc is not None and proc.poll() is None:
             proc.kill()  # (the fit's run() then reads the end of the pipe and lets go of the lock)
@@ -288,7 +290,8 @@ class CalibrationService:
             except HandSogError as err:
                 logger.info(f"automatic calibration failed, the model is unchanged: {err}")
             except Exception as err:  # noqa: BLE001 - a bug in the fit must not kill the node
-                logger.error(f"automatic calibration error: {err!r}")
+                if not self._fit_worker.closed:  # (closed: the node is going, the fit was ended)
+                    logger.error(f"automatic calibration error: {err!r}")
             finally:
                 with self._tracker_lock:
                     self._auto_calib.finished(accepted)
