@@ -155,11 +155,11 @@ def keypoints_mm(skeleton_mm: NDArray[np.float64], fingertips_mm: NDArray[np.flo
 
 def keypoints_msg(header: Header, skeleton_mm: NDArray[np.float64], fingertips_mm: NDArray[np.float64]) -> PoseArray:
     """``geometry_msgs/PoseArray`` of the 21 keypoints (metres, identity orientations); see :func:`keypoints_mm`."""
-    pts = keypoints_mm(skeleton_mm, fingertips_mm) / 1000.0
+    pts = (keypoints_mm(skeleton_mm, fingertips_mm) / 1000.0).tolist()
     poses = []
     for x, y, z in pts:
         p = Pose()
-        p.position.x, p.position.y, p.position.z = float(x), float(y), float(z)
+        p.position.x, p.position.y, p.position.z = x, y, z
         p.orientation.w = 1.0
         poses.append(p)
     return PoseArray(header=header, poses=poses)
@@ -228,10 +228,6 @@ FINGER_RGBA: tuple[tuple[float, float, float, float], ...] = (
 )
 
 
-def _point_m(p_mm: NDArray[np.float64]) -> Point:
-    return Point(x=float(p_mm[0]) / 1000.0, y=float(p_mm[1]) / 1000.0, z=float(p_mm[2]) / 1000.0)
-
-
 def fingertip_markers(
     header: Header,
     fingertips_mm: NDArray[np.float64],
@@ -255,12 +251,15 @@ def fingertip_markers(
     if tips.shape != (5, 3):
         raise InputError(f"fingertips must have shape (5, 3), got {tips.shape}")
     radii = np.full(5, 8.0) if tip_radii_mm is None else np.asarray(tip_radii_mm, dtype=np.float64)
+    tips_m = (tips / 1000.0).tolist()
+    diameters = (2.0 * radii / 1000.0).tolist()
     out = MarkerArray()
     for i in range(5):
         m = Marker(header=header, ns=FINGERTIPS_NS, id=i, type=Marker.SPHERE, action=Marker.ADD)
-        m.pose.position = _point_m(tips[i])
+        x, y, z = tips_m[i]
+        m.pose.position = Point(x=x, y=y, z=z)
         m.pose.orientation.w = 1.0
-        d = 2.0 * float(radii[i]) / 1000.0
+        d = diameters[i]
         m.scale.x = m.scale.y = m.scale.z = d
         r, g, b, a = FINGER_RGBA[i]
         m.color = ColorRGBA(r=r, g=g, b=b, a=a)
@@ -274,7 +273,8 @@ def fingertip_markers(
         line.pose.orientation.w = 1.0
         line.scale.x = 0.004
         line.color = ColorRGBA(r=0.9, g=0.9, b=0.9, a=1.0)
-        line.points = [_point_m(sk[j]) for bone in SKELETON_BONES for j in bone]
+        sk_m = (sk / 1000.0).tolist()
+        line.points = [Point(x=sk_m[j][0], y=sk_m[j][1], z=sk_m[j][2]) for bone in SKELETON_BONES for j in bone]
         out.markers.append(line)
     return out
 
