@@ -32,16 +32,22 @@ def _skin(model: HandModel, theta: NDArray[np.float64]):
     first joint (spheres alone leave gaps along a finger); neighbouring palm
     Gaussians are joined too, so the palm is a filled plate.
     """
-    ia, ib, extra_radius_of = _skin_topology(model)
+    ia, ib, extra_radius_of = _skin_topology(model)[:3]
     radii = np.concatenate([model.g_sigmas, model.g_sigmas[extra_radius_of]])
     return np.concatenate([posed_centres(model, theta), chain_bases(model, theta)]), radii, ia, ib
 
 
-_TOPOLOGY_CACHE: dict[tuple[int, bool], tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]] = {}
+#: What :func:`_skin_topology` returns: the capsules' index pairs ``ia``, ``ib`` (k,), per chain
+#: base the Gaussian whose radius it takes (5,), and the draw lists of :func:`draw_skin`: per
+#: capsule whether its quad is drawn (two different ends) and the points whose discs it draws
+#: (none for a palm quad: the palm's own discs are drawn by its one-Gaussian capsules).
+_Topology = tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], list[bool], list[tuple[int, ...]]]
+_TOPOLOGY_CACHE: dict[tuple[int, bool], _Topology] = {}
 
 
-def _skin_topology(model: HandModel) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
-    """Index pairs of the skin capsules and, per chain base, the Gaussian whose radius it takes.
+def _skin_topology(model: HandModel) -> _Topology:
+    """Index pairs of the skin capsules, per chain base the Gaussian whose radius it takes, and
+    the draw lists (see :data:`_Topology`).
 
     Depends only on the default layout (scaling keeps the order along each chain
     and the palm grid's neighbourhoods), so it is cached per Gaussian count.
@@ -67,7 +73,12 @@ def _skin_topology(model: HandModel) -> tuple[NDArray[np.int64], NDArray[np.int6
         chain = [m + c, *order]
         for k0, k1 in zip(chain[:-1], chain[1:]):
             a_idx.append(k0), b_idx.append(k1)
-    out = (np.array(a_idx), np.array(b_idx), first)
+    ia, ib = np.array(a_idx), np.array(b_idx)
+    quad_only = _palm_pairs(model, ia, ib)
+    ia_l, ib_l = ia.tolist(), ib.tolist()
+    has_quad = [a != b for a, b in zip(ia_l, ib_l)]
+    discs = [() if q else ((a,) if a == b else (a, b)) for a, b, q in zip(ia_l, ib_l, quad_only)]
+    out = (ia, ib, first, has_quad, discs)
     _TOPOLOGY_CACHE[key] = out
     return out
 
@@ -78,27 +89,6 @@ def _palm_pairs(model: HandModel, ia: NDArray[np.int64], ib: NDArray[np.int64]) 
     pa = (ia < m) & (model.g_chain[np.minimum(ia, m - 1)] < 0)
     pb = (ib < m) & (model.g_chain[np.minimum(ib, m - 1)] < 0)
     return (pa & pb & (ia != ib)).tolist()
-
-
-_DRAW_CACHE: dict[tuple[int, bool], tuple[list[bool], list[tuple[int, ...]]]] = {}
-
-
-def _draw_lists(
-    model: HandModel, ia: NDArray[np.int64], ib: NDArray[np.int64]
-) -> tuple[list[bool], list[tuple[int, ...]]]:
-    """Per capsule of :func:`_skin_topology`: whether its quad is drawn (two different ends)
-    and the points whose discs it draws (none for a palm quad: the palm's own discs are drawn
-    by its one-Gaussian capsules); cached with the topology."""
-    key = (model.n_gaussians, bool(model.right))
-    hit = _DRAW_CACHE.get(key)
-    if hit is not None:
-        return hit
-    ia_l, ib_l = ia.tolist(), ib.tolist()
-    quad_only = _palm_pairs(model, ia, ib)
-    has_quad = [a != b for a, b in zip(ia_l, ib_l)]
-    discs = [() if q else ((a,) if a == b else (a, b)) for a, b, q in zip(ia_l, ib_l, quad_only)]
-    _DRAW_CACHE[key] = (has_quad, discs)
-    return has_quad, discs
 
 
 _SUBPIXEL_BITS = 3
@@ -133,7 +123,7 @@ def draw_skin(
     radii_i = np.round(r_px * _SUB).astype(np.int64).tolist()
     has_disc = (radii > 0).tolist()
     front_l = front.tolist()
-    has_quad, discs = _draw_lists(model, ia, ib)
+    has_quad, discs = _skin_topology(model)[3:]
     fill, circle, line8 = cv2.fillConvexPoly, cv2.circle, cv2.LINE_8
     for k in np.argsort(-front).tolist():
         value = front_l[k]
