@@ -115,6 +115,7 @@ DIAG_KEYS: Final[tuple[str, ...]] = (
     "input_rate_hz",
     "output_rate_hz",
     "processing_ms",
+    "answer_ms",
     "latency_ms",
     "status",
     "confidence",

@@ -396,10 +396,12 @@ def test_diagnostics_report_rates_and_counters(rig: Rig) -> None:
     status = next(s for d in rig.diagnostics for s in d.status
                   if s.name == name and {kv.key: kv.value for kv in s.values}.get("frames_processed") == "3")
     values = {kv.key: kv.value for kv in status.values}
-    assert {"input_rate_hz", "output_rate_hz", "processing_ms", "latency_ms", "status", "confidence",
+    assert {"input_rate_hz", "output_rate_hz", "processing_ms", "answer_ms", "latency_ms", "status", "confidence",
             "frames_dropped", "frames_missed", "frames_rejected"} <= set(values)
     assert values["frames_processed"] == "3" and values["frames_rejected"] == "0"
     assert float(values["processing_ms"]) > 0 and status.hardware_id == FRAME
+    # The answer (result published) comes within the processing (the restarts run after it).
+    assert 0 < float(values["answer_ms"]) <= float(values["processing_ms"])
 
 
 def test_end_to_end_latency(rig: Rig) -> None:
