@@ -241,7 +241,6 @@ class TrackerNode(CalibrationService, Node):
         self._stats = NodeStats()
         self._window = _Window()
         self._pending: Image | CompressedImage | None = None
-        self._answered_at = 0.0  # perf_counter() when the last frame's result was published
         self._rx_stamp_ns: int | None = None  # stamp of the last received image
         self._period_ns: int | None = None  # shortest interval between received images
         self._intrinsics: Intrinsics | None = None
@@ -491,10 +490,10 @@ class TrackerNode(CalibrationService, Node):
         t0 = time.perf_counter()
         try:
             with self._tracker_lock:
-                processed = self._process(msg, intr, intr_problem)
-            if processed:
+                answered_at = self._process(msg, intr, intr_problem)
+            if answered_at is not None:
                 self._window.proc_ms += (time.perf_counter() - t0) * 1e3
-                self._window.answer_ms += (self._answered_at - t0) * 1e3
+                self._window.answer_ms += (answered_at - t0) * 1e3
         except Exception as err:  # noqa: BLE001 - a bug in one frame must not kill the node
             if not self.context.ok():
                 return
@@ -527,8 +526,11 @@ class TrackerNode(CalibrationService, Node):
         self._stats = replace(self._stats, rejected=self._stats.rejected + 1, last_problem=problem)
         self._window.rejected += 1
 
-    def _process(self, msg: Image | CompressedImage, intr: Intrinsics | None, intr_problem: str) -> bool:
-        """Track one frame and publish; False when the frame was rejected."""
+    def _process(
+        self, msg: Image | CompressedImage, intr: Intrinsics | None, intr_problem: str
+    ) -> float | None:
+        """Track one frame and publish: when its result was published (``time.perf_counter()``),
+        or None when the frame was rejected."""
         header = msg.header
         settings = self._settings
         if settings.tracker != self._tracker.config:
@@ -544,21 +546,21 @@ class TrackerNode(CalibrationService, Node):
                 f"image stamp went backwards by {back_s:.3f} s (bag loop or clock reset?): "
                 "tracker reset, frame skipped"
             )
-            return False
+            return None
         self._last_stamp_ns = stamp
 
         if intr is None:
             problem = intr_problem or f"no CameraInfo received yet on {self._info_sub.topic_name}"
             self._reject(problem)
             self._warn(f"{problem}: frame skipped")
-            return False
+            return None
 
         try:
             depth = compressed_image_to_depth_mm(msg) if isinstance(msg, CompressedImage) else image_to_depth_mm(msg)
         except DepthImageError as err:
             self._reject(f"bad depth image: {err}")
             self._warn(f"bad depth image: {err}: frame skipped")
-            return False
+            return None
 
         shape = (int(depth.shape[0]), int(depth.shape[1]))
         if self._last_shape is not None and shape != self._last_shape:
@@ -576,7 +578,7 @@ class TrackerNode(CalibrationService, Node):
             )
             self._reject(problem)
             self._warn(f"{problem}: frame skipped")
-            return False
+            return None
 
         if not np.any(depth > 0.0):
             self._warn("depth image has no valid pixels (all 0, NaN or Inf)")
@@ -601,11 +603,11 @@ class TrackerNode(CalibrationService, Node):
         except HandSogError as err:
             self._reject(f"tracker rejected the frame: {err}")
             self._warn(f"tracker rejected the frame: {err}")
-            return False
+            return None
 
         self._frame_id = header.frame_id
         self._publish_result(header, result, depth, intr)
-        self._answered_at = time.perf_counter()
+        answered_at = time.perf_counter()
         tracked = result.pose if result.status is TrackerStatus.TRACKING else None
         self._remember(depth, intr, tracked, stamp)
         latency_ms = (self.get_clock().now().nanoseconds - stamp) * 1e-6
@@ -618,7 +620,7 @@ class TrackerNode(CalibrationService, Node):
         self._window.processed += 1
         self._window.latency_ms += latency_ms
         self._tracker.finish_frame()  # this frame's restarts, after its answer (defer_restarts)
-        return True
+        return answered_at
 
     def _image_waiting(self) -> bool:
         """Whether a newer image than the one being processed has arrived."""
