@@ -3,13 +3,14 @@
 One job: the objective and its gradient; kept together because every term shares the model
 constants and the pose's kinematics, and each gradient reads best next to its energy.
 
-``E = E_sim - w_c E_col - w_d E_dan - w_l E_lim - w_s E_smo - w_o E_ord - w_sal E_sal
-- w_sil E_sil`` is maximised over the 26 pose parameters.  ``E_sil`` (every model Gaussian
-projects onto the hand's pixels) lives in :mod:`hand_sog_tracker.core.silhouette`.  The last
-three terms are not in paper 000:
+``E = E_sim - w_c E_col - w_d E_dan - w_l E_lim - w_s E_smo - w_o E_ord - w_cpl E_cpl
+- w_sal E_sal - w_sil E_sil`` is maximised over the 26 pose parameters.  ``E_sil`` (every
+model Gaussian projects onto the hand's pixels) lives in
+:mod:`hand_sog_tracker.core.silhouette`.  The last four terms are not in paper 000:
 ``E_ord`` keeps the four fingers in their order across the palm (no finger may swing over
-onto its neighbour's data) and ``E_sal`` pulls fingertips toward the detections assigned to
-them (seed 001, eq. 12; see :mod:`hand_sog_tracker.core.salient`).  Overlaps of unnormalised isotropic Gaussians (eq. 4)
+onto its neighbour's data), ``E_cpl`` couples each finger's DIP to its PIP (seed 004) and
+``E_sal`` pulls fingertips toward the detections assigned to them (seed 001, eq. 12; see
+:mod:`hand_sog_tracker.core.salient`).  Overlaps of unnormalised isotropic Gaussians (eq. 4)
 have closed forms: in d dimensions
 
 ``D_pq = (2 pi s_p^2 s_q^2 / (s_p^2 + s_q^2))^(d/2) exp(-|mu_p - mu_q|^2 / (2 (s_p^2 + s_q^2)))``.
@@ -50,6 +51,12 @@ Choices the paper leaves open (documented here, used everywhere):
   finger pairs (index-middle, middle-ring, ring-little), where ``a_c`` is finger ``c``'s
   direction in the palm plane (its rest fan-out angle plus its MCP abduction), rad^2 like
   ``E_lim``;
+* ``E_cpl = sum_c max(DIP_c - COUPLING_DIP_PIP PIP_c, 0)^2`` over index .. little (rad^2 like
+  ``E_lim``): seed 004's coupled joints (DIP = 2/3 PIP), one-sided.  A finger curled toward
+  the camera hides its distal segments behind its proximal ones, and the overlap terms then
+  prefer a half-flexed MCP with PIP and DIP at their limits (the bend moved to the end of the
+  finger, the fingertip 15-25 mm from a fist's) to the true curl; a DIP flexed less than 2/3
+  of its PIP costs nothing (the claw of a hand pressing on a surface, a DIP held straight);
 * ``E_sal = sum_t w_t (sqrt(d_t^2 + c^2) - c) / SALIENT_SCALE_MM`` with ``d_t`` the distance
   (mm) of fingertip ``t`` from its assigned detection, ``w_t`` the detection's confidence
   (0 without one) and ``c = SALIENT_SOFT_MM``: a pseudo-Huber cost, flat within a few mm
@@ -67,7 +74,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
-from hand_sog_tracker.core.hand_model import FINGER_ABD, JOINTS, N_PARAMS, HandModel, rest_pose
+from hand_sog_tracker.core.hand_model import (
+    CHAIN_JOINTS,
+    FINGER_ABD,
+    FIRST_JOINT,
+    FLEX2,
+    FLEX3,
+    JOINTS,
+    N_PARAMS,
+    HandModel,
+    rest_pose,
+)
 from hand_sog_tracker.core.kinematics import CentresPullback, centres_with_pullback, gaussian_centres
 from hand_sog_tracker.core.silhouette import Silhouette, run_or_defer, silhouette_term
 from hand_sog_tracker.core.types import TrackerConfig
@@ -81,6 +98,7 @@ __all__ = [
     "TAU2_MM",
     "SMOOTH_TRANSLATION_MM",
     "ORDER_MIN_GAP_RAD",
+    "COUPLING_DIP_PIP",
     "SALIENT_SOFT_MM",
     "SALIENT_SCALE_MM",
     "SIM_SATURATION",
@@ -99,6 +117,11 @@ SMOOTH_TRANSLATION_MM = 50.0
 #: Smallest allowed difference of neighbouring fingers' palm-plane directions (rad, chosen here); at rest
 #: they fan out by 0.07-0.09 rad; a finger on its neighbour's data needs about -0.25.
 ORDER_MIN_GAP_RAD = -0.05
+#: DIP flexion per PIP flexion beyond which ``E_cpl`` costs (unitless; seed 004: DIP = 2/3 PIP).
+COUPLING_DIP_PIP = 2.0 / 3.0
+#: Pose-vector indices of the PIP (flex2) and DIP (flex3) angles of index .. little, (4,) each.
+_PIP = np.array([FIRST_JOINT + CHAIN_JOINTS * c + FLEX2 for c in range(1, 5)])
+_DIP = np.array([FIRST_JOINT + CHAIN_JOINTS * c + FLEX3 for c in range(1, 5)])
 #: Width of the flat bottom of the salient-point cost (mm; chosen here, seed 001 ignores pairs
 #: under 10 mm).
 SALIENT_SOFT_MM = 8.0
@@ -173,6 +196,7 @@ class EnergyTerms:
     ord: float = 0.0
     sal: float = 0.0
     sil: float = 0.0
+    cpl: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -492,7 +516,8 @@ class Objective:
         """Return every term of ``E(theta)`` and optionally the gradient, shape (26,)."""
         v, grad = self._evaluate(theta, gradient, True)
         terms = EnergyTerms(
-            total=v[0], sim=v[1], col=v[2], dan=v[3], lim=v[4], smo=v[5], ord=v[6], sal=v[7], sil=v[8]
+            total=v[0], sim=v[1], col=v[2], dan=v[3], lim=v[4], smo=v[5], ord=v[6], sal=v[7], sil=v[8],
+            cpl=v[9],
         )
         return terms, grad
 
@@ -520,7 +545,7 @@ class Objective:
         terms: bool = True,
         later: list[Backward] | None = None,
     ) -> tuple[tuple[float, ...], NDArray[np.float64] | Callable[[], NDArray[np.float64]] | None]:
-        """``(total, sim, col, dan, lim, smo, ord, sal, sil)`` and the gradient (or None).
+        """``(total, sim, col, dan, lim, smo, ord, sal, sil, cpl)`` and the gradient (or None).
 
         The shared body of :meth:`__call__` (the optimiser's path: no :class:`EnergyTerms`),
         :meth:`evaluate` and :meth:`value_then_gradient`.  Without ``terms`` (only the total
@@ -553,6 +578,14 @@ class Objective:
         else:  # (the default weight is 0: the optimiser's path skips the term)
             smo, g_smo = 0.0, None
         ordv, g_ord = self._order(theta)
+        if terms or cfg.w_cpl != 0.0:
+            cpl, g_cpl = self._coupling(theta)
+        else:  # (the default weight is 0: the optimiser's path skips the term)
+            cpl, g_cpl = 0.0, None
+        # The order and coupling terms' weighted gradient (None: 0, the typical case).
+        g_pose = None if g_ord is None else cfg.w_ord * g_ord
+        if g_cpl is not None:
+            g_pose = cfg.w_cpl * g_cpl if g_pose is None else g_pose + cfg.w_cpl * g_cpl
         sal = self._salient(P, g3, cfg.w_sal, later)
         sil = 0.0
         if self.silhouette is not None and cfg.w_sil > 0:
@@ -566,10 +599,11 @@ class Objective:
             - cfg.w_lim * lim
             - cfg.w_smo * smo
             - cfg.w_ord * ordv
+            - cfg.w_cpl * cpl
             - cfg.w_sal * sal
             - cfg.w_sil * sil
         )
-        values = (total, sim, col, dan, lim, smo, ordv, sal, sil)
+        values = (total, sim, col, dan, lim, smo, ordv, sal, sil, cpl)
         if later is not None:
             stamp = self._evaluations
             theta = theta.copy()
@@ -581,12 +615,12 @@ class Objective:
                 g3 = np.zeros(P2.shape)
                 for backward in later:
                     backward(g3)
-                return self._gradient(pullback, g3, g_lim, g_smo, ordv, g_ord)
+                return self._gradient(pullback, g3, g_lim, g_smo, g_pose)
 
             return values, finish
         if pullback is None:
             return values, None
-        return values, self._gradient(pullback, g3, g_lim, g_smo, ordv, g_ord)
+        return values, self._gradient(pullback, g3, g_lim, g_smo, g_pose)
 
     def _gradient(
         self,
@@ -594,10 +628,10 @@ class Objective:
         g3: NDArray[np.float64],
         g_lim: NDArray[np.float64] | None,
         g_smo: NDArray[np.float64] | None,
-        ordv: float,
-        g_ord: NDArray[np.float64] | None,
+        g_pose: NDArray[np.float64] | None,
     ) -> NDArray[np.float64]:
-        """``dE/dtheta`` (26,) from ``dE/dP`` (m, 3) and the pose terms' gradients."""
+        """``dE/dtheta`` (26,) from ``dE/dP`` (m, 3) and the pose terms' gradients (``g_pose``:
+        the order and coupling terms' weighted sum, None for 0)."""
         cfg = self.config
         grad = pullback(g3)  # = einsum("mk,mkj->j", g3, J) up to rounding
         # (A zero g_lim or w_smo = 0: subtracting 0 would change no bit.)
@@ -605,8 +639,8 @@ class Objective:
             grad -= cfg.w_lim * g_lim + cfg.w_smo * g_smo if g_lim is not None else cfg.w_smo * g_smo
         elif g_lim is not None:
             grad -= cfg.w_lim * g_lim
-        if ordv > 0.0:  # (else g_ord is 0)
-            grad -= cfg.w_ord * g_ord
+        if g_pose is not None:
+            grad -= g_pose
         return grad
 
     # -- terms ---------------------------------------------------------------
@@ -903,6 +937,19 @@ class Objective:
         hi = np.maximum(theta - self._limits_high, 0.0)
         g = 2.0 * (lo + hi)
         return float(_sum((lo * lo)[JOINTS]) + _sum((hi * hi)[JOINTS])), g
+
+    @staticmethod
+    def _coupling(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
+        """``E_cpl`` and its gradient, shape (26,) (None when ``E_cpl`` is 0: a zero gradient):
+        each finger's DIP flexed beyond :data:`COUPLING_DIP_PIP` times its PIP flexion costs."""
+        excess = theta[_DIP] - COUPLING_DIP_PIP * theta[_PIP]  # (4,) rad
+        if not (excess > 0.0).any():
+            return 0.0, None
+        np.maximum(excess, 0.0, out=excess)
+        g = np.zeros(N_PARAMS)
+        g[_DIP] = 2.0 * excess
+        g[_PIP] = (-2.0 * COUPLING_DIP_PIP) * excess
+        return float(excess @ excess), g
 
     def _order(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
         """``E_ord`` and its gradient, shape (26,) (None when ``E_ord`` is 0: a zero
