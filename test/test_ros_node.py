@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -200,6 +200,28 @@ def test_outputs_carry_the_input_stamp_and_frame_and_match_the_core(rig: Rig) ->
     s = rig.node.stats
     assert (s.received, s.processed, s.dropped, s.missed, s.rejected) == (3, 3, 0, 0, 0)
     assert s.status is TrackerStatus.TRACKING and s.confidence > 0.35
+
+
+def test_an_output_nobody_subscribes_to_is_not_built(rig: Rig, monkeypatch) -> None:
+    """hand/keypoints has no subscriber in the rig: no message is built for it (issue 14: each
+    publication costs the node 0.2-0.5 ms) until one subscribes."""
+    import hand_sog_tracker.ros.node as node_module
+
+    built: list[int] = []
+    real = node_module.keypoints_msg
+    monkeypatch.setattr(node_module, "keypoints_msg", lambda *a, **k: built.append(1) or real(*a, **k))
+    rig.send_info()
+    depths = [hand_depth(theta, seed=i) for i, theta in enumerate(hand_poses(2))]
+    rig.send(image_msg(depths[0], T0_NS))
+    assert rig.wait_joint(T0_NS) and built == []
+    received: list[PoseArray] = []
+    reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    rig.io.create_subscription(PoseArray, "hand/keypoints", received.append, reliable)
+    pub = next(p for p in rig.node.publishers if p.topic_name == f"{rig.ns}/hand/keypoints")
+    assert rig.spin_until(lambda: pub.get_subscription_count() > 0), "DDS discovery on loopback did not complete"
+    rig.send(image_msg(depths[1], T0_NS + 33_333_333))
+    assert rig.spin_until(lambda: len(received) == 1, 5.0) and built == [1]
+    assert stamp_to_ns(received[0].header.stamp) == T0_NS + 33_333_333
 
 
 def test_bad_inputs_are_skipped_with_a_reason_and_the_next_good_frame_is_tracked(rig: Rig, capfd) -> None:
