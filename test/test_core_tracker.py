@@ -297,6 +297,39 @@ def test_deferred_restarts_answer_before_the_restarts_and_the_track_is_the_same(
     assert won == [35]
 
 
+def test_a_stop_skips_the_remaining_restart_candidates() -> None:
+    """finish_frame(stop): stop is asked before each candidate fit; once True, no more fits run
+    on that frame (the node: a newer image waits), and the candidates not tried do not count as
+    lost (no cooldown of the detection restarts)."""
+    from hand_sog_tracker.synth.mesh import mesh_sequence
+
+    intr = default_intrinsics()
+    frames = list(mesh_sequence("fingercount", 38, intr, seed=2))
+    fits: dict[str, list[int]] = {"free": [], "stopped": [], "one": []}
+    for mode in fits:
+        tracker = Tracker()
+        tracker.defer_restarts = True
+        calls = [0]
+        fit = tracker._maximise
+        tracker._maximise = lambda *a, _fit=fit, **k: calls.__setitem__(0, calls[0] + 1) or _fit(*a, **k)
+        asked = [0]
+
+        def stop() -> bool:
+            asked[0] += 1
+            return mode == "stopped" or (mode == "one" and asked[0] > 1)
+
+        for f in frames:
+            tracker.process(f.depth_mm, intr)
+            calls[0] = asked[0] = 0
+            tracker.finish_frame(None if mode == "free" else stop)
+            fits[mode].append(calls[0])
+            if mode != "free":
+                assert tracker._restart_wait == 0 or calls[0] > 0
+    assert sum(fits["free"]) > 0 and sum(fits["stopped"]) == 0
+    # Stopped after the first candidate: one fit (plus its pull, for a detection restart) at most.
+    assert all(n <= 2 for n in fits["one"]) and sum(fits["one"]) > 0
+
+
 def test_the_joint_pull_sends_the_other_fingertips_to_their_own_detections() -> None:
     """The detection restart's whole-pose pull (issue 11): fingertip ``c`` onto the unexplained
     detection, the others onto the detections the optimal assignment gives them without it

@@ -133,6 +133,16 @@ class RestartStrategies:
     _restart_wait: int
     _shift_pending: ShiftCandidate | None
     _maximise: Callable[..., OptimizeResult]
+    #: Asked before each restart candidate: True skips the rest of this frame's candidates
+    #: (:meth:`~hand_sog_tracker.core.tracker.Tracker.finish_frame`'s ``stop``); None: never.
+    _stop: Callable[[], bool] | None = None
+    _cut = False  # (whether the last _restarts skipped candidates)
+
+    def _stopped(self) -> bool:
+        """Whether the caller's ``stop`` asks to skip the remaining candidates (remembered)."""
+        if self._stop is not None and self._stop():
+            self._cut = True
+        return self._cut
 
     def _restarts(
         self, obj: Objective, res: OptimizeResult, data: ImageSoG, det: Detections
@@ -143,6 +153,7 @@ class RestartStrategies:
         restarts wait ``RESTART_COOLDOWN`` frames (such a detection is often a knuckle or a
         forearm edge); the finger restarts run every time.
         """
+        self._cut = False
         res = self._finger_restarts(obj, res, data)
         if self._restart_wait > 0:
             self._restart_wait -= 1
@@ -152,7 +163,7 @@ class RestartStrategies:
         before = res
         res = self._shift_restarts(obj, res, det, lonely=lonely)
         res = self._detection_restarts(obj, res, det, lonely=lonely if res is before else None)
-        if lonely.size and res is before:
+        if lonely.size and res is before and not self._cut:  # (all tried, all lost)
             self._restart_wait = RESTART_COOLDOWN
         return res
 
@@ -180,6 +191,8 @@ class RestartStrategies:
             candidates.append(np.mean([res.x[chain_slice(k)] for k in others], axis=0))
         best = res
         for joints in candidates:
+            if self._stopped():
+                break
             x0 = res.x.copy()
             x0[sl] = joints
             cand = self._maximise(obj, x0, iterations=RESTART_ITERATIONS)
@@ -216,6 +229,8 @@ class RestartStrategies:
         hidden = not force  # (initialisation: see _assignment_cost)
         best, best_val = res, self._score(plain, res.x, det, hidden_tips=hidden)
         for side in (1, -1):
+            if self._stopped():
+                break
             cand = self._maximise(plain, _shifted(res.x, side), iterations=RESTART_ITERATIONS)
             val = self._score(plain, cand.x, det, value=cand.fun, hidden_tips=hidden)
             if val > best_val:
@@ -233,6 +248,8 @@ class RestartStrategies:
         """
         pending = self._shift_pending
         if pending is None and (self._frame_count % SHIFT_EVERY or self._tips_seen(res.x, det)):
+            return res
+        if self._stopped():  # (a pending candidate goes on on a later frame)
             return res
         plain = self._plain(obj)
         if pending is None:
@@ -301,6 +318,8 @@ class RestartStrategies:
         plain = self._plain(obj)
         best, best_val = res, self._score(plain, res.x, det)
         for c in np.argsort(dist)[:2]:
+            if self._stopped():
+                break
             w = np.zeros(5)
             w[c] = 1.0
             pts = np.zeros((5, 3))
@@ -316,17 +335,23 @@ class RestartStrategies:
                 previous=obj.previous, targets=self._joint_targets(res.x, det, int(c), s),
                 silhouette=obj.silhouette,
             )
-            starts = [
-                self._maximise(pull, res.x, iterations=RESTART_ITERATIONS, active=finger).x,
-                self._maximise(joint, res.x, iterations=RESTART_ITERATIONS).x,
+            # Start poses: the two pulls (objective, active parameters), run only while the
+            # caller has not said stop, and a pose.
+            starts: list[tuple[Objective, NDArray[np.bool_] | None] | NDArray[np.float64]] = [
+                (pull, finger),
+                (joint, None),
             ]
             if det.end_on[s] and c > 0:
                 # A finger seen end-on is curled toward the camera: also try it curled.
                 curled = res.x.copy()
                 curled[chain_slice(c)] = FINGER_CURLED
                 starts.append(curled)
-            for x0 in starts:
-                cand = self._maximise(plain, x0, iterations=RESTART_ITERATIONS)
+            for start in starts:
+                if self._stopped():
+                    break
+                if isinstance(start, tuple):
+                    start = self._maximise(start[0], res.x, iterations=RESTART_ITERATIONS, active=start[1]).x
+                cand = self._maximise(plain, start, iterations=RESTART_ITERATIONS)
                 val = self._score(plain, cand.x, det, value=cand.fun)
                 if val > best_val:
                     best, best_val = cand, val

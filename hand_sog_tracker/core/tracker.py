@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -223,17 +224,23 @@ class Tracker(RestartStrategies):
         self._shift_pending = None
         self._deferred = None
 
-    def finish_frame(self) -> bool:
+    def finish_frame(self, stop: Callable[[], bool] | None = None) -> bool:
         """Run the restarts that :attr:`defer_restarts` left for after the last frame's result.
 
         Returns whether a restart won: the track then continues from its pose.  Nothing to do
-        (False) when none are due.
+        (False) when none are due.  ``stop``: asked before each restart candidate (a fit of
+        2-8 ms); once it returns True the frame's remaining candidates are skipped (e.g. the
+        node when a newer image waits: the detection restarts of one frame can take 100 ms).
         """
         deferred, self._deferred = self._deferred, None
         if deferred is None:
             return False
         obj, res, data, det, p1 = deferred
-        best = self._restarts(obj, res, data, det)
+        self._stop = stop
+        try:
+            best = self._restarts(obj, res, data, det)
+        finally:
+            self._stop = None
         if best is res or self._prev is None or self._prev[0] is not res.x:
             return False
         self._prev = (best.x, p1)

@@ -144,6 +144,11 @@ MAX_GAP_S = 1.0
 #: The scheduled finger shifts (about 1 ms on 4 frames in 12) count as restarts here.
 FAST_CAMERA_HZ = 45.0
 FAST_CAMERA_RESTART_INTERVAL_S = 0.2
+#: A frame's restarts (run after its answer) skip their remaining candidates once they have
+#: run this long (s) and a newer image waits: the detection restarts of one frame can take
+#: 60-100 ms (all their candidates), which held up 6-9 frames at 100 Hz.  Candidates that
+#: start before the limit finish (2-8 ms each).
+RESTART_BUDGET_S = 0.010
 #: When the hand was found on an image and no newer image has arrived (a single image, a
 #: slow stream), the new track is refined on the same image this many more times before the
 #: answer is published, as the tracker would be on a static scene; a newer image stops it.
@@ -619,7 +624,12 @@ class TrackerNode(CalibrationService, Node):
         )
         self._window.processed += 1
         self._window.latency_ms += latency_ms
-        self._tracker.finish_frame()  # this frame's restarts, after its answer (defer_restarts)
+        # This frame's restarts, after its answer (defer_restarts), cut short when over budget
+        # while a newer image waits.
+        t_restarts = time.perf_counter()
+        self._tracker.finish_frame(
+            lambda: time.perf_counter() - t_restarts > RESTART_BUDGET_S and self._image_waiting()
+        )
         return answered_at
 
     def _image_waiting(self) -> bool:
