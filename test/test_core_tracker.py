@@ -311,10 +311,10 @@ def test_a_stop_skips_the_remaining_restart_candidates() -> None:
         tracker.defer_restarts = True
         calls = [0]
         fit = tracker._maximise
-        tracker._maximise = lambda *a, _fit=fit, **k: calls.__setitem__(0, calls[0] + 1) or _fit(*a, **k)
+        tracker._maximise = lambda *a, _fit=fit, _n=calls, **k: _n.__setitem__(0, _n[0] + 1) or _fit(*a, **k)
         asked = [0]
 
-        def stop() -> bool:
+        def stop(asked: list[int] = asked, mode: str = mode) -> bool:
             asked[0] += 1
             return mode == "stopped" or (mode == "one" and asked[0] > 1)
 
