@@ -740,7 +740,7 @@ def _parse_cli(argv: Sequence[str]) -> None:
         epilog="Subscribes camera/depth/image_rect_raw (or .../compressedDepth with "
         "-p input_transport:=compressedDepth) and camera/depth/camera_info; publishes "
         "hand/joint_states, hand/pose, hand/keypoints, hand/fingertips, hand/robot_description, "
-        "hand/debug_image, /diagnostics (and /tf with -p publish_tf:=true); the hand outputs "
+        "hand/debug_image, /diagnostics (and /tf with -p publish_tf:=true); joint states, pose, keypoints, fingertips "
         "and the debug image only while something subscribes to them; "
         "service ~/calibrate (see calibrate_hand). Without a saved hand model it fits the model "
         "by itself once, half a second into tracking (-p auto_calibrate:=false turns that off).",
