@@ -326,6 +326,9 @@ def test_a_stop_skips_the_remaining_restart_candidates() -> None:
             if mode != "free":
                 assert tracker._restart_wait == 0 or calls[0] > 0
     assert sum(fits["free"]) > 0 and sum(fits["stopped"]) == 0
+    # A cut frame does not stop the restarts of a later caller without ``stop`` (initialisation).
+    tracker._cut = True  # (left by a cut frame)
+    assert not tracker._stopped()
     # Stopped after the first candidate: one fit (plus its pull, for a detection restart) at most.
     assert all(n <= 2 for n in fits["one"]) and sum(fits["one"]) > 0
 

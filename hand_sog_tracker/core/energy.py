@@ -75,11 +75,9 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.hand_model import (
-    CHAIN_JOINTS,
     FINGER_ABD,
-    FIRST_JOINT,
-    FLEX2,
-    FLEX3,
+    FINGER_DIP,
+    FINGER_PIP,
     JOINTS,
     N_PARAMS,
     HandModel,
@@ -119,9 +117,6 @@ SMOOTH_TRANSLATION_MM = 50.0
 ORDER_MIN_GAP_RAD = -0.05
 #: DIP flexion per PIP flexion beyond which ``E_cpl`` costs (unitless; seed 004: DIP = 2/3 PIP).
 COUPLING_DIP_PIP = 2.0 / 3.0
-#: Pose-vector indices of the PIP (flex2) and DIP (flex3) angles of index .. little, (4,) each.
-_PIP = np.array([FIRST_JOINT + CHAIN_JOINTS * c + FLEX2 for c in range(1, 5)])
-_DIP = np.array([FIRST_JOINT + CHAIN_JOINTS * c + FLEX3 for c in range(1, 5)])
 #: Width of the flat bottom of the salient-point cost (mm; chosen here, seed 001 ignores pairs
 #: under 10 mm).
 SALIENT_SOFT_MM = 8.0
@@ -942,13 +937,13 @@ class Objective:
     def _coupling(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
         """``E_cpl`` and its gradient, shape (26,) (None when ``E_cpl`` is 0: a zero gradient):
         each finger's DIP flexed beyond :data:`COUPLING_DIP_PIP` times its PIP flexion costs."""
-        excess = theta[_DIP] - COUPLING_DIP_PIP * theta[_PIP]  # (4,) rad
+        excess = theta[FINGER_DIP] - COUPLING_DIP_PIP * theta[FINGER_PIP]  # (4,) rad
         if not (excess > 0.0).any():
             return 0.0, None
         np.maximum(excess, 0.0, out=excess)
         g = np.zeros(N_PARAMS)
-        g[_DIP] = 2.0 * excess
-        g[_PIP] = (-2.0 * COUPLING_DIP_PIP) * excess
+        g[FINGER_DIP] = 2.0 * excess
+        g[FINGER_PIP] = (-2.0 * COUPLING_DIP_PIP) * excess
         return float(excess @ excess), g
 
     def _order(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:

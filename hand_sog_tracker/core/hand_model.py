@@ -40,6 +40,8 @@ __all__ = [
     "FIRST_JOINT",
     "JOINTS",
     "FINGER_ABD",
+    "FINGER_PIP",
+    "FINGER_DIP",
     "chain_slice",
     "chain_joint_slice",
     "FINGER_RANGE",
@@ -76,6 +78,9 @@ FIRST_JOINT: Final[int] = 6
 JOINTS: Final[slice] = slice(FIRST_JOINT, None)
 #: MCP abductions of index .. little inside the pose vector (a strided slice, 4 values).
 FINGER_ABD: Final[slice] = slice(FIRST_JOINT + CHAIN_JOINTS + ABD, None, CHAIN_JOINTS)
+#: PIP (flex2) and DIP (flex3) flexions of index .. little inside the pose vector (strided).
+FINGER_PIP: Final[slice] = slice(FIRST_JOINT + CHAIN_JOINTS + FLEX2, None, CHAIN_JOINTS)
+FINGER_DIP: Final[slice] = slice(FIRST_JOINT + CHAIN_JOINTS + FLEX3, None, CHAIN_JOINTS)
 
 _CHAIN_SLICES: Final = tuple(
     slice(FIRST_JOINT + CHAIN_JOINTS * c, FIRST_JOINT + CHAIN_JOINTS * (c + 1)) for c in range(5)

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
 from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.energy import SALIENT_SCALE_MM, Objective, TipTargets
-from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, FIRST_JOINT, FLEX2, FLEX3, JOINTS, HandModel, chain_slice
+from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, FINGER_DIP, FINGER_PIP, JOINTS, HandModel, chain_slice
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.salient import Detections, assign_detections
@@ -139,8 +139,11 @@ class RestartStrategies:
     _cut = False  # (whether the last _restarts skipped candidates)
 
     def _stopped(self) -> bool:
-        """Whether the caller's ``stop`` asks to skip the remaining candidates (remembered)."""
-        if self._stop is not None and self._stop():
+        """Whether the caller's ``stop`` asks to skip the remaining candidates (remembered for
+        the rest of the frame's restarts); always False without a ``stop`` (initialisation)."""
+        if self._stop is None:
+            return False
+        if not self._cut and self._stop():
             self._cut = True
         return self._cut
 
@@ -452,9 +455,6 @@ class RestartStrategies:
         return float(cost / SALIENT_SCALE_MM)
 
 
-#: PIP and DIP flexions of index .. little inside the pose vector (strided slices, 4 values).
-_FINGER_PIP = slice(FIRST_JOINT + CHAIN_JOINTS + FLEX2, None, CHAIN_JOINTS)
-_FINGER_DIP = slice(FIRST_JOINT + CHAIN_JOINTS + FLEX3, None, CHAIN_JOINTS)
 
 
 def _tip_lambdas(theta: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -467,7 +467,7 @@ def _tip_lambdas(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     """
     lam = np.full(5, ASSIGN_LAMBDA_MM)
     if HIDDEN_TIP_LAMBDA != 1.0 and -global_rotation(theta)[2, 2] > HIDDEN_PALM_COS:
-        curl = theta[_FINGER_PIP] + theta[_FINGER_DIP]  # index .. little, rad
+        curl = theta[FINGER_PIP] + theta[FINGER_DIP]  # index .. little, rad
         share = np.clip((curl - OPEN_TIP_RAD) / (CURLED_TIP_RAD - OPEN_TIP_RAD), 0.0, 1.0)
         lam[1:] *= 1.0 - (1.0 - HIDDEN_TIP_LAMBDA) * share
     return lam
