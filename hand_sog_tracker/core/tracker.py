@@ -183,7 +183,9 @@ class Tracker(RestartStrategies):
     #: Shortest wall time (s) between two frames that run the restarts, or None (the default:
     #: every frame as scheduled, results independent of timing).  The restarts are optional
     #: work of 5-20 ms; the node sets this for cameras faster than it can track with them
-    #: every frame, so that it keeps up and runs them a few times a second.
+    #: every frame, so that it keeps up and runs them a few times a second.  The frames in
+    #: between still run the scheduled finger shift (:meth:`_scheduled_restarts`, about 1 ms
+    #: on the frames that have a candidate), so that its schedule counts camera frames.
     restart_interval_s: float | None = None
     _last_restarts_s: float = -np.inf
     #: Run a tracked frame's restarts after its result instead of before (issue 14): the
@@ -193,8 +195,9 @@ class Tracker(RestartStrategies):
     #: before the restarts (up to 5-20 ms on the frames where they fire); off (the default), a
     #: frame's result includes its restarts.
     defer_restarts: bool = False
-    #: (objective, fit, data, detections, previous pose) of the frame whose restarts are due.
-    _deferred: tuple[Objective, OptimizeResult, ImageSoG, Detections, NDArray[np.float64]] | None = None
+    #: (objective, fit, data, detections, previous pose, all restarts or only the scheduled
+    #: shift) of the frame whose restarts are due.
+    _deferred: tuple[Objective, OptimizeResult, ImageSoG, Detections, NDArray[np.float64], bool] | None = None
     #: (model, low, high) of :meth:`_maximise`: the joint limits as bounds (26,) each, read-only.
     _bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
 
@@ -235,10 +238,10 @@ class Tracker(RestartStrategies):
         deferred, self._deferred = self._deferred, None
         if deferred is None:
             return False
-        obj, res, data, det, p1 = deferred
+        obj, res, data, det, p1, full = deferred
         self._stop = stop
         try:
-            best = self._restarts(obj, res, data, det)
+            best = self._restarts(obj, res, data, det) if full else self._scheduled_restarts(obj, res, det)
         finally:
             self._stop = None
         if best is res or self._prev is None or self._prev[0] is not res.x:
@@ -360,8 +363,8 @@ class Tracker(RestartStrategies):
         restarts = self.restart_interval_s is None or now - self._last_restarts_s >= self.restart_interval_s
         if restarts:
             self._last_restarts_s = now
-            if not self.defer_restarts:
-                res = self._restarts(obj, res, data, det)
+        if not self.defer_restarts:
+            res = self._restarts(obj, res, data, det) if restarts else self._scheduled_restarts(obj, res, det)
         centres = gaussian_centres(self._model, res.x)
         conf = coverage(self._model, res.x, data, centres, obj.support(res.x))
         if conf < cfg.lost_confidence:
@@ -375,8 +378,8 @@ class Tracker(RestartStrategies):
             return self._result(None, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3})
         self._prev = (res.x, p1)
         self._status = TrackerStatus.TRACKING
-        if restarts and self.defer_restarts:
-            self._deferred = (obj, res, data, det, p1)
+        if self.defer_restarts:
+            self._deferred = (obj, res, data, det, p1, restarts)
         return self._result(res.x, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3}, centres)
 
     def _maximise(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> OptimizeResult:

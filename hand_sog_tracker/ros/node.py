@@ -141,7 +141,8 @@ MAX_GAP_S = 1.0
 #: Cameras faster than this (Hz) get the tracker's restarts at most every
 #: ``FAST_CAMERA_RESTART_INTERVAL_S`` (a frame whose restarts an unexplained detection or a
 #: dangling finger sets off takes 5-20 ms more; at 30 Hz the node keeps up without the limit).
-#: The scheduled finger shifts (about 1 ms on 4 frames in 12) count as restarts here.
+#: The scheduled finger shift (about 1 ms on 4 frames in 12) still runs on every frame
+#: (``Tracker.restart_interval_s``).
 FAST_CAMERA_HZ = 45.0
 FAST_CAMERA_RESTART_INTERVAL_S = 0.2
 #: A frame's restarts (run after its answer) skip their remaining candidates once they have
