@@ -195,6 +195,32 @@ def test_cli_mesh_renderer_and_sets(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "unknown motion" in capsys.readouterr().err
 
 
+def test_a_protocol_set_at_another_rate_keeps_its_hands_and_split(tmp_path: Path, monkeypatch) -> None:
+    """``--set mesh_test --fps 100``: the held-out set's hands, seeds and split, 2 s of motion
+    per bag at 100 Hz (200 frames), into bags/mesh_test_100hz (the 30 fps set stays)."""
+    import json
+
+    import hand_sog_tracker.tools.make_sample_bags as msb
+
+    calls = []
+
+    def fake(path, motion, frames, width, height, encoding, **kw):
+        calls.append((Path(path), motion, frames, width, kw))
+        return msb.SampleBag(Path(path), motion, frames, width, height, encoding, 1, 0.0)
+
+    monkeypatch.setattr(msb, "write_sample_bag", fake)
+    monkeypatch.chdir(tmp_path)
+    assert msb.main(["--set", "mesh_test", "--fps", "100"]) == 0
+    specs = msb.protocol_set("mesh_test", 200, 66)
+    assert [c[0] for c in calls] == [Path("bags/mesh_test_100hz") / s.name for s in specs]
+    assert [c[2] for c in calls] == [s.frames for s in specs]
+    assert {c[4]["fps"] for c in calls} == {100.0}
+    assert [(c[4]["seed"], c[4]["shape"], c[4]["split"]) for c in calls] == [(s.seed, s.shape, "test") for s in specs]
+    calls.clear()
+    assert msb.main(["--set", "mesh_dev"]) == 0
+    assert calls[0][0].parent == Path("bags/mesh_dev") and calls[0][2] == 60 and calls[0][4]["fps"] == 30.0
+
+
 def test_fps_samples_the_motion_and_stamps_at_that_rate(tmp_path: Path) -> None:
     import json
 

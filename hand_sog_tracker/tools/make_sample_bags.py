@@ -472,15 +472,20 @@ def write_protocol_set(
     storage: StorageName = "mcap",
     force: bool = True,
     on_written: Callable[[SampleBag], None] | None = None,
+    fps: float = FPS,
 ) -> list[SampleBag]:
-    """Write every bag of :func:`protocol_set` ``name`` into ``out`` (default ``bags/<name>``)."""
-    root = Path("bags") / name if out is None else Path(out)
+    """Write every bag of :func:`protocol_set` ``name`` into ``out`` (default ``bags/<name>``,
+    ``bags/<name>_<fps>hz`` at another ``fps``: the same hands, seeds and motions sampled at that
+    rate, e.g. to feed the node the held-out set like a fast camera)."""
+    if out is None:
+        out = Path("bags") / (name if fps == FPS else f"{name}_{fps:g}hz")
+    root = Path(out)
     written = []
     for spec in protocol_set(name, frames, hires_frames):
         bag = write_sample_bag(
             root / spec.name, spec.motion, spec.frames, spec.width, spec.height, spec.encoding,
             storage=storage, seed=spec.seed, force=force, renderer="mesh", sensor=spec.sensor,
-            shape=spec.shape, right=spec.right, split=spec.split,
+            shape=spec.shape, right=spec.right, split=spec.split, fps=fps,
         )
         written.append(bag)
         if on_written is not None:
@@ -503,8 +508,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     p.add_argument("--out", default=None, help="output directory (default bags, with --set bags/<set>)")
     p.add_argument("--frames", type=int, default=None,
-                   help="frames per bag (default 90; with --set 60 per 320x240 bag, "
-                   "a third of it per 640x480 bag)")
+                   help="frames per bag (default 90; with --set 2 s of motion per 320x240 bag, "
+                   "60 frames at 30 fps, and a third of it per 640x480 bag)")
     p.add_argument("--motions", nargs="+", metavar="M",
                    help=f"motions to write (default: {' '.join(MOTIONS)}; also known: "
                    f"{' '.join(m for m in ALL_MOTIONS if m not in MOTIONS)})")
@@ -519,7 +524,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--no-force", action="store_true", help="fail instead of replacing existing bags")
     p.add_argument("--fps", type=float, default=FPS,
                    help="frame rate of the motion and the image stamps (default 30; e.g. 100 to "
-                   "feed the node like a fast camera; not with --set)")
+                   "feed the node like a fast camera; with --set the bags go to bags/<set>_<fps>hz "
+                   "unless --out is given)")
     p.add_argument("--background-mm", type=float, default=None, metavar="MM",
                    help="render a noisy wall at this depth behind the hand (default: none, i.e. no return; "
                    "a wall makes each 90-frame bag ~5 MB instead of ~0.7 MB)")
@@ -530,15 +536,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         p.error("--sensor needs --renderer mesh")
     if args.protocol_set is not None and (args.motions or args.sensor or args.background_mm is not None):
         p.error("--set fixes motions, sensors and background; drop --motions/--sensor/--background-mm")
-    if args.protocol_set is not None and args.fps != FPS:
-        p.error("--set bags are 30 fps; drop --fps")
     if not (1.0 <= args.fps <= 1000.0):
         p.error("--fps must be in [1, 1000]")
     if args.background_mm is not None and not args.background_mm > 0:
         p.error("--background-mm must be > 0")
     try:
         if args.protocol_set is not None:
-            n = 60 if args.frames is None else args.frames
+            n = max(int(round(60 * args.fps / FPS)), 1) if args.frames is None else args.frames
             bags = write_protocol_set(
                 args.protocol_set,
                 args.out,
@@ -547,6 +551,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 storage=args.storage,
                 force=not args.no_force,
                 on_written=_report,
+                fps=args.fps,
             )
         else:
             bags = make_sample_bags(
