@@ -76,7 +76,7 @@ def test_through_node_cli_on_a_synthetic_hand(tmp_path: Path, capsys: pytest.Cap
     assert "end-to-end latency: median" in text and "published 8 frames" in text
     js = json.loads(out.read_text())["bags"][0]
     assert js["mode"] == "through_node" and js["frames"] == 8 and js["domain_id"] == DOMAIN
-    for key in ("frames_published", "frames_with_output", "frames_dropped", "latency_ms", "node_stats"):
+    for key in ("frames_published", "frames_with_output", "frames_dropped", "latency_ms", "node_stats", "node_calibration_log"):
         assert key in js
     assert js["warmup"]["answered"] is True
     assert js["frames_with_output"] >= 1, js["node_stats"]
@@ -86,6 +86,31 @@ def test_through_node_cli_on_a_synthetic_hand(tmp_path: Path, capsys: pytest.Cap
     # the node tracks the synthetic hand about as well as the core does (ground truth matched by stamp)
     assert js["mean_fingertip_error_mm"] < 40.0
     assert js["frames_dropped"] + js["frames_with_output"] <= 8
+
+
+def test_the_node_s_automatic_calibration_is_reported_from_its_log() -> None:
+    from hand_sog_tracker.tools.node_eval import _calibration_log
+
+    log = (
+        "[INFO] [1704067200.100] [hand_sog_tracker]: tracking started\n"
+        "[INFO] [1704067200.600] [hand_sog_tracker]: automatic calibration (attempt 1): fitting ...\n"
+        "[INFO] [1704067201.000] [hand_sog_tracker]: automatic calibration refused, the model is unchanged: x\n"
+    )
+    assert _calibration_log(log) == [
+        "automatic calibration (attempt 1): fitting ...",
+        "automatic calibration refused, the model is unchanged: x",
+    ]
+    assert _calibration_log("") == []
+    # ... and printed with the bag's table.
+    import numpy as np
+
+    from hand_sog_tracker.tools.records import FrameRecord, build_evaluation
+    from hand_sog_tracker.tools.report import format_table
+
+    tips = np.zeros((5, 3)) + [0.0, 0.0, 400.0]
+    rec = FrameRecord(0, 1, "tracking", tips, tips, 7.0)
+    ev = build_evaluation("b", "through_node", [rec], 1.0, (320, 240), None, {"node_calibration_log": ["automatic calibration in use"]})
+    assert "node: automatic calibration in use" in format_table(ev)
 
 
 def test_a_node_that_dies_is_a_clear_error(

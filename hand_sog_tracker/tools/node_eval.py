@@ -169,6 +169,21 @@ def _warm_up(h: NodeHarness, bagr: DepthBagReader, payload: _Payloads, timeout_s
     return {"seconds": seconds, "answered": done, "tracking": tracked, "node_counters": baseline}
 
 
+#: Lines of the node's log searched for its automatic calibration's messages (a run logs a few
+#: dozen).
+_LOG_LINES_READ = 10_000
+
+
+def _calibration_log(log: str) -> list[str]:
+    """The messages (without the logger's level, time and name) of the node's log lines that
+    report its automatic calibration (started, in use, refused, failed)."""
+    out = []
+    for line in log.splitlines():
+        if "automatic calibration" in line:
+            out.append(line.split("]: ", 1)[-1].strip())
+    return out
+
+
 def evaluate_through_node(
     bag: str | Path,
     topics: BagTopics = BagTopics(),
@@ -223,8 +238,8 @@ def evaluate_through_node(
         image to reception of the markers); ``extra`` holds
         ``frames_published``, ``frames_with_output``, ``frames_dropped``
         (published but never processed by the node, from its counters),
-        ``node_stats`` (the node's counters for the timed replay) and
-        ``latency_ms``.  Frames without any output are ``no_output``
+        ``node_stats`` (the node's counters for the timed replay), ``latency_ms`` and
+        ``node_calibration_log`` (the node's log messages about its automatic calibration).  Frames without any output are ``no_output``
         (dropped, or no hand found).
 
     Raises
@@ -281,6 +296,7 @@ def evaluate_through_node(
         finally:
             bar.close()
 
+        calibration_log = _calibration_log(h.log_tail(_LOG_LINES_READ))
         records, latencies = score_outputs(records_pub, outs, bagr.truth)
         if not records:
             raise BagError(f"bag {bag}: no depth image on {topics.depth!r} could be read")
@@ -303,6 +319,7 @@ def evaluate_through_node(
         "frames_dropped": dropped,
         "node_stats": stats,
         "latency_ms": {"median": lat.median_ms, "p95": lat.p95_ms, "mean": lat.mean_ms},
+        "node_calibration_log": calibration_log,
         "ms_per_frame_is": "end-to-end latency (image published -> markers received)",
         "fps": n_out / max(t_end - t_first, 1e-9),
     }

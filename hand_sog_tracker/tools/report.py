@@ -53,6 +53,8 @@ def format_table(ev: Evaluation) -> str:
         lines.append(f"calibration: {_fit_text(ev.calibration)}")
     for fit in ev.extra.get("auto_calibration", []):
         lines.append(f"automatic calibration at frame {fit['frame']}: {_fit_text(fit)}")
+    for message in ev.extra.get("node_calibration_log", []):
+        lines.append(f"node: {message}")
     cols = ["mean"] + list(FINGERS)
     vals = [e.mean_mm] + [e.per_finger_mm[f] for f in FINGERS]
     lines += [
