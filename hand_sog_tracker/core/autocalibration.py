@@ -70,14 +70,21 @@ AUTO_MIN_FRAMES = HISTORY_FRAMES
 #: instead of 7.13 mm, 6 worse instead of 19, on the others).
 AUTO_MIN_LENGTH = 0.93
 #: The guard of an automatic fit (:func:`~hand_sog_tracker.core.calibration.validate`): the
-#: mean held-out score may fall by up to 0.01 and one frame's by up to 0.10 (unitless; the fit
-#: is not saved; ``~/calibrate`` keeps the strict guard, +0.003 and 0.05).  Chosen on 144 dev
+#: mean held-out score may fall by up to 0.02 (see below) and one frame's by up to 0.10
+#: (unitless; the fit is not saved; ``~/calibrate`` keeps the strict guard, +0.003 and 0.05).
+#: The margin was first -0.01, chosen on 144 dev
 #: renders, where the strict guard refused the first fit of about half of the hands larger than
 #: the model in every motion, fits close to the truth among them: 7.46 -> 7.07 mm instead of
 #: 7.13 mm (28 sequences better by more than 0.5 mm, 2 worse; strict: 22 and 1).  On 144 other
 #: renders 7.28 -> 7.00 mm instead of 7.10 mm (23 better, 6 worse; strict: 14 and 6).  No guard
-#: at all gave 7.03 and 6.99 mm with 2 and 7 worse.
-AUTO_GUARD_MARGIN = -0.01
+#: at all gave 7.03 and 6.99 mm with 2 and 7 worse.  Widened from -0.01 to -0.02 (issue 12/14):
+#: fed 100 Hz finger counting of a hand 1.10-1.12x, the node's fit (on other frames than the
+#: core's, the node's timing picks them) fell by 0.013 and was refused, where the core's passed:
+#: 14 mm against 9.5 mm.  With -0.02, 3 of 2 x 144 dev renders track 0.2-0.9 mm better and none
+#: worse (7.60 -> 7.59 and 7.27 -> 7.26 mm), 2 of 6 large-hand finger-counting renders 0.5 and
+#: 3.8 mm better, the bundled bags the same; a fit on half-curled frames falls by 0.06 and stays
+#: refused.
+AUTO_GUARD_MARGIN = -0.02
 AUTO_FRAME_DROP = 0.10
 #: Open-hand frames an automatic fit needs (count): a fit on a single frame of a half-curled hand
 #: returned length 0.80-0.88 and width 0.80 for hands 1.08-1.13x on dev renders (refused, but it
