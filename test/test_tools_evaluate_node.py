@@ -76,7 +76,8 @@ def test_through_node_cli_on_a_synthetic_hand(tmp_path: Path, capsys: pytest.Cap
     assert "end-to-end latency: median" in text and "published 8 frames" in text
     js = json.loads(out.read_text())["bags"][0]
     assert js["mode"] == "through_node" and js["frames"] == 8 and js["domain_id"] == DOMAIN
-    for key in ("frames_published", "frames_with_output", "frames_dropped", "latency_ms", "node_stats", "node_calibration_log"):
+    keys = ("frames_published", "frames_with_output", "frames_dropped", "latency_ms", "node_stats")
+    for key in (*keys, "node_calibration_log"):
         assert key in js
     assert js["warmup"]["answered"] is True
     assert js["frames_with_output"] >= 1, js["node_stats"]
@@ -109,7 +110,8 @@ def test_the_node_s_automatic_calibration_is_reported_from_its_log() -> None:
 
     tips = np.zeros((5, 3)) + [0.0, 0.0, 400.0]
     rec = FrameRecord(0, 1, "tracking", tips, tips, 7.0)
-    ev = build_evaluation("b", "through_node", [rec], 1.0, (320, 240), None, {"node_calibration_log": ["automatic calibration in use"]})
+    extra = {"node_calibration_log": ["automatic calibration in use"]}
+    ev = build_evaluation("b", "through_node", [rec], 1.0, (320, 240), None, extra)
     assert "node: automatic calibration in use" in format_table(ev)
 
 

@@ -198,8 +198,6 @@ def test_cli_mesh_renderer_and_sets(tmp_path: Path, capsys: pytest.CaptureFixtur
 def test_a_protocol_set_at_another_rate_keeps_its_hands_and_split(tmp_path: Path, monkeypatch) -> None:
     """``--set mesh_test --fps 100``: the held-out set's hands, seeds and split, 2 s of motion
     per bag at 100 Hz (200 frames), into bags/mesh_test_100hz (the 30 fps set stays)."""
-    import json
-
     import hand_sog_tracker.tools.make_sample_bags as msb
 
     calls = []

@@ -239,8 +239,8 @@ def evaluate_through_node(
         ``frames_published``, ``frames_with_output``, ``frames_dropped``
         (published but never processed by the node, from its counters),
         ``node_stats`` (the node's counters for the timed replay), ``latency_ms`` and
-        ``node_calibration_log`` (the node's log messages about its automatic calibration).  Frames without any output are ``no_output``
-        (dropped, or no hand found).
+        ``node_calibration_log`` (the node's log messages about its automatic calibration).
+        Frames without any output are ``no_output`` (dropped, or no hand found).
 
     Raises
     ------
