@@ -93,8 +93,33 @@ def test_each_stage_stays_within_its_budget_of_objective_evaluations(
     finish = calls[0] - search
     s = INIT_SEARCH
     hypotheses = tracker.config.init_hypotheses + 4  # (+ the hand axis' and the detection direction's two)
-    assert search <= hypotheses * (s.rigid_iterations + 1) + (s.kept + 1) * (s.full_iterations + 2) <= 130, search
+    aligned = 2 * s.screened + 4  # (screened per palm side, + the hand axis' and detections' starts)
+    assert search <= hypotheses + aligned * (s.rigid_iterations + 1) + (s.kept + 1) * (s.full_iterations + 2) <= 130
+
     assert finish <= 100, finish
+
+
+def test_the_start_poses_aligned_are_the_best_at_their_start_on_each_palm_side(frames: list) -> None:
+    from hand_sog_tracker.core.depth_sog import quadtree_sog
+    from hand_sog_tracker.core.initialise import initial_hypotheses
+    from hand_sog_tracker.core.tracker import hand_roi
+
+    tracker = Tracker()
+    config = tracker.config
+    pre = preprocess(frames[0].depth_mm, INTR, config)
+    blob = find_hand(pre, config)
+    assert blob is not None
+    starts = initial_hypotheses(tracker.model, blob, config.init_hypotheses)
+    roi, window = hand_roi(tracker.model, starts[0], INTR, config.roi_radius_mm)
+    data = quadtree_sog(pre, config.quadtree_threshold_mm, roi, window, INIT_SEARCH.coarse_quad_px)
+    chosen = tracker._screened(starts, data, 2)
+    value = [Objective(tracker.model, tracker._hand_side(data, x), config)(x, gradient=False)[0] for x in starts]
+    palm = [bool(global_rotation(x)[2, 2] > 0) for x in starts]
+    for side in (True, False):
+        mine = [i for i in range(len(starts)) if palm[i] == side]
+        kept = [i for i in mine if i in chosen]
+        assert len(kept) == 2 and len(mine) > 2
+        assert min(value[i] for i in kept) >= max(value[i] for i in mine if i not in chosen)
 
 
 def test_the_articulated_start_poses_keep_both_palm_sides() -> None:

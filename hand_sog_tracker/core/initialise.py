@@ -15,7 +15,8 @@ bent sideways turns hand and forearm apart, so open hands along the hand end's o
 The search runs in two stages (issue 14 aims at <= 50 ms per frame on one core; measured
 about 63 and 40 ms), see :meth:`hand_sog_tracker.core.tracker.Tracker._initialise`:
 
-1. *search* (:data:`INIT_SEARCH`): every start pose is aligned rigidly for a few iterations
+1. *search* (:data:`INIT_SEARCH`): the start poses that score best at their start (``screened``
+   per palm side) are aligned rigidly for a few iterations
    on one shared, coarse quadtree of the region around the palm (leaves of at least
    ``coarse_quad_px``), the best by objective (both palm sides) are articulated on the full-resolution
    quadtree of the same region (and the best of the start poses along the hand end's axis and
@@ -94,6 +95,14 @@ class InitSearch:
     coarse_quad_px : int
         Smallest quadtree leaf (px) of the data the start poses are aligned to (an objective
         evaluation costs about two thirds of one on the 4 px tracking quadtree).
+    screened : int
+        Start poses of the blob's directions aligned per palm side (toward / away from the
+        camera): the best by the objective at the start pose itself, one evaluation each
+        (issue 14: with 4, a hand without a recognised forearm, 20 start poses, aligns 8; on
+        2 x 36 dev renders started at 4 frames each the first answers scored 16.20 and 16.16
+        mm against 16.21 and 16.22 with all aligned, the 112 perturbed real-frame runs the same,
+        and the search took 40 and 40 ms median against 43 and 47 ms; with 3: 19.0 mm).
+        The start poses along the hand end's axis and the detections are always aligned.
     rigid_iterations : int
         Rigid (wrist pose only) iterations of every start pose on the coarse data.
     kept : int
@@ -109,6 +118,7 @@ class InitSearch:
     """
 
     coarse_quad_px: int = 8
+    screened: int = 4
     rigid_iterations: int = 3
     kept: int = 4
     full_iterations: int = 8

@@ -468,8 +468,11 @@ class Tracker(RestartStrategies):
                 starts += initial_hypotheses(self._model, HandBlob(blob.palm, [d]), 2)
         rigid = np.zeros(starts[0].size, dtype=bool)
         rigid[:6] = True
+        screened = self._screened(starts[:n_blob], coarse, eff.screened)
         aligned = []
         for i, x0 in enumerate(starts):
+            if i < n_blob and i not in screened:
+                continue
             data = self._hand_side(coarse, x0)
             if data.n == 0:
                 continue
@@ -500,6 +503,20 @@ class Tracker(RestartStrategies):
             return None
         scored.sort(key=lambda s: s[:2], reverse=True)
         return [x for _, _, x in scored[: eff.finalists]]
+
+    def _screened(self, starts: list[NDArray[np.float64]], data: ImageSoG, n: int) -> set[int]:
+        """Indices of the ``n`` start poses (26,) of ``starts`` with the palm toward the camera
+        and the ``n`` with its back toward it that score best by the objective on ``data`` at
+        the start pose itself (one evaluation each, no gradient; the first on a tie)."""
+        scored = []
+        for i, x0 in enumerate(starts):
+            part = self._hand_side(data, x0)
+            value = Objective(self._model, part, self._config)(x0, gradient=False)[0] if part.n else -np.inf
+            scored.append((value, -i, bool(global_rotation(x0)[2, 2] > 0)))
+        chosen: set[int] = set()
+        for side in (True, False):
+            chosen.update(-s[1] for s in sorted((s for s in scored if s[2] == side), reverse=True)[:n])
+        return chosen
 
     def _init_finish(self, pre: Preprocessed, poses: list[NDArray[np.float64]]) -> TrackResult:
         """Second stage: refine the finalist ``poses`` on ``pre``; the track starts from the best.
