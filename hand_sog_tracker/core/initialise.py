@@ -13,7 +13,7 @@ bent sideways turns hand and forearm apart, so open hands along the hand end's o
 (:func:`detection_direction`) are tried besides.
 
 The search runs in two stages (issue 14 aims at <= 50 ms per frame on one core; measured
-about 63 and 40 ms), see :meth:`hand_sog_tracker.core.tracker.Tracker._initialise`:
+about 40 and 24 ms median on dev renders, 2026-11-27), see :meth:`hand_sog_tracker.core.tracker.Tracker._initialise`:
 
 1. *search* (:data:`INIT_SEARCH`): the start poses that score best at their start (``screened``
    per palm side) are aligned rigidly for a few iterations
