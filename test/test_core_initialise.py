@@ -112,8 +112,9 @@ def test_the_start_poses_aligned_are_the_best_at_their_start_on_each_palm_side(f
     starts = initial_hypotheses(tracker.model, blob, config.init_hypotheses)
     roi, window = hand_roi(tracker.model, starts[0], INTR, config.roi_radius_mm)
     data = quadtree_sog(pre, config.quadtree_threshold_mm, roi, window, INIT_SEARCH.coarse_quad_px)
-    chosen = tracker._screened(starts, data, 2)
-    value = [Objective(tracker.model, tracker._hand_side(data, x), config)(x, gradient=False)[0] for x in starts]
+    parts = [tracker._hand_side(data, x) for x in starts]
+    chosen = tracker._screened(starts, parts, 2)
+    value = [Objective(tracker.model, part, config)(x, gradient=False)[0] for x, part in zip(starts, parts)]
     palm = [bool(global_rotation(x)[2, 2] > 0) for x in starts]
     for side in (True, False):
         mine = [i for i in range(len(starts)) if palm[i] == side]

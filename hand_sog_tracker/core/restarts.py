@@ -335,6 +335,7 @@ class RestartStrategies:
         cfg = self._config
         plain = self._plain(obj)
         best, best_val = res, self._score(plain, res.x, det)
+        strong = replace_config(cfg, w_sal=max(cfg.w_sal, 1.0) * 20.0)  # (the pulls' salient weight)
         for c in np.argsort(dist)[:2]:
             if self._stopped():
                 break
@@ -343,13 +344,13 @@ class RestartStrategies:
             pts = np.zeros((5, 3))
             pts[c] = det.points[s]
             pull = Objective(
-                self._model, obj.data, replace_config(cfg, w_sal=max(cfg.w_sal, 1.0) * 20.0),
+                self._model, obj.data, strong,
                 previous=obj.previous, targets=TipTargets(pts, w), silhouette=obj.silhouette,
             )
             finger = np.zeros(res.x.size, dtype=bool)
             finger[chain_slice(c)] = True
             joint = Objective(
-                self._model, obj.data, replace_config(cfg, w_sal=max(cfg.w_sal, 1.0) * 20.0),
+                self._model, obj.data, strong,
                 previous=obj.previous, targets=self._joint_targets(res.x, det, int(c), s),
                 silhouette=obj.silhouette,
             )
@@ -468,8 +469,6 @@ class RestartStrategies:
         unused[assigned[has]] = False
         cost = d + lam[~has].sum() + ASSIGN_LAMBDA_MM * det.confidence[unused].sum()
         return float(cost / SALIENT_SCALE_MM)
-
-
 
 
 def _tip_lambdas(theta: NDArray[np.float64]) -> NDArray[np.float64]:

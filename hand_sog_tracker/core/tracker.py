@@ -468,13 +468,11 @@ class Tracker(RestartStrategies):
                 starts += initial_hypotheses(self._model, HandBlob(blob.palm, [d]), 2)
         rigid = np.zeros(starts[0].size, dtype=bool)
         rigid[:6] = True
-        screened = self._screened(starts[:n_blob], coarse, eff.screened)
+        parts = [self._hand_side(coarse, x0) for x0 in starts]
+        screened = self._screened(starts[:n_blob], parts[:n_blob], eff.screened)
         aligned = []
-        for i, x0 in enumerate(starts):
-            if i < n_blob and i not in screened:
-                continue
-            data = self._hand_side(coarse, x0)
-            if data.n == 0:
+        for i, (x0, data) in enumerate(zip(starts, parts)):
+            if (i < n_blob and i not in screened) or data.n == 0:
                 continue
             # Rigid alignment first, then articulation (seed 004's coarse-to-fine).
             res = self._maximise(
@@ -504,13 +502,13 @@ class Tracker(RestartStrategies):
         scored.sort(key=lambda s: s[:2], reverse=True)
         return [x for _, _, x in scored[: eff.finalists]]
 
-    def _screened(self, starts: list[NDArray[np.float64]], data: ImageSoG, n: int) -> set[int]:
+    def _screened(self, starts: list[NDArray[np.float64]], parts: list[ImageSoG], n: int) -> set[int]:
         """Indices of the ``n`` start poses (26,) of ``starts`` with the palm toward the camera
-        and the ``n`` with its back toward it that score best by the objective on ``data`` at
-        the start pose itself (one evaluation each, no gradient; the first on a tie)."""
+        and the ``n`` with its back toward it that score best by the objective on their data
+        ``parts`` (each start's :meth:`_hand_side`) at the start pose itself (one evaluation
+        each, no gradient; the first on a tie)."""
         scored = []
-        for i, x0 in enumerate(starts):
-            part = self._hand_side(data, x0)
+        for i, (x0, part) in enumerate(zip(starts, parts)):
             value = Objective(self._model, part, self._config)(x0, gradient=False)[0] if part.n else -np.inf
             scored.append((value, -i, bool(global_rotation(x0)[2, 2] > 0)))
         chosen: set[int] = set()
