@@ -13,6 +13,7 @@ from hand_sog_tracker.core.depth_sog import preprocess
 from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips
+from hand_sog_tracker.core.optimizer import run
 from hand_sog_tracker.core.restarts import RESTART_ITERATIONS, SHIFT_CHUNK, SHIFT_EVERY
 from hand_sog_tracker.core.salient import Detections
 from hand_sog_tracker.core.tracker import Tracker
@@ -253,13 +254,13 @@ def test_a_rate_limited_tracker_still_runs_the_scheduled_finger_shift() -> None:
 def _count_maximise(tracker: Tracker) -> list[int]:
     """Record the iterations of every fit ``tracker`` runs from now on (the list fills up)."""
     calls: list[int] = []
-    maximise = tracker._maximise
+    fit = tracker._fit
 
     def counted(obj_, x0, **kwargs):
         calls.append(int(kwargs["iterations"]))
-        return maximise(obj_, x0, **kwargs)
+        return fit(obj_, x0, **kwargs)
 
-    tracker._maximise = counted  # type: ignore[method-assign]
+    tracker._fit = counted  # type: ignore[method-assign]
     return calls
 
 
@@ -286,7 +287,7 @@ def test_scheduled_shift_restart_is_spread_over_frames_and_undoes_a_shift_by_one
     tracker._frame_count = SHIFT_EVERY  # the schedule's side +1: each finger takes the next one's
     out = res
     for frame in range(RESTART_ITERATIONS // SHIFT_CHUNK):
-        out = tracker._scheduled_shift(obj, res, det)
+        out = run(tracker._scheduled_shift(obj, res, det))
         assert calls == [SHIFT_CHUNK] * (frame + 1)
         if frame < RESTART_ITERATIONS // SHIFT_CHUNK - 1:
             assert out is res and tracker._shift_pending is not None
@@ -296,7 +297,7 @@ def test_scheduled_shift_restart_is_spread_over_frames_and_undoes_a_shift_by_one
     assert err_wrong[1:3].min() > 40.0 and err.max() < 15.0, (err_wrong.round(0), err.round(0))
     # Off the schedule nothing runs.
     tracker._frame_count = SHIFT_EVERY + 1
-    assert tracker._scheduled_shift(obj, res, det) is res and len(calls) == RESTART_ITERATIONS // SHIFT_CHUNK
+    assert run(tracker._scheduled_shift(obj, res, det)) is res and len(calls) == RESTART_ITERATIONS // SHIFT_CHUNK
 
 
 def test_scheduled_shift_does_not_start_when_every_fingertip_is_seen_at_its_finger() -> None:
@@ -314,13 +315,13 @@ def test_scheduled_shift_does_not_start_when_every_fingertip_is_seen_at_its_fing
     res = tracker._maximise(obj, truth, iterations=7)
     calls = _count_maximise(tracker)
     tracker._frame_count = SHIFT_EVERY
-    assert tracker._scheduled_shift(obj, res, det) is res
+    assert run(tracker._scheduled_shift(obj, res, det)) is res
     assert calls == [] and tracker._shift_pending is None
     # The detection nearest the middle fingertip removed: the middle finger has no detection.
     near = int(np.argmin(np.linalg.norm(det.points - fingertips(tracker.model, res.x)[2], axis=1)))
     keep = np.arange(det.n) != near
     fewer = Detections(det.points[keep], det.uv[keep], det.confidence[keep], det.end_on[keep])
-    assert tracker._scheduled_shift(obj, res, fewer) is res
+    assert run(tracker._scheduled_shift(obj, res, fewer)) is res
     assert calls == [SHIFT_CHUNK] and tracker._shift_pending is not None
 
 
@@ -346,40 +347,61 @@ def test_deferred_restarts_answer_before_the_restarts_and_the_track_is_the_same(
     assert won == [35]
 
 
-def test_a_stop_skips_the_remaining_restart_candidates() -> None:
-    """finish_frame(stop): stop is asked before each candidate fit; once True, no more fits run
-    on that frame (the node: a newer image waits), and the candidates not tried do not count as
-    lost (no cooldown of the detection restarts)."""
+def test_a_stop_pauses_the_restarts_and_the_next_call_goes_on() -> None:
+    """finish_frame(stop): stop is asked after every iteration of the restarts; once True they
+    pause, and the next finish_frame goes on where they stopped: paused as often as asked,
+    they end exactly where they end in one go."""
+    from hand_sog_tracker.synth.mesh import mesh_sequence
+
+    intr = default_intrinsics()
+    whole, paused = Tracker(), Tracker()
+    whole.defer_restarts = paused.defer_restarts = True
+    asked = [0]
+
+    def every_other() -> bool:
+        asked[0] += 1
+        return asked[0] % 2 == 0
+
+    pauses = 0
+    for f in mesh_sequence("fingercount", 38, intr, seed=2):
+        whole.process(f.depth_mm, intr)
+        paused.process(f.depth_mm, intr)
+        won = whole.finish_frame()
+        calls = 1
+        while not (ended := paused.finish_frame(every_other)) and paused._running is not None:
+            calls += 1
+        pauses += calls - 1
+        assert ended == won and np.array_equal(paused.last_pose, whole.last_pose)
+    assert pauses > 100
+
+
+def test_restarts_that_end_after_the_track_moved_on_hand_their_winner_to_the_next_frame() -> None:
+    """Restarts paused on one frame and finished after the next one was tracked: their winner
+    does not replace the newer fit at once; it becomes a finger shift candidate that is nearly
+    done (anchored at its own frame's fit), refined and judged on the next frame."""
     from hand_sog_tracker.synth.mesh import mesh_sequence
 
     intr = default_intrinsics()
     frames = list(mesh_sequence("fingercount", 38, intr, seed=2))
-    fits: dict[str, list[int]] = {"free": [], "stopped": [], "one": []}
-    for mode in fits:
-        tracker = Tracker()
-        tracker.defer_restarts = True
-        calls = [0]
-        fit = tracker._maximise
-        tracker._maximise = lambda *a, _fit=fit, _n=calls, **k: _n.__setitem__(0, _n[0] + 1) or _fit(*a, **k)
-        asked = [0]
-
-        def stop(asked: list[int] = asked, mode: str = mode) -> bool:
-            asked[0] += 1
-            return mode == "stopped" or (mode == "one" and asked[0] > 1)
-
-        for f in frames:
-            tracker.process(f.depth_mm, intr)
-            calls[0] = asked[0] = 0
-            tracker.finish_frame(None if mode == "free" else stop)
-            fits[mode].append(calls[0])
-            if mode != "free":
-                assert tracker._restart_wait == 0 or calls[0] > 0
-    assert sum(fits["free"]) > 0 and sum(fits["stopped"]) == 0
-    # A cut frame does not stop the restarts of a later caller without ``stop`` (initialisation).
-    tracker._cut = True  # (left by a cut frame)
-    assert not tracker._stopped()
-    # Stopped after the first candidate: one fit (plus its pull, for a detection restart) at most.
-    assert all(n <= 2 for n in fits["one"]) and sum(fits["one"]) > 0
+    tracker = Tracker()
+    tracker.defer_restarts = True
+    for f in frames[:35]:
+        tracker.process(f.depth_mm, intr)
+        tracker.finish_frame()
+    tracker.process(frames[35].depth_mm, intr)  # the frame whose restarts win (see above)
+    fit35 = tracker.last_pose
+    assert not tracker.finish_frame(lambda: True) and tracker._running is not None  # paused at once
+    tracker.process(frames[36].depth_mm, intr)
+    fit36 = tracker.last_pose
+    assert tracker._running is not None  # frame 36 started no restarts of its own
+    assert not tracker.finish_frame()  # frame 35's restarts end: their winner is handed over
+    assert np.array_equal(tracker.last_pose, fit36) and tracker._running is None
+    pending = tracker._shift_pending
+    assert pending is not None and pending.iterations == RESTART_ITERATIONS - SHIFT_CHUNK
+    assert np.array_equal(pending.anchor, fit35) and not np.array_equal(pending.x, fit35)
+    tracker.process(frames[37].depth_mm, intr)
+    tracker.finish_frame()
+    assert tracker._shift_pending is None  # refined and judged on frame 37
 
 
 def test_the_joint_pull_sends_the_other_fingertips_to_their_own_detections() -> None:

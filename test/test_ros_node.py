@@ -337,6 +337,35 @@ def test_no_backlog_under_a_burst(rig: Rig) -> None:
     assert got == sorted(got) and got[-1] == stamps[-1]
 
 
+def test_an_image_that_arrives_during_the_restarts_is_tracked_in_the_same_callback(rig: Rig) -> None:
+    """Issue 14: the restarts after a frame's answer pause for a newer image, and the node tracks
+    that image at once, in the same executor callback (without the executor's round trip)."""
+    rig.send_info()
+    frames = [hand_depth(th, seed=i) for i, th in enumerate(hand_poses(4))]
+    stamps = [T0_NS + i * 10**7 for i in range(4)]
+    for i in range(2):
+        rig.send(image_msg(frames[i], stamps[i]))
+    tracker = rig.node._tracker
+    finish = tracker.finish_frame
+    waited: list[bool] = []
+
+    def finish_after_a_newer_image(stop=None):  # the next image arrives during the restarts
+        if not waited:
+            rig.image_pub.publish(image_msg(frames[3], stamps[3]))
+            end = time.monotonic() + 5.0
+            while stop is not None and not stop() and time.monotonic() < end:
+                time.sleep(0.001)
+            waited.append(True)
+        return finish(stop)
+
+    tracker.finish_frame = finish_after_a_newer_image  # type: ignore[method-assign]
+    before = rig.node.stats.processed
+    rig.image_pub.publish(image_msg(frames[2], stamps[2]))
+    assert rig.spin_until(lambda: rig.node.stats.processed > before)
+    assert waited and rig.node.stats.processed == before + 2  # both in one callback
+    rig.wait_joint(stamps[3])
+
+
 def test_calibrate_fails_cleanly_without_frames(rig: Rig) -> None:
     assert rig.calib.wait_for_service(timeout_sec=5.0)
     future = rig.calib.call_async(Trigger.Request())

@@ -11,18 +11,34 @@ halves the step and skips that parameter once.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Generator, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.hand_model import FIRST_JOINT, JOINTS, N_PARAMS
 
-__all__ = ["OptimizeResult", "StepSizes", "maximise"]
+__all__ = ["OptimizeResult", "StepSizes", "Steps", "maximise", "maximise_steps", "run"]
 
 #: Objective signature: ``fun(theta (26,), gradient=True) -> (value, gradient (26,) or None)``;
 #: with ``gradient=False`` only the value is needed (``None`` may be returned for the gradient).
 ObjectiveFn = Callable[..., tuple[float, NDArray[np.float64] | None]]
+
+_T = TypeVar("_T")
+#: A computation that can be paused: a generator that yields (nothing) between two steps of
+#: its work, e.g. after each iteration of :func:`maximise_steps`, and returns its result.
+#: :func:`run` runs one to its end; a caller with a deadline advances it with ``next`` and
+#: may leave it for later (the node's restarts between two frames, issue 14).
+Steps = Generator[None, None, _T]
+
+
+def run(steps: Steps[_T]) -> _T:
+    """Run ``steps`` to its end (no pauses) and return its result."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value  # type: ignore[no-any-return]
 
 
 @dataclass(frozen=True)
@@ -109,7 +125,30 @@ def maximise(
     extra_iterations: int = 0,
     extra_gain: float = 0.0,
 ) -> OptimizeResult:
-    """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps.
+    """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps (:func:`maximise_steps`
+    run to its end; the same arguments)."""
+    return run(
+        maximise_steps(
+            fun, x0, iterations, steps, active, initial_scale, bounds, initial_steps,
+            extra_iterations, extra_gain,
+        )
+    )
+
+
+def maximise_steps(
+    fun: ObjectiveFn,
+    x0: NDArray[np.float64],
+    iterations: int = 10,
+    steps: StepSizes = StepSizes(),
+    active: NDArray[np.bool_] | None = None,
+    initial_scale: float = 1.0,
+    bounds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    initial_steps: NDArray[np.float64] | None = None,
+    extra_iterations: int = 0,
+    extra_gain: float = 0.0,
+) -> Steps[OptimizeResult]:
+    """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps; pauses (yields) after
+    every iteration (see :data:`Steps`), returns the :class:`OptimizeResult`.
 
     Parameters
     ----------
@@ -200,6 +239,7 @@ def maximise(
         if _all(step <= lo_settled):
             status = 1
             break
+        yield
     start = history[0]
     return OptimizeResult(
         x=best_x,

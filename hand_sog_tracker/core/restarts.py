@@ -2,7 +2,7 @@
 
 :class:`RestartStrategies` is a mixin of :class:`hand_sog_tracker.core.tracker.Tracker`
 (it uses the tracker's ``_model``, ``_config``, ``_frame_count``, ``_restart_wait`` and
-``_maximise``); :meth:`~RestartStrategies._restarts` runs them for a tracked frame:
+``_fit``); :meth:`~RestartStrategies._restarts` runs them for a tracked frame:
 
 - :meth:`~RestartStrategies._finger_restarts`: a finger hanging in empty space is restarted
   extended, curled and like the other fingers;
@@ -28,7 +28,7 @@ from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.energy import SALIENT_SCALE_MM, Objective, TipTargets
 from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, FINGER_DIP, FINGER_PIP, JOINTS, HandModel, chain_slice
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
-from hand_sog_tracker.core.optimizer import OptimizeResult
+from hand_sog_tracker.core.optimizer import OptimizeResult, Steps
 from hand_sog_tracker.core.salient import Detections, assign_detections
 from hand_sog_tracker.core.types import TrackerConfig
 
@@ -132,45 +132,36 @@ class RestartStrategies:
     _frame_count: int
     _restart_wait: int
     _shift_pending: ShiftCandidate | None
-    _maximise: Callable[..., OptimizeResult]
-    #: Asked before each restart candidate: True skips the rest of this frame's candidates
-    #: (:meth:`~hand_sog_tracker.core.tracker.Tracker.finish_frame`'s ``stop``); None: never.
-    _stop: Callable[[], bool] | None = None
-    _cut = False  # (whether the last _restarts skipped candidates)
+    #: The tracker's fit that pauses after every iteration (``Tracker._fit``).
+    _fit: Callable[..., Steps[OptimizeResult]]
 
-    def _stopped(self) -> bool:
-        """Whether the caller's ``stop`` asks to skip the remaining candidates (remembered for
-        the rest of the frame's restarts); always False without a ``stop`` (initialisation)."""
-        if self._stop is None:
-            return False
-        if not self._cut and self._stop():
-            self._cut = True
-        return self._cut
+    # The strategies are :data:`~hand_sog_tracker.core.optimizer.Steps`: they pause after every
+    # iteration of their fits, so that a caller with a deadline can leave the rest for later
+    # (``Tracker.finish_frame``); ``optimizer.run`` runs one at once.
 
     def _restarts(
         self, obj: Objective, res: OptimizeResult, data: ImageSoG, det: Detections
-    ) -> OptimizeResult:
+    ) -> Steps[OptimizeResult]:
         """A tracked frame's restarts: finger, then shift, then detection restarts.
 
         When the restarts set off by an unexplained detection all lost, the shift and detection
         restarts wait ``RESTART_COOLDOWN`` frames (such a detection is often a knuckle or a
         forearm edge); the finger restarts run every time.
         """
-        self._cut = False
-        res = self._finger_restarts(obj, res, data)
+        res = yield from self._finger_restarts(obj, res, data)
         if self._restart_wait > 0:
             self._restart_wait -= 1
             self._frame_count += 1  # (the shift restarts' schedule goes on)
             return res
         lonely = self._lonely(res.x, det)
         before = res
-        res = self._shift_restarts(obj, res, det, lonely=lonely)
-        res = self._detection_restarts(obj, res, det, lonely=lonely if res is before else None)
-        if lonely.size and res is before and not self._cut:  # (all tried, all lost)
+        res = yield from self._shift_restarts(obj, res, det, lonely=lonely)
+        res = yield from self._detection_restarts(obj, res, det, lonely=lonely if res is before else None)
+        if lonely.size and res is before:  # (all tried, all lost)
             self._restart_wait = RESTART_COOLDOWN
         return res
 
-    def _scheduled_restarts(self, obj: Objective, res: OptimizeResult, det: Detections) -> OptimizeResult:
+    def _scheduled_restarts(self, obj: Objective, res: OptimizeResult, det: Detections) -> Steps[OptimizeResult]:
         """A tracked frame's restarts between two frames that run them all (a fast camera, see
         :attr:`~hand_sog_tracker.core.tracker.Tracker.restart_interval_s`): only the scheduled
         finger shift (:meth:`_scheduled_shift`: ``SHIFT_CHUNK`` iterations on the frames that
@@ -181,11 +172,10 @@ class RestartStrategies:
         counting, the node left fingers on their neighbours' places for 1-2 s (18 mm mean
         error, 68% of frames within 20 mm, against 8.8 mm and 100% in core mode).
         """
-        self._cut = False
         self._frame_count += 1
-        return self._scheduled_shift(obj, res, det)
+        return (yield from self._scheduled_shift(obj, res, det))
 
-    def _finger_restarts(self, obj: Objective, res: OptimizeResult, data: ImageSoG) -> OptimizeResult:
+    def _finger_restarts(self, obj: Objective, res: OptimizeResult, data: ImageSoG) -> Steps[OptimizeResult]:
         """Restart a dangling finger from other configurations (seed 004).
 
         When a fingertip is farther than ``RESTART_TIP_MM`` from every data
@@ -209,11 +199,9 @@ class RestartStrategies:
             candidates.append(np.mean([res.x[chain_slice(k)] for k in others], axis=0))
         best = res
         for joints in candidates:
-            if self._stopped():
-                break
             x0 = res.x.copy()
             x0[sl] = joints
-            cand = self._maximise(obj, x0, iterations=RESTART_ITERATIONS)
+            cand = yield from self._fit(obj, x0, iterations=RESTART_ITERATIONS)
             if cand.fun > best.fun:
                 best = cand
         return best
@@ -225,7 +213,7 @@ class RestartStrategies:
         det: Detections,
         force: bool = False,
         lonely: NDArray[np.int64] | None = None,
-    ) -> OptimizeResult:
+    ) -> Steps[OptimizeResult]:
         """Move every finger's articulation to its neighbour (seed 004's finger-shifted restarts).
 
         A model whose fingers each lie on their neighbour's data (one curled into the palm,
@@ -242,20 +230,18 @@ class RestartStrategies:
         if not force:
             self._frame_count += 1
         if not (force or (self._lonely(res.x, det) if lonely is None else lonely).size):
-            return self._scheduled_shift(obj, res, det)
+            return (yield from self._scheduled_shift(obj, res, det))
         plain = self._plain(obj)
         hidden = not force  # (initialisation: see _assignment_cost)
         best, best_val = res, self._score(plain, res.x, det, hidden_tips=hidden)
         for side in (1, -1):
-            if self._stopped():
-                break
-            cand = self._maximise(plain, _shifted(res.x, side), iterations=RESTART_ITERATIONS)
+            cand = yield from self._fit(plain, _shifted(res.x, side), iterations=RESTART_ITERATIONS)
             val = self._score(plain, cand.x, det, value=cand.fun, hidden_tips=hidden)
             if val > best_val:
                 best, best_val = cand, val
         return best
 
-    def _scheduled_shift(self, obj: Objective, res: OptimizeResult, det: Detections) -> OptimizeResult:
+    def _scheduled_shift(self, obj: Objective, res: OptimizeResult, det: Detections) -> Steps[OptimizeResult]:
         """Refine the pending shift candidate ``SHIFT_CHUNK`` iterations on this frame.
 
         A candidate starts every ``SHIFT_EVERY`` frames, on the side :meth:`_shift_side` picks,
@@ -267,17 +253,15 @@ class RestartStrategies:
         pending = self._shift_pending
         if pending is None and (self._frame_count % SHIFT_EVERY or self._tips_seen(res.x, det)):
             return res
-        if self._stopped():  # (a pending candidate goes on on a later frame)
-            return res
         plain = self._plain(obj)
         if pending is None:
             side = self._shift_side(res.x, det)
-            cand = self._maximise(plain, _shifted(res.x, side), iterations=SHIFT_CHUNK)
+            cand = yield from self._fit(plain, _shifted(res.x, side), iterations=SHIFT_CHUNK)
             done = SHIFT_CHUNK
         else:
             x0 = pending.x.copy()
             x0[:6] += res.x[:6] - pending.anchor[:6]
-            cand = self._maximise(plain, x0, iterations=SHIFT_CHUNK, initial_steps=pending.steps)
+            cand = yield from self._fit(plain, x0, iterations=SHIFT_CHUNK, initial_steps=pending.steps)
             done = pending.iterations + SHIFT_CHUNK
         if done < RESTART_ITERATIONS:
             self._shift_pending = ShiftCandidate(cand.x, cand.steps, done, res.x)
@@ -308,7 +292,7 @@ class RestartStrategies:
         res: OptimizeResult,
         det: Detections,
         lonely: NDArray[np.int64] | None = None,
-    ) -> OptimizeResult:
+    ) -> Steps[OptimizeResult]:
         """Put a finger onto a detection that no model finger explains (seed 001 + 004).
 
         A confident detection farther than ``UNEXPLAINED_DETECTION_MM`` from every model
@@ -337,8 +321,6 @@ class RestartStrategies:
         best, best_val = res, self._score(plain, res.x, det)
         strong = replace_config(cfg, w_sal=max(cfg.w_sal, 1.0) * 20.0)  # (the pulls' salient weight)
         for c in np.argsort(dist)[:2]:
-            if self._stopped():
-                break
             w = np.zeros(5)
             w[c] = 1.0
             pts = np.zeros((5, 3))
@@ -354,8 +336,7 @@ class RestartStrategies:
                 previous=obj.previous, targets=self._joint_targets(res.x, det, int(c), s),
                 silhouette=obj.silhouette,
             )
-            # Start poses: the two pulls (objective, active parameters), run only while the
-            # caller has not said stop, and a pose.
+            # Start poses: the two pulls (objective, active parameters) and a pose.
             starts: list[tuple[Objective, NDArray[np.bool_] | None] | NDArray[np.float64]] = [
                 (pull, finger),
                 (joint, None),
@@ -366,11 +347,10 @@ class RestartStrategies:
                 curled[chain_slice(c)] = FINGER_CURLED
                 starts.append(curled)
             for start in starts:
-                if self._stopped():
-                    break
                 if isinstance(start, tuple):
-                    start = self._maximise(start[0], res.x, iterations=RESTART_ITERATIONS, active=start[1]).x
-                cand = self._maximise(plain, start, iterations=RESTART_ITERATIONS)
+                    pulled = yield from self._fit(start[0], res.x, iterations=RESTART_ITERATIONS, active=start[1])
+                    start = pulled.x
+                cand = yield from self._fit(plain, start, iterations=RESTART_ITERATIONS)
                 val = self._score(plain, cand.x, det, value=cand.fun)
                 if val > best_val:
                     best, best_val = cand, val

@@ -46,8 +46,14 @@ from hand_sog_tracker.core.kinematics import (
     posed_centres,
     skeleton_points,
 )
-from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
-from hand_sog_tracker.core.restarts import ASSIGN_LAMBDA_MM, RestartStrategies, ShiftCandidate
+from hand_sog_tracker.core.optimizer import OptimizeResult, Steps, StepSizes, maximise, maximise_steps, run
+from hand_sog_tracker.core.restarts import (
+    ASSIGN_LAMBDA_MM,
+    RESTART_ITERATIONS,
+    SHIFT_CHUNK,
+    RestartStrategies,
+    ShiftCandidate,
+)
 from hand_sog_tracker.core.salient import Detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.types import (
@@ -198,6 +204,9 @@ class Tracker(RestartStrategies):
     #: (objective, fit, data, detections, previous pose, all restarts or only the scheduled
     #: shift) of the frame whose restarts are due.
     _deferred: tuple[Objective, OptimizeResult, ImageSoG, Detections, NDArray[np.float64], bool] | None = None
+    #: Restarts that :meth:`finish_frame` paused: (their steps, the fit of their frame, the
+    #: pose before it).
+    _running: tuple[Steps[OptimizeResult], OptimizeResult, NDArray[np.float64]] | None = None
     #: (model, low, high) of :meth:`_maximise`: the joint limits as bounds (26,) each, read-only.
     _bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
 
@@ -226,28 +235,49 @@ class Tracker(RestartStrategies):
         self._model = model.mirrored(self._config.right_hand)
         self._shift_pending = None
         self._deferred = None
+        self._running = None
 
     def finish_frame(self, stop: Callable[[], bool] | None = None) -> bool:
         """Run the restarts that :attr:`defer_restarts` left for after the last frame's result.
 
-        Returns whether a restart won: the track then continues from its pose.  Nothing to do
-        (False) when none are due.  ``stop``: asked before each restart candidate (a fit of
-        2-8 ms); once it returns True the frame's remaining candidates are skipped (e.g. the
-        node when a newer image waits: the detection restarts of one frame can take 100 ms).
+        Returns whether a restart won on the frame they belong to: the track then continues
+        from its pose.  Nothing to do (False) when none are due.  ``stop``: asked after every
+        optimiser iteration of the restarts (about 0.3 ms); once it returns True they pause,
+        and the next call goes on with them (e.g. the node when a newer image waits: the
+        restarts of one frame can take 10-60 ms, issue 14).  While they are paused the frames
+        in between run no restarts of their own (their scheduled finger shift waits; the
+        schedule counts them); when they end after the track has moved on, a winner is
+        handed to the next frame as a finger shift candidate that is nearly done
+        (:class:`~hand_sog_tracker.core.restarts.ShiftCandidate`): its wrist moved as the
+        track's, refined ``SHIFT_CHUNK`` iterations on that frame and judged there.
         """
         deferred, self._deferred = self._deferred, None
-        if deferred is None:
+        if deferred is not None:
+            obj, res, data, det, p1, full = deferred
+            if self._running is None:
+                steps = self._restarts(obj, res, data, det) if full else self._scheduled_restarts(obj, res, det)
+                self._running = (steps, res, p1)
+            else:
+                self._frame_count += 1  # (the schedule of the shift candidates goes on)
+        if self._running is None:
             return False
-        obj, res, data, det, p1, full = deferred
-        self._stop = stop
-        try:
-            best = self._restarts(obj, res, data, det) if full else self._scheduled_restarts(obj, res, det)
-        finally:
-            self._stop = None
-        if best is res or self._prev is None or self._prev[0] is not res.x:
+        steps, res, p1 = self._running
+        while True:
+            if stop is not None and stop():
+                return False
+            try:
+                next(steps)
+            except StopIteration as done:
+                best: OptimizeResult = done.value
+                break
+        self._running = None
+        if best is res or self._prev is None:
             return False
-        self._prev = (best.x, p1)
-        return True
+        if self._prev[0] is res.x:
+            self._prev = (best.x, p1)
+            return True
+        self._shift_pending = ShiftCandidate(best.x, best.steps, RESTART_ITERATIONS - SHIFT_CHUNK, res.x)
+        return False
 
     def set_config(self, config: TrackerConfig) -> None:
         """Change the configuration; a handedness change also resets the track."""
@@ -263,6 +293,7 @@ class Tracker(RestartStrategies):
         self._status = TrackerStatus.NO_HAND
         self._pending = None
         self._deferred = None
+        self._running = None
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
         """Track the hand in one depth frame.
@@ -279,7 +310,8 @@ class Tracker(RestartStrategies):
         DepthImageError, IntrinsicsError
             When the frame cannot be used; the track is left untouched.
         """
-        self.finish_frame()  # (the last frame's deferred restarts, unless the caller ran them)
+        if self._deferred is not None:  # (the last frame's restarts, unless the caller ran them)
+            self.finish_frame()
         t0 = time.perf_counter()
         cfg = self._config
         pre = preprocess(depth_mm, intrinsics, cfg)  # raises before any change of this frame's state
@@ -360,11 +392,13 @@ class Tracker(RestartStrategies):
         )
         self._steps = res.steps if WARM_GROW > 0 else None
         now = time.perf_counter()
-        restarts = self.restart_interval_s is None or now - self._last_restarts_s >= self.restart_interval_s
+        restarts = self._running is None and (
+            self.restart_interval_s is None or now - self._last_restarts_s >= self.restart_interval_s
+        )
         if restarts:
             self._last_restarts_s = now
         if not self.defer_restarts:
-            res = self._restarts(obj, res, data, det) if restarts else self._scheduled_restarts(obj, res, det)
+            res = run(self._restarts(obj, res, data, det) if restarts else self._scheduled_restarts(obj, res, det))
         centres = gaussian_centres(self._model, res.x)
         conf = coverage(self._model, res.x, data, centres, obj.support(res.x))
         if conf < cfg.lost_confidence:
@@ -384,15 +418,24 @@ class Tracker(RestartStrategies):
 
     def _maximise(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> OptimizeResult:
         """:func:`maximise` with the joint angles projected into the model's limits."""
+        return maximise(obj, x0, bounds=self._limits(), **kwargs)  # type: ignore[arg-type]
+
+    def _fit(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> Steps[OptimizeResult]:
+        """:meth:`_maximise` that pauses after every iteration (:func:`maximise_steps`)."""
+        return maximise_steps(obj, x0, bounds=self._limits(), **kwargs)  # type: ignore[arg-type]
+
+    def _limits(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The model's joint limits as bounds (low, high), shape (26,) each, read-only
+        (computed once per model: several fits per frame)."""
         m = self._model
         cached = self._bounds
-        if cached is None or cached[0] is not m:  # (once per model: several fits per frame)
+        if cached is None or cached[0] is not m:
             lo = np.concatenate([np.full(6, -np.inf), m.limits_low])
             hi = np.concatenate([np.full(6, np.inf), m.limits_high])
             lo.setflags(write=False)
             hi.setflags(write=False)
             cached = self._bounds = (m, lo, hi)
-        return maximise(obj, x0, bounds=cached[1:], **kwargs)  # type: ignore[arg-type]
+        return cached[1:]
 
     @property
     def initialising(self) -> bool:
@@ -545,8 +588,8 @@ class Tracker(RestartStrategies):
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, timings)
         _, res, data, obj = best
-        res = self._finger_restarts(obj, res, data)
-        res = self._shift_restarts(obj, res, det, force=True)
+        res = run(self._finger_restarts(obj, res, data))
+        res = run(self._shift_restarts(obj, res, det, force=True))
         conf = coverage(self._model, res.x, data)
         if conf < cfg.lost_confidence:
             self._status = TrackerStatus.NO_HAND
