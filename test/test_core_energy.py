@@ -9,6 +9,7 @@ import pytest
 from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.energy import (
     COUPLING_DIP_PIP,
+    CURL_MAX_RAD,
     ORDER_MIN_GAP_RAD,
     SIM_GAIN,
     SIM_SATURATION,
@@ -91,19 +92,20 @@ def test_gradient_matches_central_differences(seed: int) -> None:
     theta[6 + 4 * 1 + 1] = 0.1
     theta[6 + 4 * 2 + 1] = -0.3
     # (PIP, DIP) of index .. little: two DIPs flexed beyond 2/3 of their PIP (coupling term
-    # active), two within it; none near the term's kink.
-    for c, (pip, dip) in enumerate([(0.3, 0.8), (0.9, 0.2), (0.5, 0.75), (1.2, 0.3)], start=1):
+    # active), two within it; the little finger's PIP + DIP beyond CURL_MAX_RAD (curl term
+    # active); none near a term's kink.
+    for c, (pip, dip) in enumerate([(0.3, 0.8), (0.9, 0.2), (0.5, 0.75), (1.9, 1.1)], start=1):
         theta[6 + 4 * c + 2], theta[6 + 4 * c + 3] = pip + rng.normal(0, 0.02), dip + rng.normal(0, 0.02)
     prev = (truth + rng.normal(0, 0.05, N_PARAMS), truth)
     tips = fingertips(model, truth)
     targets = TipTargets(points=tips + rng.normal(0, 15, (5, 3)), weights=np.array([0.9, 0.0, 0.5, 1.0, 0.3]))
-    cfg = TrackerConfig(w_sal=1.0, w_ord=1.0, w_sil=1.0, w_cpl=1.0)
+    cfg = TrackerConfig(w_sal=1.0, w_ord=1.0, w_sil=1.0, w_cpl=1.0, w_curl=1.0)
     sil = silhouette_of(model, truth, skip_chain=4)
     obj = Objective(model, data, cfg, previous=prev, targets=targets, silhouette=sil)
     terms, grad = obj.evaluate(theta)
     # Every term is active in this configuration, so each one's gradient is checked.
     assert terms.sim > 0 and terms.col > 0 and terms.dan > 0 and terms.lim > 0 and terms.smo > 0
-    assert terms.ord > 0 and terms.sal > 0 and terms.sil > 0 and terms.cpl > 0
+    assert terms.ord > 0 and terms.sal > 0 and terms.sil > 0 and terms.cpl > 0 and terms.curl > 0
     num = numeric_gradient(obj, theta)
     np.testing.assert_allclose(grad, num, rtol=1e-4, atol=1e-6 * np.abs(num).max())
 
@@ -114,15 +116,18 @@ def test_each_term_weight_enters_the_gradient() -> None:
     theta = rest_pose((0.0, 60.0, 400.0))
     data = data_near(model, theta, rng)
     theta = theta + rng.normal(0, 0.3, N_PARAMS)
-    base = TrackerConfig(w_col=0.0, w_dan=0.0, w_lim=0.0, w_smo=0.0, w_ord=0.0, w_sal=0.0, w_sil=0.0, w_cpl=0.0)
+    base = TrackerConfig(
+        w_col=0.0, w_dan=0.0, w_lim=0.0, w_smo=0.0, w_ord=0.0, w_sal=0.0, w_sil=0.0, w_cpl=0.0, w_curl=0.0
+    )
     _, g0 = Objective(model, data, base).evaluate(theta)
     theta[6 + 4 * 2 + 1] = 0.3  # middle swung over the ring finger: order term active
     theta[6 + 4 * 3 + 2], theta[6 + 4 * 3 + 3] = 0.3, 0.9  # ring DIP beyond 2/3 PIP: coupling active
+    theta[6 + 4 * 4 + 2], theta[6 + 4 * 4 + 3] = 1.9, 1.2  # little PIP + DIP beyond 165 deg: curl active
     targets = TipTargets(points=fingertips(model, theta) + 20.0, weights=np.ones(5))
     _, g0 = Objective(model, data, base, targets=targets).evaluate(theta)
     sil = silhouette_of(model, rest_pose((0.0, 60.0, 400.0)), skip_chain=2)
     _, g0 = Objective(model, data, base, targets=targets, silhouette=sil).evaluate(theta)
-    for name in ("w_col", "w_dan", "w_lim", "w_ord", "w_sal", "w_sil", "w_cpl"):
+    for name in ("w_col", "w_dan", "w_lim", "w_ord", "w_sal", "w_sil", "w_cpl", "w_curl"):
         cfg = TrackerConfig(**{**base.__dict__, name: 1.0})
         terms, g = Objective(model, data, cfg, targets=targets, silhouette=sil).evaluate(theta)
         assert not np.allclose(g, g0), name
@@ -159,6 +164,23 @@ def test_coupling_term_costs_only_a_dip_flexed_beyond_two_thirds_of_its_pip() ->
     assert values[:3] == [0.0, 0.0, 0.0]  # DIP = 2/3 PIP, less, or both straight: no cost
     np.testing.assert_allclose(values[3:], [(1.2 - 1.0) ** 2, (1.4 - 1.0) ** 2, 0.3**2], rtol=1e-9)
     assert COUPLING_DIP_PIP == pytest.approx(2.0 / 3.0)
+
+
+def test_curl_term_costs_only_pip_and_dip_flexed_beyond_165_degrees_together() -> None:
+    model = default_hand_model()
+    theta = rest_pose((0.0, 60.0, 400.0))
+    obj = Objective(model, data_near(model, theta, np.random.default_rng(5)), TrackerConfig(w_curl=1.0))
+    pip, dip = 6 + 4 * 2 + 2, 6 + 4 * 2 + 3  # middle finger
+    limit = np.deg2rad(165.0)
+    values = []
+    for pip_v, dip_v in ((1.65, 0.95), (0.1, 1.5), (0.0, 0.0), (1.9, 1.57), (1.92, 1.1)):
+        posed = theta.copy()
+        posed[pip], posed[dip] = pip_v, dip_v
+        values.append(obj.evaluate(posed, gradient=False)[0].curl)
+    # A fist's 95 + 55 deg, a DIP flexed with a straight PIP, a straight finger: no cost.
+    assert values[:3] == [0.0, 0.0, 0.0]
+    np.testing.assert_allclose(values[3:], [(1.9 + 1.57 - limit) ** 2, (1.92 + 1.1 - limit) ** 2], rtol=1e-9)
+    assert CURL_MAX_RAD == pytest.approx(limit)
 
 
 def test_salient_term_pulls_fingertips_to_their_targets() -> None:

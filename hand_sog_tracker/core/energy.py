@@ -4,11 +4,12 @@ One job: the objective and its gradient; kept together because every term shares
 constants and the pose's kinematics, and each gradient reads best next to its energy.
 
 ``E = E_sim - w_c E_col - w_d E_dan - w_l E_lim - w_s E_smo - w_o E_ord - w_cpl E_cpl
-- w_sal E_sal - w_sil E_sil`` is maximised over the 26 pose parameters.  ``E_sil`` (every
-model Gaussian projects onto the hand's pixels) lives in
-:mod:`hand_sog_tracker.core.silhouette`.  The last four terms are not in paper 000:
+- w_curl E_curl - w_sal E_sal - w_sil E_sil`` is maximised over the 26 pose parameters.
+``E_sil`` (every model Gaussian projects onto the hand's pixels) lives in
+:mod:`hand_sog_tracker.core.silhouette`.  The last five terms are not in paper 000:
 ``E_ord`` keeps the four fingers in their order across the palm (no finger may swing over
-onto its neighbour's data), ``E_cpl`` couples each finger's DIP to its PIP (seed 004) and
+onto its neighbour's data), ``E_cpl`` couples each finger's DIP to its PIP (seed 004),
+``E_curl`` keeps a finger's bend from piling up at its last two joints, and
 ``E_sal`` pulls fingertips toward the detections assigned to them (seed 001, eq. 12; see
 :mod:`hand_sog_tracker.core.salient`).  Overlaps of unnormalised isotropic Gaussians (eq. 4)
 have closed forms: in d dimensions
@@ -57,6 +58,14 @@ Choices the paper leaves open (documented here, used everywhere):
   prefer a half-flexed MCP with PIP and DIP at their limits (the bend moved to the end of the
   finger, the fingertip 15-25 mm from a fist's) to the true curl; a DIP flexed less than 2/3
   of its PIP costs nothing (the claw of a hand pressing on a surface, a DIP held straight);
+* ``E_curl = sum_c max(PIP_c + DIP_c - CURL_MAX_RAD, 0)^2`` over index .. little (rad^2 like
+  ``E_lim``; not in the seeds, issue 11): the same failure as ``E_cpl``'s, seen as its cause.
+  A finger curled into the palm of a hand facing the camera hides its distal segments, and the
+  overlap terms then fold it at PIP and DIP to their limits (110 + 90 deg) with the MCP at
+  25-35 deg instead of 80: the fingertip 20-24 mm from a fist's.  No real finger bends its
+  last two joints that far (a fist: about 100 + 60 deg), so the term only costs past
+  165 deg; unlike ``E_cpl`` it leaves a DIP flexed with a straight PIP alone (labelled real
+  frame 4 is fitted that way and kept with it; with ``E_cpl`` it lost two fingers);
 * ``E_sal = sum_t w_t (sqrt(d_t^2 + c^2) - c) / SALIENT_SCALE_MM`` with ``d_t`` the distance
   (mm) of fingertip ``t`` from its assigned detection, ``w_t`` the detection's confidence
   (0 without one) and ``c = SALIENT_SOFT_MM``: a pseudo-Huber cost, flat within a few mm
@@ -97,6 +106,7 @@ __all__ = [
     "SMOOTH_TRANSLATION_MM",
     "ORDER_MIN_GAP_RAD",
     "COUPLING_DIP_PIP",
+    "CURL_MAX_RAD",
     "SALIENT_SOFT_MM",
     "SALIENT_SCALE_MM",
     "SIM_SATURATION",
@@ -115,6 +125,11 @@ SMOOTH_TRANSLATION_MM = 50.0
 #: Smallest allowed difference of neighbouring fingers' palm-plane directions (rad, chosen here); at rest
 #: they fan out by 0.07-0.09 rad; a finger on its neighbour's data needs about -0.25.
 ORDER_MIN_GAP_RAD = -0.05
+#: PIP + DIP flexion (rad) beyond which ``E_curl`` costs: 165 deg (chosen here, issue 11: of
+#: 150, 160, 165, 170 and 180 deg with ``w_curl`` 0.5, and 165 deg with 1.0, 165 / 0.5 scored
+#: best on the dev and the validation renders; the synthetic fist is 95 + 55 = 150 deg, the
+#: claw 95 + 75 = 170 deg, and the joint limits allow 110 + 90 = 200 deg).
+CURL_MAX_RAD = float(np.deg2rad(165.0))
 #: DIP flexion per PIP flexion beyond which ``E_cpl`` costs (unitless; seed 004: DIP = 2/3 PIP).
 COUPLING_DIP_PIP = 2.0 / 3.0
 #: Width of the flat bottom of the salient-point cost (mm; chosen here, seed 001 ignores pairs
@@ -192,6 +207,7 @@ class EnergyTerms:
     sal: float = 0.0
     sil: float = 0.0
     cpl: float = 0.0
+    curl: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -512,7 +528,7 @@ class Objective:
         v, grad = self._evaluate(theta, gradient, True)
         terms = EnergyTerms(
             total=v[0], sim=v[1], col=v[2], dan=v[3], lim=v[4], smo=v[5], ord=v[6], sal=v[7], sil=v[8],
-            cpl=v[9],
+            cpl=v[9], curl=v[10],
         )
         return terms, grad
 
@@ -540,7 +556,7 @@ class Objective:
         terms: bool = True,
         later: list[Backward] | None = None,
     ) -> tuple[tuple[float, ...], NDArray[np.float64] | Callable[[], NDArray[np.float64]] | None]:
-        """``(total, sim, col, dan, lim, smo, ord, sal, sil, cpl)`` and the gradient (or None).
+        """``(total, sim, col, dan, lim, smo, ord, sal, sil, cpl, curl)`` and the gradient (or None).
 
         The shared body of :meth:`__call__` (the optimiser's path: no :class:`EnergyTerms`),
         :meth:`evaluate` and :meth:`value_then_gradient`.  Without ``terms`` (only the total
@@ -577,10 +593,12 @@ class Objective:
             cpl, g_cpl = self._coupling(theta)
         else:  # (the default weight is 0: the optimiser's path skips the term)
             cpl, g_cpl = 0.0, None
-        # The order and coupling terms' weighted gradient (None: 0, the typical case).
+        curl, g_curl = self._curl(theta)
+        # The order, coupling and curl terms' weighted gradient (None: 0, the typical case).
         g_pose = None if g_ord is None else cfg.w_ord * g_ord
-        if g_cpl is not None:
-            g_pose = cfg.w_cpl * g_cpl if g_pose is None else g_pose + cfg.w_cpl * g_cpl
+        for w, g in ((cfg.w_cpl, g_cpl), (cfg.w_curl, g_curl)):
+            if g is not None:
+                g_pose = w * g if g_pose is None else g_pose + w * g
         sal = self._salient(P, g3, cfg.w_sal, later)
         sil = 0.0
         if self.silhouette is not None and cfg.w_sil > 0:
@@ -595,10 +613,11 @@ class Objective:
             - cfg.w_smo * smo
             - cfg.w_ord * ordv
             - cfg.w_cpl * cpl
+            - cfg.w_curl * curl
             - cfg.w_sal * sal
             - cfg.w_sil * sil
         )
-        values = (total, sim, col, dan, lim, smo, ordv, sal, sil, cpl)
+        values = (total, sim, col, dan, lim, smo, ordv, sal, sil, cpl, curl)
         if later is not None:
             stamp = self._evaluations
             theta = theta.copy()
@@ -626,7 +645,7 @@ class Objective:
         g_pose: NDArray[np.float64] | None,
     ) -> NDArray[np.float64]:
         """``dE/dtheta`` (26,) from ``dE/dP`` (m, 3) and the pose terms' gradients (``g_pose``:
-        the order and coupling terms' weighted sum, None for 0)."""
+        the order, coupling and curl terms' weighted sum, None for 0)."""
         cfg = self.config
         grad = pullback(g3)  # = einsum("mk,mkj->j", g3, J) up to rounding
         # (A zero g_lim or w_smo = 0: subtracting 0 would change no bit.)
@@ -944,6 +963,19 @@ class Objective:
         g = np.zeros(N_PARAMS)
         g[FINGER_DIP] = 2.0 * excess
         g[FINGER_PIP] = (-2.0 * COUPLING_DIP_PIP) * excess
+        return float(excess @ excess), g
+
+    @staticmethod
+    def _curl(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
+        """``E_curl`` and its gradient, shape (26,) (None when ``E_curl`` is 0: a zero
+        gradient): each finger's PIP + DIP flexion beyond :data:`CURL_MAX_RAD` costs."""
+        excess = theta[FINGER_PIP] + theta[FINGER_DIP]  # (4,) rad
+        excess -= CURL_MAX_RAD
+        if not (excess > 0.0).any():
+            return 0.0, None
+        np.maximum(excess, 0.0, out=excess)
+        g = np.zeros(N_PARAMS)
+        g[FINGER_PIP] = g[FINGER_DIP] = 2.0 * excess
         return float(excess @ excess), g
 
     def _order(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:

@@ -101,6 +101,7 @@ class TrackerConfig:
     w_sal: float = 0.15  #: salient points (fingertip detections; seed 001; measured here)
     w_sil: float = 1.0  #: silhouette: model Gaussians outside the hand's pixels (silhouette.py)
     w_cpl: float = 0.0  #: DIP flexed beyond 2/3 of its PIP (seed 004; opt-in, see energy.py)
+    w_curl: float = 0.5  #: PIP + DIP flexed beyond 165 deg (issue 11; measured here, energy.py)
     right_hand: bool = True
     roi_radius_mm: float = 160.0  #: data farther than this from the last hand centre is ignored
     lost_confidence: float = 0.2  #: confidence below this for ``lost_frames`` frames means LOST
@@ -120,7 +121,7 @@ class TrackerConfig:
             raise InputError("max_width_px must be at least 80")
         if not (1 <= self.iterations <= 200):
             raise InputError("iterations must be in [1, 200]")
-        for w in ("w_col", "w_dan", "w_lim", "w_smo", "w_ord", "w_sal", "w_sil", "w_cpl"):
+        for w in ("w_col", "w_dan", "w_lim", "w_smo", "w_ord", "w_sal", "w_sil", "w_cpl", "w_curl"):
             if getattr(self, w) < 0:
                 raise InputError(f"{w} must be >= 0")
         if self.roi_radius_mm <= 0:

@@ -124,6 +124,7 @@ _TRACKER_META: dict[str, tuple[str, float | None, float | None]] = {
     "w_sal": ("Weight of the salient-point term (fingertip detections pull fingertips).", 0.0, 100.0),
     "w_sil": ("Weight of the silhouette term (model parts outside the hand's pixels).", 0.0, 100.0),
     "w_cpl": ("Weight of the DIP-PIP coupling term (a DIP flexed beyond 2/3 of its PIP costs).", 0.0, 100.0),
+    "w_curl": ("Weight of the finger curl term (PIP + DIP flexed beyond 165 degrees costs).", 0.0, 100.0),
     "roi_radius_mm": ("Depth data farther than this from the last hand centre is ignored (mm).", 20.0, 1000.0),
     "lost_confidence": ("Confidence below this for lost_frames frames means the track is lost.", 0.0, 1.0),
     "lost_frames": ("Consecutive low-confidence frames before the track is declared lost.", 1, 1000),
