@@ -249,6 +249,11 @@ def test_a_rate_limited_tracker_still_runs_the_scheduled_finger_shift() -> None:
     # (Once the candidate wins, the next frames start from the extrapolated jump and settle
     # 10-25 mm off on this static frame: the velocity prediction of any restart that wins.)
     assert errs[0] > 40.0 and min(errs) < 15.0, np.round(errs, 0)
+    # The detection restarts' cooldown counts these frames as well (it is in frames, not in
+    # frames that run all the restarts: one in 20 at 100 Hz).
+    tracker._restart_wait = 2
+    tracker.process(depth, intr)
+    assert tracker._restart_wait == 1 and full == []
 
 
 def _count_maximise(tracker: Tracker) -> list[int]:
