@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from hand_sog_tracker.core.hand_model import N_PARAMS
-from hand_sog_tracker.core.optimizer import StepSizes, maximise
+from hand_sog_tracker.core.optimizer import StepSizes, maximise, maximise_steps, run
 
 
 class Bowl:
@@ -19,6 +19,28 @@ class Bowl:
         d = theta - self.peak
         self.gradients += gradient
         return -float(d @ d), (-2.0 * d if gradient else None)
+
+
+def test_maximise_steps_pauses_after_every_iteration_and_ends_where_maximise_ends() -> None:
+    peak = np.linspace(-1.0, 1.0, N_PARAMS)
+    bowl = Bowl(peak)
+    steps = maximise_steps(bowl, peak + 20.0, iterations=6)
+    pauses, evaluations = 0, []
+    while True:
+        evaluations.append(bowl.gradients)
+        try:
+            next(steps)
+        except StopIteration as done:
+            result = done.value
+            break
+        pauses += 1
+    assert pauses == result.nit == 6
+    # Nothing runs before the first step; then one gradient per iteration (the start's with the
+    # first; the last possible iterate's value goes without one).
+    assert evaluations == [0, 2, 3, 4, 5, 6, 6], evaluations
+    whole = maximise(Bowl(peak), peak + 20.0, iterations=6)
+    again = run(maximise_steps(Bowl(peak), peak + 20.0, iterations=6))
+    assert np.array_equal(result.x, whole.x) and np.array_equal(again.history, whole.history)
 
 
 def test_extra_iterations_run_only_while_the_fit_still_climbs() -> None:

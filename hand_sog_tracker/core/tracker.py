@@ -321,6 +321,7 @@ class Tracker(RestartStrategies):
         else:
             self._steps = None  # a new track starts with fresh step lengths
             self._shift_pending = None
+            self._running = None  # (restarts paused on the lost track's last frame)
             self._restart_wait = 0
             result = self._initialise(pre)
         t2 = time.perf_counter()
