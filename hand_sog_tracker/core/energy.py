@@ -593,7 +593,10 @@ class Objective:
             cpl, g_cpl = self._coupling(theta)
         else:  # (the default weight is 0: the optimiser's path skips the term)
             cpl, g_cpl = 0.0, None
-        curl, g_curl = self._curl(theta)
+        if terms or cfg.w_curl != 0.0:
+            curl, g_curl = self._curl(theta)
+        else:  # (a weight of 0: the optimiser's path skips the term, as for E_cpl)
+            curl, g_curl = 0.0, None
         # The order, coupling and curl terms' weighted gradient (None: 0, the typical case).
         g_pose = None if g_ord is None else cfg.w_ord * g_ord
         for w, g in ((cfg.w_cpl, g_cpl), (cfg.w_curl, g_curl)):
