@@ -55,13 +55,18 @@ def test_half_resolution_map_is_close_to_the_exact_one_and_its_gradient_is_exact
     ref = 0.25 * (e[vi, ui] + e[vi, ui + 1] + e[vi + 1, ui] + e[vi + 1, ui + 1])
     err = half.distance[inside] - ref
     assert np.abs(err).max() < 1.6 and abs(err.mean()) < 0.5
-    # The term moves little; its gradient is the derivative of the interpolated map.
+    # The term moves little (over 10 random displacements per size: one alone varies, up to
+    # 15-23% at 10 mm, where the term itself is small); its gradient is the derivative of
+    # the interpolated map.
     rng = np.random.default_rng(0)
     P = gaussian_centres(model, frame.pose)
     for shift in (10.0, 25.0):
-        Q = P + rng.normal(0.0, shift, P.shape) * [1.0, 1.0, 0.0]
-        a, b = silhouette_term(exact, Q, None, 1.0), silhouette_term(half, Q, None, 1.0)
-        assert abs(a - b) < 0.1 * a
+        rel = []
+        for _ in range(10):
+            Q = P + rng.normal(0.0, shift, P.shape) * [1.0, 1.0, 0.0]
+            a, b = silhouette_term(exact, Q, None, 1.0), silhouette_term(half, Q, None, 1.0)
+            rel.append(abs(a - b) / a)
+        assert np.median(rel) < 0.1 and max(rel) < 0.3, np.round(rel, 3)
     g = np.zeros_like(Q)
     silhouette_term(half, Q, g, 1.0)
     num = np.zeros_like(Q)
