@@ -73,10 +73,14 @@ def _labelled(frame: int, mirror: bool) -> tuple[np.ndarray, Intrinsics, np.ndar
     return depth, intr, intr.backproject(uv, z)
 
 
-def _static_tip_errors(frame: int, mirror: bool) -> np.ndarray:
+def _static_tip_errors(frame: int, mirror: bool, shift: tuple[int, int] = (0, 0)) -> np.ndarray:
     """Fingertip errors (5,) mm against the labels after tracking the frame 10 times (a static
-    sequence); the hand must be tracked."""
+    sequence); the hand must be tracked.  ``shift``: (du, dv) px, the image and labels moved
+    by whole pixels (np.roll)."""
     depth, intr, truth = _labelled(frame, mirror)
+    if shift != (0, 0):
+        depth = np.roll(depth, shift[::-1], axis=(0, 1))
+        truth = intr.backproject(intr.project(truth) + shift, truth[:, 2])
     tracker = Tracker(TrackerConfig(right_hand=not mirror))
     for _ in range(10):
         res = tracker.process(depth, intr)
@@ -97,10 +101,23 @@ def test_labelled_fingertips_are_within_15_mm(frame: int, mirror: bool) -> None:
 def test_finger_curled_toward_the_camera_is_found(mirror: bool) -> None:
     """Frame 2: the middle finger points at the camera in front of the palm.  The unexplained
     end-on detection pulls the model's middle finger onto it (before the finger-only pull the
-    model's middle finger lay on the ring finger's data, 60 mm off).  Its tip is 14.7 mm off,
-    too close to 15 mm to count as within."""
+    model's middle finger lay on the ring finger's data, 60 mm off).  Its tip is 12.2 mm off
+    (12-17 mm on copies shifted by a pixel or 3 mm in depth; before a less confident detection
+    far from every model fingertip counted as unexplained too, four of those seven copies
+    scored 14-19 mm mean error)."""
     err = _static_tip_errors(2, mirror)
-    assert err.max() < 25.0, err.round(1)
+    assert err.max() < 15.0, err.round(1)
+
+
+@pytest.mark.parametrize("shift", [(1, 0), (-1, 0), (0, 1), (0, -1)])
+def test_a_thin_fingers_faint_tip_far_from_the_model_is_found(shift: tuple[int, int]) -> None:
+    """Frame 3 (ring finger curled) moved by a pixel: the extended little finger's tip is a small
+    detection region (confidence 0.49), and the model's little finger lay curled on the ring
+    finger's data 52 mm from it, the model's ring finger extended beside the middle finger (45
+    and 37 mm mean error for (1, 0) and (0, -1) while only detections of confidence 0.5 or more
+    counted as unexplained; restarts.FAR_UNEXPLAINED_MM)."""
+    err = _static_tip_errors(3, False, shift)
+    assert err.max() < 15.0, err.round(1)
 
 
 @pytest.mark.parametrize(("frame", "bound_mm"), [(4, 12.0), (7, 25.0)])
