@@ -271,7 +271,7 @@ def _median_blind_behind_edges(depth: NDArray[np.float32], k: int) -> NDArray[np
     # Invalid pixels (0) as a depth no valid one reaches, so that they are never the nearest.
     nearest = cv2.threshold(depth, 0.0, _NO_DEPTH_MM, cv2.THRESH_BINARY_INV)[1]
     cv2.add(nearest, depth, dst=nearest)
-    cv2.erode(nearest, _square_kernel(k), dst=nearest)
+    cv2.erode(nearest, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)), dst=nearest)
     cv2.add(nearest, EDGE_BEHIND_MM, dst=nearest)
     behind = cv2.compare(depth, nearest, cv2.CMP_GT)  # 255 where behind an edge, else 0
     plain = cv2.medianBlur(depth, k)
@@ -286,17 +286,6 @@ def _median_blind_behind_edges(depth: NDArray[np.float32], k: int) -> NDArray[np
 
 #: A depth "no valid pixel reaches" for :func:`_median_blind_behind_edges` (mm).
 _NO_DEPTH_MM = 1e9
-
-
-def _square_kernel(k: int) -> NDArray[np.uint8]:
-    """A k x k structuring element of ones (cached: two sizes are ever asked for)."""
-    kernel = _KERNELS.get(k)
-    if kernel is None:
-        kernel = _KERNELS[k] = np.ones((k, k), dtype=np.uint8)
-    return kernel
-
-
-_KERNELS: dict[int, NDArray[np.uint8]] = {}
 
 
 #: Margin (px) around the region of interest of the windowed depth that the data stages
