@@ -42,6 +42,7 @@ __all__ = [
     "FINGER_ABD",
     "FINGER_PIP",
     "FINGER_DIP",
+    "FINGER_MCP",
     "chain_slice",
     "chain_joint_slice",
     "FINGER_RANGE",
@@ -78,6 +79,8 @@ FIRST_JOINT: Final[int] = 6
 JOINTS: Final[slice] = slice(FIRST_JOINT, None)
 #: MCP abductions of index .. little inside the pose vector (a strided slice, 4 values).
 FINGER_ABD: Final[slice] = slice(FIRST_JOINT + CHAIN_JOINTS + ABD, None, CHAIN_JOINTS)
+#: MCP flexions (flex1) of index .. little inside the pose vector (a strided slice, 4 values).
+FINGER_MCP: Final[slice] = slice(FIRST_JOINT + CHAIN_JOINTS + FLEX1, None, CHAIN_JOINTS)
 #: PIP (flex2) and DIP (flex3) flexions of index .. little inside the pose vector (strided).
 FINGER_PIP: Final[slice] = slice(FIRST_JOINT + CHAIN_JOINTS + FLEX2, None, CHAIN_JOINTS)
 FINGER_DIP: Final[slice] = slice(FIRST_JOINT + CHAIN_JOINTS + FLEX3, None, CHAIN_JOINTS)

@@ -1,11 +1,13 @@
 """The tracker's restart strategies (seeds 001 and 004): ways out of local optima after a frame's fit.
 
 :class:`RestartStrategies` is a mixin of :class:`hand_sog_tracker.core.tracker.Tracker`
-(it uses the tracker's ``_model``, ``_config``, ``_frame_count``, ``_restart_wait`` and
-``_fit``); :meth:`~RestartStrategies._restarts` runs them for a tracked frame:
+(it uses the tracker's ``_model``, ``_config``, ``_frame_count``, ``_restart_wait``, ``_fit``
+and ``_limits``); :meth:`~RestartStrategies._restarts` runs them for a tracked frame:
 
 - :meth:`~RestartStrategies._finger_restarts`: a finger hanging in empty space is restarted
   extended, curled and like the other fingers;
+- :meth:`~RestartStrategies._swap_restarts`: a finger held at its abduction limit over a curled
+  neighbour's place swaps flexions with that neighbour;
 - :meth:`~RestartStrategies._shift_restarts`: every finger takes its neighbour's articulation;
 - :meth:`~RestartStrategies._detection_restarts`: a finger is pulled onto a fingertip
   detection no model finger explains.
@@ -26,7 +28,17 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
 from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.energy import SALIENT_SCALE_MM, Objective, TipTargets
-from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, FINGER_DIP, FINGER_PIP, JOINTS, HandModel, chain_slice
+from hand_sog_tracker.core.hand_model import (
+    ABD,
+    CHAIN_JOINTS,
+    FINGER_ABD,
+    FINGER_DIP,
+    FINGER_MCP,
+    FINGER_PIP,
+    JOINTS,
+    HandModel,
+    chain_slice,
+)
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.optimizer import OptimizeResult, Steps
 from hand_sog_tracker.core.salient import Detections, assign_detections
@@ -50,6 +62,11 @@ __all__ = [
     "HIDDEN_PALM_COS",
     "OPEN_TIP_RAD",
     "CURLED_TIP_RAD",
+    "SWAP_ABD_MARGIN_RAD",
+    "SWAP_CURL_GAP_RAD",
+    "SWAP_MAX_CURL_RAD",
+    "SWAP_PALM_COS",
+    "SWAP_MARGIN",
 ]
 
 # Tuning constants, documented like those of :mod:`hand_sog_tracker.core.tracker` (what, unit,
@@ -113,6 +130,28 @@ HIDDEN_TIP_LAMBDA = 0.0
 HIDDEN_PALM_COS = 0.5
 OPEN_TIP_RAD = 1.0
 CURLED_TIP_RAD = 2.0
+#: Swap restarts (:meth:`RestartStrategies._swap_restarts`, issue 11, all chosen here).  A
+#: finger of index .. little held at its MCP abduction limit (within ``SWAP_ABD_MARGIN_RAD``)
+#: toward a neighbour more curled than itself by ``SWAP_CURL_GAP_RAD`` (MCP + PIP flexion,
+#: rad), itself curled at most ``SWAP_MAX_CURL_RAD``, with the palm or the back of the hand
+#: toward the camera (``|cos|`` of the palm normal to the camera's axis at least
+#: ``SWAP_PALM_COS``), is tried with the neighbour's flexions and the neighbour with its; the
+#: candidate wins only by ``SWAP_MARGIN`` of :meth:`RestartStrategies._score`.  On mesh renders
+#: of finger counting the model's middle finger rose onto the index's data while the model's
+#: index stayed curled (validation seed 5085: 12 frames at 35-113 mm), or its ring finger onto the
+#: middle's (5076); the scheduled shift (every finger moved) put 5085 right 12 frames later.  The
+#: conditions keep the swap off where the score cannot tell neighbours apart: a hand seen from
+#: the side (random motion, palm normal at 0.66-0.7: the swap won there and was wrong), two
+#: curled fingers of a fist, and score gains of 0.01-0.015 (also wrong on a render of random
+#: motion of seeds 7000-7143, 4.8 -> 14.3 mm; the right swaps gained 0.037 and 0.045).
+#: Validation (144 renders): 7.08 -> 7.01 mm (5085 13.3 -> 7.5, 5076 14.1 -> 10.5 mm, no other
+#: render changed); dev (144), seeds 7000-7143 (144), the capsule renders (84) and Table 1 score
+#: bit for bit as before.
+SWAP_ABD_MARGIN_RAD = float(np.radians(0.5))
+SWAP_CURL_GAP_RAD = 0.8
+SWAP_MAX_CURL_RAD = 2.2
+SWAP_PALM_COS = 0.85
+SWAP_MARGIN = 0.02
 #: After restarts triggered by an unexplained detection all lost, they are not tried again
 #: for this many frames (count; chosen here).
 RESTART_COOLDOWN = 5
@@ -149,6 +188,7 @@ class RestartStrategies:
     _frame_count: int
     _restart_wait: int
     _shift_pending: ShiftCandidate | None
+    _limits: Callable[[], tuple[NDArray[np.float64], NDArray[np.float64]]]
     #: The tracker's fit that pauses after every iteration (``Tracker._fit``).
     _fit: Callable[..., Steps[OptimizeResult]]
 
@@ -159,13 +199,14 @@ class RestartStrategies:
     def _restarts(
         self, obj: Objective, res: OptimizeResult, data: ImageSoG, det: Detections
     ) -> Steps[OptimizeResult]:
-        """A tracked frame's restarts: finger, then shift, then detection restarts.
+        """A tracked frame's restarts: finger, swap, then shift, then detection restarts.
 
         When the restarts set off by an unexplained detection all lost, the shift and detection
         restarts wait ``RESTART_COOLDOWN`` frames (such a detection is often a knuckle or a
-        forearm edge); the finger restarts run every time.
+        forearm edge); the finger and swap restarts run every time.
         """
         res = yield from self._finger_restarts(obj, res, data)
+        res = yield from self._swap_restarts(obj, res, det)
         if self._restart_wait > 0:
             self._restart_wait -= 1
             self._frame_count += 1  # (the shift restarts' schedule goes on)
@@ -226,6 +267,50 @@ class RestartStrategies:
             cand = yield from self._fit(obj, x0, iterations=RESTART_ITERATIONS)
             if cand.fun > best.fun:
                 best = cand
+        return best
+
+    def _swap_restarts(self, obj: Objective, res: OptimizeResult, det: Detections) -> Steps[OptimizeResult]:
+        """Swap a finger that lies on its curled neighbour's place with that neighbour.
+
+        A model finger lying extended on its neighbour's data, while the neighbour's model
+        finger is curled, reaches it by abducting: the data hold it at its abduction limit.
+        For such a finger (:meth:`_swap_pair`) the candidate gives the two fingers each
+        other's flexions with neutral abductions; it is refined for ``RESTART_ITERATIONS``
+        and kept if its :meth:`_score` is higher by ``SWAP_MARGIN``.  At most one pair per
+        frame: the one with the largest difference in curl.
+        """
+        pair = self._swap_pair(res.x)
+        if pair is None:
+            return res
+        plain = self._plain(obj)
+        best_val = self._score(plain, res.x, det)
+        cand = yield from self._fit(plain, _swapped(res.x, *pair), iterations=RESTART_ITERATIONS)
+        if self._score(plain, cand.x, det, value=cand.fun) > best_val + SWAP_MARGIN:
+            return cand
+        return res
+
+    def _swap_pair(self, theta: NDArray[np.float64]) -> tuple[int, int] | None:
+        """``(finger, neighbour)`` (chains 1-4) for :meth:`_swap_restarts` at ``theta`` (26,),
+        or None: a finger curled at most ``SWAP_MAX_CURL_RAD`` (MCP + PIP flexion), within
+        ``SWAP_ABD_MARGIN_RAD`` of its abduction limit toward a neighbour curled more than it
+        by ``SWAP_CURL_GAP_RAD``, the palm or the back of the hand toward the camera
+        (``SWAP_PALM_COS``); of several, the pair with the largest difference in curl."""
+        if abs(global_rotation(theta)[2, 2]) < SWAP_PALM_COS:
+            return None
+        lo, hi = self._limits()
+        abd = theta[FINGER_ABD]
+        curl = theta[FINGER_MCP] + theta[FINGER_PIP]
+        best, best_gap = None, 0.0
+        for i in range(4):
+            c = i + 1
+            if curl[i] > SWAP_MAX_CURL_RAD:
+                continue
+            for n, room in ((c + 1, hi[FINGER_ABD][i] - abd[i]), (c - 1, abd[i] - lo[FINGER_ABD][i])):
+                if not 1 <= n <= 4 or room > SWAP_ABD_MARGIN_RAD:
+                    continue
+                gap = curl[n - 1] - curl[i]
+                if gap > SWAP_CURL_GAP_RAD and gap > best_gap:
+                    best, best_gap = (c, n), gap
         return best
 
     def _shift_restarts(
@@ -505,6 +590,17 @@ def _sq_distances(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.
     d2 = sq[..., 0] + sq[..., 1]
     d2 += sq[..., 2]
     return d2
+
+
+def _swapped(theta: NDArray[np.float64], a: int, b: int) -> NDArray[np.float64]:
+    """``theta`` (26,) with chains ``a`` and ``b`` (1-4) exchanging their flexions, both with
+    neutral abductions."""
+    x0 = theta.copy()
+    sa, sb = chain_slice(a), chain_slice(b)
+    x0[sa], x0[sb] = theta[sb], theta[sa]
+    x0[sa.start + ABD] = 0.0
+    x0[sb.start + ABD] = 0.0
+    return x0
 
 
 def _shifted(theta: NDArray[np.float64], side: int) -> NDArray[np.float64]:
