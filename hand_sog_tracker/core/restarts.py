@@ -299,18 +299,14 @@ class RestartStrategies:
             return None
         lo, hi = self._limits()
         abd = theta[FINGER_ABD]
-        curl = theta[FINGER_MCP] + theta[FINGER_PIP]
-        best, best_gap = None, 0.0
-        for i in range(4):
-            c = i + 1
-            if curl[i] > SWAP_MAX_CURL_RAD:
-                continue
-            for n, room in ((c + 1, hi[FINGER_ABD][i] - abd[i]), (c - 1, abd[i] - lo[FINGER_ABD][i])):
-                if not 1 <= n <= 4 or room > SWAP_ABD_MARGIN_RAD:
-                    continue
-                gap = curl[n - 1] - curl[i]
-                if gap > SWAP_CURL_GAP_RAD and gap > best_gap:
-                    best, best_gap = (c, n), gap
+        at_limit = {1: hi[FINGER_ABD] - abd <= SWAP_ABD_MARGIN_RAD, -1: abd - lo[FINGER_ABD] <= SWAP_ABD_MARGIN_RAD}
+        curl = theta[FINGER_MCP] + theta[FINGER_PIP]  # index .. little (4,), rad
+        best, best_gap = None, SWAP_CURL_GAP_RAD
+        for i in np.flatnonzero(curl <= SWAP_MAX_CURL_RAD):
+            for side in (1, -1):
+                n = i + side
+                if 0 <= n < 4 and at_limit[side][i] and curl[n] - curl[i] > best_gap:
+                    best, best_gap = (int(i) + 1, int(n) + 1), curl[n] - curl[i]
         return best
 
     def _shift_restarts(
