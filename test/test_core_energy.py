@@ -101,7 +101,9 @@ def test_gradient_matches_central_differences(seed: int) -> None:
     targets = TipTargets(points=tips + rng.normal(0, 15, (5, 3)), weights=np.array([0.9, 0.0, 0.5, 1.0, 0.3]))
     cfg = TrackerConfig(w_sal=1.0, w_ord=1.0, w_sil=1.0, w_cpl=1.0, w_curl=1.0)
     sil = silhouette_of(model, truth, skip_chain=4)
-    obj = Objective(model, data, cfg, previous=prev, targets=targets, silhouette=sil)
+    # Curled fingers' touching pairs with part of their overlap free (E_col's contact).
+    contact = np.array([0.0, 1.0, 0.6, 1.0, 0.3])
+    obj = Objective(model, data, cfg, previous=prev, targets=targets, silhouette=sil, contact=contact)
     terms, grad = obj.evaluate(theta)
     # Every term is active in this configuration, so each one's gradient is checked.
     assert terms.sim > 0 and terms.col > 0 and terms.dan > 0 and terms.lim > 0 and terms.smo > 0
@@ -471,7 +473,7 @@ def test_palm_presses_on_distal_segments_weigh_less_in_the_collision_term() -> N
     from hand_sog_tracker.core.energy import PALM_DISTAL_COLLISION, _collision_pairs
 
     model = default_hand_model()
-    i, j, weight = _collision_pairs(model)
+    i, j, weight, _ = _collision_pairs(model)
     ch, sg = model.g_chain, model.g_segment
     assert not np.any(ch[i] == ch[j])
     palm_distal = ((ch[i] < 0) & (sg[j] == 2)) | ((ch[j] < 0) & (sg[i] == 2))
@@ -479,3 +481,81 @@ def test_palm_presses_on_distal_segments_weigh_less_in_the_collision_term() -> N
     assert 0.0 < PALM_DISTAL_COLLISION < 1.0
     np.testing.assert_array_equal(weight[palm_distal], PALM_DISTAL_COLLISION)
     np.testing.assert_array_equal(weight[~palm_distal], 1.0)
+
+
+def test_curled_fingers_touching_side_by_side_or_on_the_palm_pay_only_beyond_their_free_share() -> None:
+    """``E_col`` per pair: two of the fingers index .. little, or the palm and a distal
+    segment, pay ``max(D - share COLLISION_CONTACT_FREE D_touch, 0)`` (``D_touch``: the overlap
+    at centres ``s_i + s_j`` apart; ``share``: the ``contact`` of the pair's less curled
+    finger); the thumb against a finger, or the palm against a middle segment, pay all of
+    ``D``, and so does every pair without ``contact``.  Checked pair by pair, every other
+    Gaussian far away, with the gradient against central differences."""
+    from hand_sog_tracker.core.energy import COLLISION_CONTACT_FREE, PALM_DISTAL_COLLISION, model_constants
+
+    model = default_hand_model()
+    ch, sg, s = model.g_chain, model.g_segment, model.g_sigmas
+    data = data_near(model, rest_pose(), np.random.default_rng(0))
+    norm_h = model_constants(model).norm_h
+    contact = np.array([1.0, 1.0, 1.0, 0.5, 0.0])  # thumb, index, middle curled, ring half, little open
+
+    def first(chain: int, segment: int) -> int:
+        return int(np.flatnonzero((ch == chain) & (sg == segment))[0])
+
+    def pair_cost(p: int, q: int, dist: float, contact: np.ndarray | None = contact) -> tuple[float, np.ndarray]:
+        obj = Objective(model, data, TrackerConfig(), contact=contact)
+        P = np.arange(model.n_gaussians)[:, None] * np.array([1000.0, 0.0, 0.0])  # 1 m apart
+        P[q] = P[p] + np.array([0.0, dist, 0.0])
+        g3 = np.zeros_like(P)
+        col = obj._collision(P, g3, 1.0)
+        h = 1e-4
+        num = []
+        for sign in (1.0, -1.0):
+            Ph = P.copy()
+            Ph[q, 1] += sign * h
+            num.append(obj._collision(Ph, None, 1.0))
+        # g3 holds -dE_col/dP: check the moved Gaussian's y component.
+        np.testing.assert_allclose(-g3[q, 1], (num[0] - num[1]) / (2 * h), rtol=1e-5, atol=1e-12)
+        return col * norm_h, g3
+
+    def overlap(p: int, q: int, dist: float, weight: float = 1.0) -> float:
+        s2 = s[p] ** 2 + s[q] ** 2
+        return weight * (2 * np.pi * s[p] ** 2 * s[q] ** 2 / s2) ** 1.5 * np.exp(-0.5 * dist**2 / s2)
+
+    index, middle, ring, little = (first(c, 1) for c in (1, 2, 3, 4))
+    thumb, palm = first(0, 1), first(-1, 0)
+    cases = (
+        (index, middle, 1.0, 1.0),  # two curled fingers
+        (palm, first(2, 2), PALM_DISTAL_COLLISION, 1.0),  # the palm and a curled finger's pad
+        (middle, ring, 1.0, 0.5),  # the less curled finger counts
+    )
+    for p, q, weight, share in cases:
+        touch = s[p] + s[q]
+        free = share * COLLISION_CONTACT_FREE * overlap(p, q, touch, weight)
+        for dist in (0.0, 0.5 * touch, touch):
+            cost, _ = pair_cost(p, q, dist)
+            assert cost == pytest.approx(overlap(p, q, dist, weight) - free, rel=1e-9)
+            # Without contact (initialisation, calibration) the pair pays its whole overlap.
+            assert pair_cost(p, q, dist, None)[0] == pytest.approx(overlap(p, q, dist, weight), rel=1e-9)
+        if share == 1.0:
+            cost, g3 = pair_cost(p, q, 1.3 * touch)  # a little apart: within the free share
+            assert cost == 0.0 and not g3.any()
+    # These pay the whole overlap: an open finger, the thumb, the palm against a middle segment.
+    for p, q in ((ring, little), (thumb, index), (palm, first(2, 1))):
+        touch = s[p] + s[q]
+        assert pair_cost(p, q, touch)[0] == pytest.approx(overlap(p, q, touch), rel=1e-9)
+
+
+def test_contact_shares_grow_with_a_fingers_curl() -> None:
+    """:func:`contact_shares`: 0 for the thumb and for fingers flexed (MCP + PIP) up to
+    ``CONTACT_CURL_RAD[0]``, 1 from ``CONTACT_CURL_RAD[0] + CONTACT_CURL_RAD[1]``, linear between."""
+    from hand_sog_tracker.core.articulations import CLOSED, OPEN
+    from hand_sog_tracker.core.energy import CONTACT_CURL_RAD, contact_shares
+
+    theta = rest_pose()
+    theta[6:] = OPEN
+    np.testing.assert_array_equal(contact_shares(theta), 0.0)
+    theta[6:] = CLOSED
+    np.testing.assert_array_equal(contact_shares(theta), [0.0, 1.0, 1.0, 1.0, 1.0])
+    lo, span = CONTACT_CURL_RAD
+    theta[6 + 4 * 2] = lo + 0.25 * span - theta[6 + 4 * 2 + 2]  # the middle finger's MCP
+    assert contact_shares(theta)[2] == pytest.approx(0.25)

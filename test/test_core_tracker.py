@@ -343,7 +343,7 @@ def test_deferred_restarts_answer_before_the_restarts_and_the_track_is_the_same(
     plain, deferred = Tracker(), Tracker()
     deferred.defer_restarts = True
     won = []
-    for k, f in enumerate(mesh_sequence("fingercount", 38, intr, seed=1)):
+    for k, f in enumerate(mesh_sequence("fingercount", 38, intr, seed=4)):
         a = plain.process(f.depth_mm, intr)
         b = deferred.process(f.depth_mm, intr)
         if deferred.finish_frame():
@@ -353,7 +353,7 @@ def test_deferred_restarts_answer_before_the_restarts_and_the_track_is_the_same(
             assert b.pose is not None and np.array_equal(b.pose, a.pose)
         assert np.array_equal(deferred.last_pose, plain.last_pose)  # the same track
         assert not deferred.finish_frame()  # nothing left to run
-    assert won == [15, 35]
+    assert won == [35, 36]
 
 
 def test_a_stop_pauses_the_restarts_and_the_next_call_goes_on() -> None:
@@ -391,26 +391,26 @@ def test_restarts_that_end_after_the_track_moved_on_hand_their_winner_to_the_nex
     from hand_sog_tracker.synth.mesh import mesh_sequence
 
     intr = default_intrinsics()
-    frames = list(mesh_sequence("fingercount", 18, intr, seed=1))
+    frames = list(mesh_sequence("fingercount", 38, intr, seed=4))
     tracker = Tracker()
     tracker.defer_restarts = True
-    for f in frames[:15]:
+    for f in frames[:35]:
         tracker.process(f.depth_mm, intr)
         tracker.finish_frame()
-    tracker.process(frames[15].depth_mm, intr)  # a frame whose restarts win (see above)
-    fit15 = tracker.last_pose
+    tracker.process(frames[35].depth_mm, intr)  # a frame whose restarts win (see above)
+    fit35 = tracker.last_pose
     assert not tracker.finish_frame(lambda: True) and tracker._running is not None  # paused at once
-    tracker.process(frames[16].depth_mm, intr)
-    fit16 = tracker.last_pose
-    assert tracker._running is not None  # frame 16 started no restarts of its own
-    assert not tracker.finish_frame()  # frame 15's restarts end: their winner is handed over
-    assert np.array_equal(tracker.last_pose, fit16) and tracker._running is None
+    tracker.process(frames[36].depth_mm, intr)
+    fit36 = tracker.last_pose
+    assert tracker._running is not None  # frame 36 started no restarts of its own
+    assert not tracker.finish_frame()  # frame 35's restarts end: their winner is handed over
+    assert np.array_equal(tracker.last_pose, fit36) and tracker._running is None
     pending = tracker._shift_pending
     assert pending is not None and pending.iterations == RESTART_ITERATIONS - SHIFT_CHUNK
-    assert np.array_equal(pending.anchor, fit15) and not np.array_equal(pending.x, fit15)
-    tracker.process(frames[17].depth_mm, intr)
+    assert np.array_equal(pending.anchor, fit35) and not np.array_equal(pending.x, fit35)
+    tracker.process(frames[37].depth_mm, intr)
     tracker.finish_frame()
-    assert tracker._shift_pending is None  # refined and judged on frame 17
+    assert tracker._shift_pending is None  # refined and judged on frame 37
 
 
 def test_the_joint_pull_sends_the_other_fingertips_to_their_own_detections() -> None:
@@ -464,3 +464,29 @@ def test_a_finger_leaning_on_its_curled_neighbours_place_swaps_with_it() -> None
     assert tracker._swap_pair(bent) == (2, 1)
     bent[chain_slice(2).start], bent[chain_slice(2).start + 2] = 1.15, 1.15  # middle: curled
     assert tracker._swap_pair(bent) is None
+
+
+def test_a_fist_fitted_from_its_true_pose_stays_closer_when_curled_fingers_may_touch() -> None:
+    """``E_col``'s contact share (issue 11): a capsule fist fitted for 40 iterations from its
+    true pose, as on a tracked frame (``contact`` from that pose), keeps its fingertips closer to
+    the truth than with every collision pair at full cost, where the fingers spread apart and
+    open at the knuckles (measured: 4.9 against 7.2 mm mean over the five fingertips)."""
+    from hand_sog_tracker.core.articulations import FIST_FINGER_DEG
+    from hand_sog_tracker.core.energy import contact_shares
+
+    intr = default_intrinsics()
+    tracker = Tracker(TrackerConfig())
+    truth = rest_pose((0.0, 20.0, 380.0))
+    for c in range(1, 5):
+        truth[chain_slice(c)] = np.radians(FIST_FINGER_DEG)
+    pre = preprocess(render_depth(tracker.model, truth, intr, RenderOptions()), intr, tracker.config)
+    data, det, sil = tracker._data_near(pre, truth, detect=True)
+    err = {}
+    for contact in (None, contact_shares(truth)):
+        obj = Objective(
+            tracker.model, data, tracker.config, targets=tracker._targets(truth, det), silhouette=sil, contact=contact
+        )
+        x = tracker._maximise(obj, truth, iterations=40).x
+        tips = fingertips(tracker.model, x) - fingertips(tracker.model, truth)
+        err[contact is not None] = float(np.linalg.norm(tips, axis=1).mean())
+    assert err[True] < 6.0 and err[True] < err[False] - 1.5, err

@@ -32,6 +32,15 @@ Choices the paper leaves open (documented here, used everywhere):
   against finger Gaussians beyond the first segment (neighbours on one chain
   overlap by design), the palm against distal segments weighted down
   (``PALM_DISTAL_COLLISION``: a fist presses the finger pads into the palm);
+  curled fingers touch by nature (side by side in a fist, the pads on the palm): two of the
+  fingers index .. little, or the palm and a distal segment, pay only their overlap beyond
+  ``COLLISION_CONTACT_FREE`` of the overlap they have touching (centres ``s_i + s_j`` apart,
+  as two of the renderer's capsules), scaled by how curled the fingers were in the previous
+  frame (:func:`contact_shares`; the less curled finger of a pair counts).  At full cost two
+  fingers touching pay ``exp(-1) = 37%`` of lying on each other, and the model spread curled
+  fingers apart and off their data; for open fingers the full cost stays, because there the
+  spacing tells the fingers apart (free for open fingers too, two model fingers lay side by
+  side on one finger's data).  Initialisation and calibration use the full cost;
   ``E(C_h, C_h)`` is computed once per model in the rest pose;
 * ``E_dan`` (eq. 7) measures how far a model Gaussian is from the data with an
   occlusion-aware distance instead of the plain 3D distance to back-projected
@@ -86,6 +95,7 @@ from hand_sog_tracker.core.depth_sog import ImageSoG
 from hand_sog_tracker.core.hand_model import (
     FINGER_ABD,
     FINGER_DIP,
+    FINGER_MCP,
     FINGER_PIP,
     JOINTS,
     N_PARAMS,
@@ -112,6 +122,9 @@ __all__ = [
     "SIM_SATURATION",
     "SIM_GAIN",
     "PALM_DISTAL_COLLISION",
+    "COLLISION_CONTACT_FREE",
+    "CONTACT_CURL_RAD",
+    "contact_shares",
 ]
 
 #: Near threshold ``tau_1`` of the dangling term (mm): a model Gaussian this close to data is
@@ -151,6 +164,17 @@ SIM_GAIN = 2.0
 #: labelled real frames 7.2 -> 6.7 mm; 0 and 0.15 put real frame 4's middle finger on the
 #: index, 19 mm mean.)
 PALM_DISTAL_COLLISION = 0.3
+#: Share of the touching overlap that ``E_col`` does not count for two curled fingers of index
+#: .. little and for the palm against a curled finger's distal segment (see the module
+#: docstring; chosen here, issue 11, on the dev mesh renders: 0.75 against 0.5 and 1).
+COLLISION_CONTACT_FREE = 0.75
+#: A finger's MCP + PIP flexion (rad) from which its touching pairs get a free share, and the
+#: flexion over which the share grows to all of ``COLLISION_CONTACT_FREE``: 0 up to 57 deg, 0.84
+#: for MCP 45 and PIP 60 deg, 1 for the synthetic fist's 80 + 95 deg (chosen here, issue 11).
+#: With the free share for every finger, curled or not, two model fingers lay side by side on
+#: one finger's data: the dev mesh renders went 7.06 -> 6.36 mm, but ``bags/random`` 4.9 ->
+#: 8.1 mm, and with a free share of 0.5 four dev renders were over 12 mm.
+CONTACT_CURL_RAD: tuple[float, float] = (1.0, 1.0)
 _TWO_PI = 2.0 * np.pi
 _UNSET = object()
 _INV_SQRT2 = 1.0 / np.sqrt(2.0)
@@ -230,6 +254,8 @@ class TipTargets:
 class _ModelConstants:
     pair_s2: NDArray[np.float64]  # sigma_i^2 + sigma_j^2, mm^2
     pair_amp: NDArray[np.float64]  # overlap at zero distance, (2 pi s_i^2 s_j^2 / s2)^1.5, x weight
+    pair_free: NDArray[np.float64]  # overlap free of two curled fingers: a share of the touching one, x weight
+    pair_chain: NDArray[np.int64]  # (2, pairs) chain of each pair's i and j, -1 for the palm
     # Flat indices into (m, 3) centres: (3, pairs) of the i's and the j's coordinates (row x
     # of every pair, then y, then z), and both as the scatter (2 3 pairs,) of the gradient.
     gather_i: NDArray[np.int64]
@@ -239,9 +265,13 @@ class _ModelConstants:
     fan: NDArray[np.float64]  # (4,) rest direction of index .. little in the palm plane, rad
 
 
-def _collision_pairs(model: HandModel) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
-    """The Gaussian pairs ``i, j`` (pairs,) of ``E_col`` and their weights (pairs,): 1, but
-    ``PALM_DISTAL_COLLISION`` for the palm against a distal segment."""
+def _collision_pairs(
+    model: HandModel,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """The Gaussian pairs ``i, j`` (pairs,) of ``E_col``, their weights (pairs,): 1, but
+    ``PALM_DISTAL_COLLISION`` for the palm against a distal segment, and the share of their
+    touching overlap that is free (pairs,): ``COLLISION_CONTACT_FREE`` for two of the fingers
+    index .. little and for the palm against a distal segment, else 0."""
     ch, sg = model.g_chain, model.g_segment
     i, j = np.triu_indices(model.n_gaussians, k=1)
     fingers = (ch[i] >= 0) & (ch[j] >= 0) & (ch[i] != ch[j])
@@ -251,7 +281,9 @@ def _collision_pairs(model: HandModel) -> tuple[NDArray[np.int64], NDArray[np.in
     keep = fingers | palm_finger
     i, j = i[keep], j[keep]
     palm_distal = ((ch[i] < 0) & (sg[j] == 2)) | ((ch[j] < 0) & (sg[i] == 2))
-    return i, j, np.where(palm_distal, PALM_DISTAL_COLLISION, 1.0)
+    side_by_side = (ch[i] >= 1) & (ch[j] >= 1)  # (the thumb is chain 0)
+    free = np.where(palm_distal | side_by_side, COLLISION_CONTACT_FREE, 0.0)
+    return i, j, np.where(palm_distal, PALM_DISTAL_COLLISION, 1.0), free
 
 
 _CONST_CACHE: dict[int, tuple[HandModel, _ModelConstants]] = {}
@@ -262,18 +294,22 @@ def model_constants(model: HandModel) -> _ModelConstants:
     hit = _CONST_CACHE.get(id(model))
     if hit is not None and hit[0] is model:
         return hit[1]
-    pi, pj, weight = _collision_pairs(model)
+    pi, pj, weight, free = _collision_pairs(model)
     centres = gaussian_centres(model, rest_pose())
     d2 = ((centres[:, None, :] - centres[None, :, :]) ** 2).sum(-1)
     s2 = model.g_sigmas**2
     ss = s2[:, None] + s2[None, :]
     norm_h = float(((_TWO_PI * s2[:, None] * s2[None, :] / ss) ** 1.5 * np.exp(-0.5 * d2 / ss)).sum())
     s2p = s2[pi] + s2[pj]
+    amp = (_TWO_PI * s2[pi] * s2[pj] / s2p) ** 1.5 * weight
+    touch = model.g_sigmas[pi] + model.g_sigmas[pj]
     gather_i = 3 * pi[None, :] + np.arange(3)[:, None]
     gather_j = 3 * pj[None, :] + np.arange(3)[:, None]
     const = _ModelConstants(
         pair_s2=s2p,
-        pair_amp=(_TWO_PI * s2[pi] * s2[pj] / s2p) ** 1.5 * weight,
+        pair_amp=amp,
+        pair_free=amp * np.exp(-0.5 * touch * touch / s2p) * free,
+        pair_chain=np.stack([model.g_chain[pi], model.g_chain[pj]]),
         gather_i=gather_i,
         gather_j=gather_j,
         scatter=np.concatenate([gather_i.ravel(), gather_j.ravel()]),
@@ -416,6 +452,16 @@ def gaussian_support(
     return np.minimum(support, 1.0, out=support)
 
 
+def contact_shares(theta: NDArray[np.float64]) -> NDArray[np.float64]:
+    """How curled each chain is at ``theta`` (26,), for :class:`Objective`'s ``contact``,
+    shape (5,) in [0, 1]: 0 for the thumb; for index .. little their MCP + PIP flexion mapped
+    linearly from ``CONTACT_CURL_RAD[0]`` (0) over ``CONTACT_CURL_RAD[1]`` rad (1)."""
+    lo, span = CONTACT_CURL_RAD
+    share = np.zeros(5)
+    share[1:] = np.clip((theta[FINGER_MCP] + theta[FINGER_PIP] - lo) / span, 0.0, 1.0)
+    return share
+
+
 @lru_cache(maxsize=1)
 def _smooth_scale() -> NDArray[np.float64]:
     s = np.ones(N_PARAMS)
@@ -440,6 +486,12 @@ class Objective:
         None disables it.
     targets : TipTargets or None
         Assigned fingertip detections; None disables ``E_sal``.
+    contact : array, shape (5,), or None
+        How curled each chain is, in [0, 1] (:func:`contact_shares` of the previous frame's
+        pose): the touching pairs of curled fingers pay only their overlap beyond a share of
+        their touching overlap (see the module docstring).  None: every pair pays its whole
+        overlap (initialisation and calibration, where no track tells the fingers apart and
+        their spacing does).
     """
 
     def __init__(
@@ -450,6 +502,7 @@ class Objective:
         previous: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
         targets: TipTargets | None = None,
         silhouette: Silhouette | None = None,
+        contact: NDArray[np.float64] | None = None,
     ) -> None:
         self.model = model
         self.data = data
@@ -457,7 +510,14 @@ class Objective:
         self.previous = previous
         self.targets = targets
         self.silhouette = silhouette
+        self.contact = contact
         self._const = model_constants(model)
+        # The overlap each collision pair has free, (pairs,) or 0; a pair's share is its less
+        # curled finger's (the palm's entry, chain -1, is 1).
+        self._col_free: NDArray[np.float64] | float = 0.0
+        if contact is not None:
+            share = np.append(contact, 1.0).take(self._const.pair_chain)  # (2, pairs)
+            self._col_free = self._const.pair_free * np.minimum(share[0], share[1])
         intr = data.intrinsics
         self._f = float(np.sqrt(intr.fx * intr.fy))
         # Per-frame constants of the data terms (shared by the frame's objectives).
@@ -920,12 +980,14 @@ class Objective:
         D /= c.pair_s2
         np.exp(D, out=D)
         D *= c.pair_amp  # pair_amp exp(-0.5 r2 / s2)
-        col = float(_sum(D) / c.norm_h)
+        over = np.subtract(D, self._col_free)  # the overlap beyond the free share: counts if > 0
+        col = float(_sum(np.maximum(over, 0.0, out=over)) / c.norm_h)
         if (g3 is None and later is None) or w_col <= 0:
             return col
 
         def backward(g3: NDArray[np.float64]) -> None:
             D2 = np.multiply(D, w_col / c.norm_h, out=D)
+            D2 *= over > 0.0  # (0 for the pairs within their free share)
             D2 /= c.pair_s2
             # -w_col dE_col/dP_i (3, pairs), then its negative: the weights of the incidence
             # product (+ g at each pair's i, - g at its j) as one bincount.  (Every centre

@@ -430,15 +430,15 @@ class RestartStrategies:
             pts = np.zeros((5, 3))
             pts[c] = det.points[s]
             pull = Objective(
-                self._model, obj.data, strong,
-                previous=obj.previous, targets=TipTargets(pts, w), silhouette=obj.silhouette,
+                self._model, obj.data, strong, previous=obj.previous, targets=TipTargets(pts, w),
+                silhouette=obj.silhouette, contact=obj.contact,
             )
             finger = np.zeros(res.x.size, dtype=bool)
             finger[chain_slice(c)] = True
             joint = Objective(
                 self._model, obj.data, strong,
                 previous=obj.previous, targets=self._joint_targets(res.x, det, int(c), s),
-                silhouette=obj.silhouette,
+                silhouette=obj.silhouette, contact=obj.contact,
             )
             # Start poses: the two pulls (objective, active parameters) and a pose.
             starts: list[tuple[Objective, NDArray[np.bool_] | None] | NDArray[np.float64]] = [
@@ -530,6 +530,7 @@ class RestartStrategies:
             replace_config(self._config, w_sal=0.0),
             previous=obj.previous,
             silhouette=obj.silhouette,
+            contact=obj.contact,
         )
 
     def _assignment_cost(

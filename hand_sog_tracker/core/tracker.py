@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
-from hand_sog_tracker.core.energy import Objective, TipTargets, gaussian_support
+from hand_sog_tracker.core.energy import Objective, TipTargets, contact_shares, gaussian_support
 from hand_sog_tracker.core.hand_model import (
     HandModel,
     default_hand_model,
@@ -383,7 +383,9 @@ class Tracker(RestartStrategies):
         data, det, sil = self._data_near(pre, x0, detect=True)
         tq2 = time.perf_counter()
         targets = self._targets(x0, det)
-        obj = Objective(self._model, data, cfg, previous=(p1, p2), targets=targets, silhouette=sil)
+        obj = Objective(
+            self._model, data, cfg, previous=(p1, p2), targets=targets, silhouette=sil, contact=contact_shares(p1)
+        )
         base = _INITIAL_STEPS
         # (np.clip's values by two ufunc calls, without its wrapper.)
         start = base if self._steps is None else np.minimum(np.maximum(self._steps * WARM_GROW, base * WARM_MIN), base)
