@@ -166,14 +166,17 @@ SIM_GAIN = 2.0
 PALM_DISTAL_COLLISION = 0.3
 #: Share of the touching overlap that ``E_col`` does not count for two curled fingers of index
 #: .. little and for the palm against a curled finger's distal segment (see the module
-#: docstring; chosen here, issue 11, on the dev mesh renders: 0.75 against 0.5 and 1).
+#: docstring; chosen here, issue 11, on the 144 dev mesh renders, 7.06 mm before: 0.75 gives
+#: 6.45 mm, 1 gives 6.52 mm; for every finger regardless of its curl 0.5, 0.75 and 1 gave 6.65,
+#: 6.36 and 6.49 mm).
 COLLISION_CONTACT_FREE = 0.75
 #: A finger's MCP + PIP flexion (rad) from which its touching pairs get a free share, and the
 #: flexion over which the share grows to all of ``COLLISION_CONTACT_FREE``: 0 up to 57 deg, 0.84
-#: for MCP 45 and PIP 60 deg, 1 for the synthetic fist's 80 + 95 deg (chosen here, issue 11).
-#: With the free share for every finger, curled or not, two model fingers lay side by side on
-#: one finger's data: the dev mesh renders went 7.06 -> 6.36 mm, but ``bags/random`` 4.9 ->
-#: 8.1 mm, and with a free share of 0.5 four dev renders were over 12 mm.
+#: for MCP 45 and PIP 60 deg, 1 for the synthetic fist's 80 + 95 deg (chosen here, issue 11: from
+#: 0.6, 1.0 or 1.4 rad, the dev renders scored 6.65, 6.45 and 6.56 mm, with 5, 0 and 1 renders
+#: over 12 mm).  With the free share for every finger, curled or not, two model fingers lay side
+#: by side on one finger's data: ``bags/random`` 4.9 -> 8.1 mm, and with a share of 0.5 four dev
+#: renders were over 12 mm.
 CONTACT_CURL_RAD: tuple[float, float] = (1.0, 1.0)
 _TWO_PI = 2.0 * np.pi
 _UNSET = object()
