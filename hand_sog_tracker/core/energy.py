@@ -595,6 +595,14 @@ class Objective:
         )
         return terms, grad
 
+    def variant(self, config: TrackerConfig, targets: TipTargets | None) -> Objective:
+        """This frame's objective with other term weights ``config`` and ``targets`` (the same
+        model, data, previous poses, silhouette and ``contact``; the collision pairs' free
+        overlap is shared, not computed again)."""
+        other = Objective(self.model, self.data, config, self.previous, targets, self.silhouette)
+        other.contact, other._col_free = self.contact, self._col_free
+        return other
+
     def support(self, theta: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """:func:`gaussian_support` at ``theta`` (m,) from the last evaluation, when that was at
         ``theta`` (the same sums up to rounding: the same pairs and values); else None.

@@ -429,17 +429,10 @@ class RestartStrategies:
             w[c] = 1.0
             pts = np.zeros((5, 3))
             pts[c] = det.points[s]
-            pull = Objective(
-                self._model, obj.data, strong, previous=obj.previous, targets=TipTargets(pts, w),
-                silhouette=obj.silhouette, contact=obj.contact,
-            )
+            pull = obj.variant(strong, TipTargets(pts, w))
             finger = np.zeros(res.x.size, dtype=bool)
             finger[chain_slice(c)] = True
-            joint = Objective(
-                self._model, obj.data, strong,
-                previous=obj.previous, targets=self._joint_targets(res.x, det, int(c), s),
-                silhouette=obj.silhouette, contact=obj.contact,
-            )
+            joint = obj.variant(strong, self._joint_targets(res.x, det, int(c), s))
             # Start poses: the two pulls (objective, active parameters) and a pose.
             starts: list[tuple[Objective, NDArray[np.bool_] | None] | NDArray[np.float64]] = [
                 (pull, finger),
@@ -524,14 +517,7 @@ class RestartStrategies:
         """``obj`` without the salient term (to judge candidates built from detections)."""
         if obj.targets is None or self._config.w_sal == 0:
             return obj
-        return Objective(
-            self._model,
-            obj.data,
-            replace_config(self._config, w_sal=0.0),
-            previous=obj.previous,
-            silhouette=obj.silhouette,
-            contact=obj.contact,
-        )
+        return obj.variant(replace_config(self._config, w_sal=0.0), None)
 
     def _assignment_cost(
         self, theta: NDArray[np.float64], det: Detections, hidden_tips: bool = True
