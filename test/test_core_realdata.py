@@ -7,6 +7,7 @@ its own joint labels: a hand at arm's length (0.74 m) in front of the body.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -15,7 +16,8 @@ import pytest
 
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
-from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
+from hand_sog_tracker.core.types import Intrinsics, TrackerStatus
+from hand_sog_tracker.tools.real_frames import Variant, labelled_frame, static_tip_errors
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
 REALSENSE = REALDATA / "realsense-user1"
@@ -53,39 +55,16 @@ def test_open_hand_fingertips_lie_on_the_hand(frame: int, tmp_path: Path) -> Non
 LABELS = Path(__file__).resolve().parent / "data" / "realsense_fingertips.json"
 
 
-def _labelled(frame: int, mirror: bool) -> tuple[np.ndarray, Intrinsics, np.ndarray]:
-    """Depth (mm), intrinsics and the hand-labelled fingertips (5, 3) mm of one frame.
-
-    ``mirror`` flips the image left-right (u -> W - 1 - u, cx -> W - 1 - cx): the same hand
-    seen as a left hand.
-    """
-    import json
-
-    labels = json.loads(LABELS.read_text())["frames"][str(frame)]["tips"]
-    depth = cv2.imread(str(REALSENSE / str(frame) / "depth.png"), cv2.IMREAD_UNCHANGED).astype(np.float32)
-    uv = np.array([[t["u"], t["v"]] for t in labels], dtype=np.float64)
-    z = np.array([t["depth_mm"] for t in labels])
-    intr = INTR
-    if mirror:
-        depth = np.ascontiguousarray(depth[:, ::-1])
-        uv[:, 0] = INTR.width - 1 - uv[:, 0]
-        intr = Intrinsics(INTR.fx, INTR.fy, INTR.width - 1 - INTR.cx, INTR.cy, INTR.width, INTR.height)
-    return depth, intr, intr.backproject(uv, z)
-
-
 def _static_tip_errors(frame: int, mirror: bool, shift: tuple[int, int] = (0, 0)) -> np.ndarray:
     """Fingertip errors (5,) mm against the labels after tracking the frame 10 times (a static
-    sequence); the hand must be tracked.  ``shift``: (du, dv) px, the image and labels moved
-    by whole pixels (np.roll)."""
-    depth, intr, truth = _labelled(frame, mirror)
-    if shift != (0, 0):
-        depth = np.roll(depth, shift[::-1], axis=(0, 1))
-        truth = intr.backproject(intr.project(truth) + shift, truth[:, 2])
-    tracker = Tracker(TrackerConfig(right_hand=not mirror))
-    for _ in range(10):
-        res = tracker.process(depth, intr)
-    assert res.status is TrackerStatus.TRACKING and res.fingertips_mm is not None
-    return np.linalg.norm(res.fingertips_mm - truth, axis=1)
+    sequence; ``tools/real_frames.py``); the hand must be tracked.  ``mirror`` flips the image
+    left-right (the same hand seen as a left hand); ``shift``: (du, dv) px, the image and labels
+    moved by whole pixels (np.roll)."""
+    labels = json.loads(LABELS.read_text())
+    depth, intr, truth = labelled_frame(REALSENSE, labels, frame, mirror, Variant(du=shift[0], dv=shift[1]))
+    err = static_tip_errors(depth, intr, truth, right_hand=not mirror)
+    assert err is not None
+    return err
 
 
 # Frames 2, 4 and 7 (a finger curled toward the camera, crossed fingers, a fist seen from the
