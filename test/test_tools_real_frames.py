@@ -92,5 +92,8 @@ def test_command_prints_the_summary_and_writes_every_run(
     text = capsys.readouterr().out
     assert "frame 1: mean" in text and "all 1 runs" in text and "5 of 5 fingertips within 15 mm" in text
     assert len(json.loads(out.read_text())["runs"]) == 1
+    assert main([str(root), "--labels", str(label_file), "--frames", "2", "--no-mirror", "--wide"]) == 0
+    wide = capsys.readouterr().out
+    assert "all 16 runs" in wide and "runs over 20 mm 0" in wide  # a rendered open hand, shifted
     assert main([str(root), "--labels", str(tmp_path / "absent.json")]) == 2
     assert "real_frames:" in capsys.readouterr().err

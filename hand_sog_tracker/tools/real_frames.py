@@ -3,7 +3,8 @@
 Usage::
 
     python -m hand_sog_tracker.tools.real_frames ../shared/realdata/realsense-user1 \\
-        --labels test/data/realsense_fingertips.json [--frames 1-8] [--no-mirror] [--json OUT]
+        --labels test/data/realsense_fingertips.json [--frames 1-8] [--no-mirror]
+        [--unperturbed | --wide] [--json OUT]
 
 Each frame is a folder ``FRAMES_DIR/<frame>/depth.png`` (16-bit depth in mm); the labels file
 gives the camera's intrinsics and, per frame, the five fingertips thumb .. little as a pixel
@@ -17,7 +18,8 @@ pixel in each direction (``np.roll``) or offsets every valid depth by +-3 mm, an
 flips each variant left-right (``u -> W - 1 - u``, ``cx -> W - 1 - cx``) and tracks it as a
 left hand: 8 frames x 7 variants x 2 hands are the README's "112 runs".  Such small changes
 decide between the right pose and a hand one finger over on some frames (README, known
-limitations), so a single run per frame says little.
+limitations), so a single run per frame says little.  ``--wide`` runs :data:`WIDE_VARIANTS` instead
+(larger shifts, used less often for decisions: with ``--no-mirror`` the README's "128 runs").
 """
 
 from __future__ import annotations
@@ -37,7 +39,9 @@ from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 from hand_sog_tracker.errors import HandSogError, InputError
 
-__all__ = ["PASSES", "VARIANTS", "Variant", "labelled_frame", "static_tip_errors", "run_real_frames", "main"]
+__all__ = [
+    "PASSES", "VARIANTS", "WIDE_VARIANTS", "Variant", "labelled_frame", "static_tip_errors", "run_real_frames", "main",
+]
 
 #: Times each frame is processed (count): the node answers a single image after refining on it
 #: this many times as well (README).
@@ -66,6 +70,13 @@ VARIANTS: tuple[Variant, ...] = (
     Variant(dv=-1),
     Variant(dz_mm=3.0),
     Variant(dz_mm=-3.0),
+)
+
+
+#: Larger shifts, checked less often for decisions (the README's "128 runs", right hands): the image
+#: rolled by 3 px left or right and 2 px up or down, each with a depth offset of -3, -1, +1 or +3 mm.
+WIDE_VARIANTS: tuple[Variant, ...] = tuple(
+    Variant(du, dv, dz) for du in (-3, 3) for dv in (-2, 2) for dz in (-3.0, -1.0, 1.0, 3.0)
 )
 
 
@@ -202,8 +213,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--frames", default=None, help="frames to run, e.g. 1-8 or 2,3 (default: every labelled frame)")
     parser.add_argument("--no-mirror", action="store_true", help="skip the mirrored (left-hand) copies")
-    parser.add_argument(
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument(
         "--unperturbed", action="store_true", help="only the frames as recorded (no shifts, no offsets)"
+    )
+    which.add_argument(
+        "--wide", action="store_true",
+        help="16 larger shifts instead (u +-3 px, v +-2 px, depth +-1/+-3 mm; with --no-mirror the README's 128 runs)",
     )
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every run to this JSON file")
     args = parser.parse_args(argv)
@@ -212,7 +228,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         frames = _frame_list(args.frames) if args.frames else sorted(int(k) for k in labels["frames"])
         runs = run_real_frames(
             args.frames_dir, labels, frames, mirrored=not args.no_mirror,
-            variants=VARIANTS[:1] if args.unperturbed else VARIANTS,
+            variants=VARIANTS[:1] if args.unperturbed else WIDE_VARIANTS if args.wide else VARIANTS,
         )
     except (OSError, ValueError, KeyError, HandSogError) as exc:
         print(f"real_frames: {exc}", file=sys.stderr)
