@@ -43,8 +43,8 @@ __all__ = [
     "PASSES", "VARIANTS", "WIDE_VARIANTS", "Variant", "labelled_frame", "static_tip_errors", "run_real_frames", "main",
 ]
 
-#: Times each frame is processed (count): the node answers a single image after refining on it
-#: this many times as well (README).
+#: Times each frame is processed (count): the first pass finds the hand, the other nine track it
+#: on the same image (the node, too, refines a single image 9 times before it answers: README).
 PASSES = 10
 #: A run that misses by more than this (mean over the five fingertips, mm) is counted apart:
 #: typically a hand one finger over.
