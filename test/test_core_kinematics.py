@@ -116,6 +116,29 @@ def test_shape_scaling() -> None:
         HandShape(length=5.0)
 
 
+@pytest.mark.parametrize("right", [True, False])
+def test_joint_gaussians_sit_on_the_second_and_third_joints(right: bool) -> None:
+    """``with_joint_gaussians``: 10 Gaussians more, on the second and third joint of every
+    chain with the radius of the segment beyond; the others, the fingertips and the skeleton
+    are the model's own, for a scaled model too."""
+    shape = HandShape(length=0.9, width=1.1, sigma=1.2).with_fingers((1.0, 1.05, 0.95, 1.0, 1.1))
+    model = default_hand_model(right).scaled(shape)
+    joint = model.with_joint_gaussians()
+    m = model.n_gaussians
+    assert joint.n_gaussians == m + 10
+    np.testing.assert_array_equal(joint.tip_index, model.tip_index)
+    theta = rest_pose((10.0, -20.0, 420.0))
+    theta[6:] = np.random.default_rng(4).uniform(0.0, 1.2, 20)
+    P, J = gaussian_centres(model, theta), gaussian_centres(joint, theta)
+    np.testing.assert_allclose(J[:m], P, atol=1e-9)
+    np.testing.assert_allclose(fingertips(joint, theta), fingertips(model, theta), atol=1e-9)
+    skeleton = skeleton_points(model, theta)
+    for k, (c, s) in enumerate((c, s) for c in range(5) for s in (1, 2)):
+        np.testing.assert_allclose(J[m + k], skeleton[1 + 4 * c + s], atol=1e-9)
+        on_segment = (model.g_chain == c) & (model.g_segment == s)
+        assert joint.g_sigmas[m + k] == model.g_sigmas[on_segment][0]
+
+
 def test_euler_round_trip() -> None:
     rng = np.random.default_rng(5)
     for _ in range(20):

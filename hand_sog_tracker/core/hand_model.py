@@ -246,6 +246,31 @@ class HandModel:
         """Return this model as a right (``True``) or left (``False``) hand."""
         return replace(self, right=right)
 
+    def with_joint_gaussians(self) -> "HandModel":
+        """This model plus one Gaussian on the second and one on the third joint of every chain
+        (PIP and DIP; the thumb's MCP and IP): ``m + 10`` Gaussians, appended after this
+        model's (its indices, ``tip_index`` included, stay valid; the kinematics is the same).
+
+        Each sits on its joint (offset 0 at the start of the segment beyond it) with that
+        segment's standard deviation.  The tracking model leaves a bent joint's outer corner
+        1.0-1.5 projected sigmas from its nearest Gaussians: the refinement of
+        :class:`~hand_sog_tracker.core.tracker.Tracker` uses this model to explain it.
+        """
+        add_chain, add_segment, add_sigma = [], [], []
+        for c in range(5):
+            for s in (1, 2):
+                on = np.flatnonzero((self.g_chain == c) & (self.g_segment == s))
+                if on.size == 0:
+                    raise InputError(f"chain {c} has no Gaussian on segment {s}")
+                add_chain.append(c), add_segment.append(s), add_sigma.append(self.g_sigmas[on[0]])
+        return replace(
+            self,
+            g_chain=np.concatenate([self.g_chain, add_chain]).astype(np.int64),
+            g_segment=np.concatenate([self.g_segment, add_segment]).astype(np.int64),
+            g_offsets=np.concatenate([self.g_offsets, np.zeros((len(add_chain), 3))]),
+            g_sigmas=np.concatenate([self.g_sigmas, add_sigma]),
+        )
+
 
 _BASE_MODELS: dict[bool, HandModel] = {}
 
