@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from typing import Callable
 
 import numpy as np
 import pytest
@@ -11,14 +13,14 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
 from hand_sog_tracker.core.depth_sog import ImageSoG, preprocess
 from hand_sog_tracker.core.energy import Objective
-from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
+from hand_sog_tracker.core.hand_model import FINGER_PIP, chain_slice, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.optimizer import OptimizeResult, run
 from hand_sog_tracker.core.restarts import RESTART_ITERATIONS, SHIFT_CHUNK, SHIFT_EVERY
 from hand_sog_tracker.core.salient import Detections
-from hand_sog_tracker.core.tracker import Tracker
+from hand_sog_tracker.core.tracker import REFINE_CURL_RAD, Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
-from hand_sog_tracker.errors import DepthImageError, IntrinsicsError
+from hand_sog_tracker.errors import DepthImageError, InputError, IntrinsicsError
 from hand_sog_tracker.synth.render import RenderOptions, render_depth
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
 
@@ -490,3 +492,95 @@ def test_a_fist_fitted_from_its_true_pose_stays_closer_when_curled_fingers_may_t
         tips = fingertips(tracker.model, x) - fingertips(tracker.model, truth)
         err[contact is not None] = float(np.linalg.norm(tips, axis=1).mean())
     assert err[True] < 6.0 and err[True] < err[False] - 1.5, err
+
+
+def _fist_frame(tracker: Tracker) -> tuple[NDArray[np.float64], Objective]:
+    """A capsule fist (index .. little at ``FIST_FINGER_DEG``) and its tracked frame's objective
+    (previous poses and ``contact`` from the truth)."""
+    from hand_sog_tracker.core.articulations import FIST_FINGER_DEG
+    from hand_sog_tracker.core.energy import contact_shares
+
+    intr = default_intrinsics()
+    truth = rest_pose((0.0, 20.0, 380.0))
+    for c in range(1, 5):
+        truth[chain_slice(c)] = np.radians(FIST_FINGER_DEG)
+    pre = preprocess(render_depth(tracker.model, truth, intr, RenderOptions()), intr, tracker.config)
+    data, det, sil = tracker._data_near(pre, truth, detect=True)
+    obj = Objective(
+        tracker.model, data, tracker.config, previous=(truth, truth), targets=tracker._targets(truth, det),
+        silhouette=sil, contact=contact_shares(truth),
+    )
+    return truth, obj
+
+
+def test_the_answer_of_a_curled_hand_is_refined_on_the_joint_model() -> None:
+    """Issue 11: a capsule fist fitted as a tracked frame is (7 iterations from its true pose)
+    opens its curled fingers (measured 6.1 mm mean fingertip error); the answer's refinement
+    on the model with joint Gaussians brings them back (2.7 mm).  An open hand's answer is
+    the fit itself, and so is every answer with ``refine_iterations`` 0."""
+    tracker = Tracker(TrackerConfig())
+    truth, obj = _fist_frame(tracker)
+    res = tracker._maximise(obj, truth, iterations=7)
+    refined = tracker._refined(obj, res)
+
+    def err(x: NDArray[np.float64]) -> float:
+        return float(np.linalg.norm(fingertips(tracker.model, x) - fingertips(tracker.model, truth), axis=1).mean())
+
+    assert err(res.x) > 4.5 and err(refined) < 0.6 * err(res.x), (err(res.x), err(refined))
+    open_hand = res.x.copy()
+    open_hand[6:] = 0.1
+    assert tracker._refined(obj, dataclasses.replace(res, x=open_hand)) is open_hand
+    # refine_iterations 0 turns it off; its range is checked.
+    tracker.set_config(TrackerConfig(refine_iterations=0))
+    assert tracker._refined(obj, res) is res.x
+    with pytest.raises(InputError, match="refine_iterations"):
+        TrackerConfig(refine_iterations=-1)
+
+
+def test_a_tracked_curled_hand_publishes_the_refined_pose_and_tracks_on_from_its_own() -> None:
+    """The answer (result pose, fingertips, Gaussians) is the refined pose; the track's state,
+    from which the next frame starts, stays the fit's pose."""
+    tracker = Tracker(TrackerConfig())
+    frames = list(synthetic_sequence("fingercount", 24, intrinsics=default_intrinsics(), seed=3))
+    differed = 0
+    for frame in frames:
+        res = tracker.process(frame.depth_mm, default_intrinsics())
+        if res.pose is None:
+            continue
+        state = tracker._prev[0]
+        np.testing.assert_allclose(res.fingertips_mm, fingertips(tracker.model, res.pose))
+        np.testing.assert_allclose(res.gaussians_mm[tracker.model.tip_index], res.fingertips_mm)
+        curled = np.max(state[FINGER_PIP]) > REFINE_CURL_RAD
+        if curled:
+            differed += not np.array_equal(res.pose, state)
+        else:
+            assert np.array_equal(res.pose, state)
+    assert differed >= 5, differed
+
+
+def test_a_refinement_told_to_stop_answers_with_the_fit() -> None:
+    """``refine_stop`` (the node: a newer image waits) is asked before and after every
+    iteration of the refinement; once it says stop, the answer is the fit unrefined."""
+    tracker = Tracker(TrackerConfig())
+    truth, obj = _fist_frame(tracker)
+    res = tracker._maximise(obj, truth, iterations=7)
+    asked: list[int] = []
+
+    def stop_after(n: int) -> Callable[[], bool]:
+        def stop() -> bool:
+            asked.append(n)
+            return len(asked) > n
+
+        return stop
+
+    tracker.refine_stop = stop_after(0)
+    assert tracker._refined(obj, res) is res.x and asked == [0]
+    asked.clear()
+    tracker.refine_stop = stop_after(2)
+    assert tracker._refined(obj, res) is res.x and len(asked) == 3
+    asked.clear()
+    tracker.refine_stop = stop_after(100)
+    refined = tracker._refined(obj, res)
+    assert refined is not res.x and 1 < len(asked) <= 1 + tracker.config.refine_iterations
+    tracker.refine_stop = None
+    np.testing.assert_array_equal(tracker._refined(obj, res), refined)

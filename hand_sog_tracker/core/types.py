@@ -93,6 +93,9 @@ class TrackerConfig:
     median_kernel: int = 3  #: 0 or 1 disables the median filter; else odd 3 or 5
     max_width_px: int = 320  #: images wider than this are decimated first
     iterations: int = 7
+    #: A frame with a curled finger answers with its fit refined this many iterations on the
+    #: model with joint Gaussians (0: off; issue 11, see tracker.REFINE_CURL_RAD)
+    refine_iterations: int = 4
     w_col: float = 1.0
     w_dan: float = 0.1
     w_lim: float = 0.2
@@ -121,6 +124,8 @@ class TrackerConfig:
             raise InputError("max_width_px must be at least 80")
         if not (1 <= self.iterations <= 200):
             raise InputError("iterations must be in [1, 200]")
+        if not (0 <= self.refine_iterations <= 50):
+            raise InputError("refine_iterations must be in [0, 50]")
         for w in ("w_col", "w_dan", "w_lim", "w_smo", "w_ord", "w_sal", "w_sil", "w_cpl", "w_curl"):
             if getattr(self, w) < 0:
                 raise InputError(f"{w} must be >= 0")

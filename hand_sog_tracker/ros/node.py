@@ -256,6 +256,8 @@ class TrackerNode(CalibrationService, Node):
         self._tracker = Tracker(self._settings.tracker, user_model)
         self._tracker.split_initialisation = True  # issue 14: see _process
         self._tracker.defer_restarts = True  # issue 14: a frame is answered before its restarts
+        # ... and unrefined once a newer image waits (issue 14, Tracker.refine_stop).
+        self._tracker.refine_stop = self._image_waiting
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
         self._markers_shown = False
