@@ -458,6 +458,9 @@ class Tracker(RestartStrategies):
         iterations = self._config.refine_iterations
         if iterations <= 0 or np.max(x[FINGER_PIP]) <= REFINE_CURL_RAD:
             return x
+        stop = self.refine_stop
+        if stop is not None and stop():
+            return x
         joint = self._joint_model
         if joint is None or joint[0] is not self._model:
             joint = self._joint_model = (self._model, self._model.with_joint_gaussians())
@@ -465,9 +468,6 @@ class Tracker(RestartStrategies):
             joint[1], obj.data, obj.config, obj.previous, obj.targets, obj.silhouette, obj.contact
         )
         steps = np.minimum(np.maximum(res.steps * WARM_GROW, _INITIAL_STEPS * WARM_MIN), _INITIAL_STEPS)
-        stop = self.refine_stop
-        if stop is not None and stop():
-            return x
         fit = self._fit(refine, x, iterations=iterations, initial_steps=steps)
         while True:
             try:

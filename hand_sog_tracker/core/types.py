@@ -153,7 +153,8 @@ class TrackResult:
     confidence : float
         In [0, 1]: how well the model explains the data near the hand.
     energy : float
-        Objective value E of the final pose.
+        Objective value E of the frame's fit (the track's pose; ``pose`` is that pose refined
+        when a finger is curled, see ``tracker.REFINE_CURL_RAD``).
     n_image_gaussians : int
         Quadtree leaves used as data.
     timings_ms : dict
