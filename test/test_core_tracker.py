@@ -18,6 +18,7 @@ from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.optimizer import OptimizeResult, run
 from hand_sog_tracker.core.restarts import RESTART_ITERATIONS, SHIFT_CHUNK, SHIFT_EVERY
 from hand_sog_tracker.core.salient import Detections
+from hand_sog_tracker.core.silhouette import Silhouette
 from hand_sog_tracker.core.tracker import REFINE_CURL_RAD, Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import DepthImageError, InputError, IntrinsicsError
@@ -473,16 +474,10 @@ def test_a_fist_fitted_from_its_true_pose_stays_closer_when_curled_fingers_may_t
     true pose, as on a tracked frame (``contact`` from that pose), keeps its fingertips closer to
     the truth than with every collision pair at full cost, where the fingers spread apart and
     open at the knuckles (measured: 4.9 against 7.2 mm mean over the five fingertips)."""
-    from hand_sog_tracker.core.articulations import FIST_FINGER_DEG
     from hand_sog_tracker.core.energy import contact_shares
 
-    intr = default_intrinsics()
     tracker = Tracker(TrackerConfig())
-    truth = rest_pose((0.0, 20.0, 380.0))
-    for c in range(1, 5):
-        truth[chain_slice(c)] = np.radians(FIST_FINGER_DEG)
-    pre = preprocess(render_depth(tracker.model, truth, intr, RenderOptions()), intr, tracker.config)
-    data, det, sil = tracker._data_near(pre, truth, detect=True)
+    truth, data, det, sil = _fist_data(tracker)
     err = {}
     for contact in (None, contact_shares(truth)):
         obj = Objective(
@@ -494,18 +489,25 @@ def test_a_fist_fitted_from_its_true_pose_stays_closer_when_curled_fingers_may_t
     assert err[True] < 6.0 and err[True] < err[False] - 1.5, err
 
 
-def _fist_frame(tracker: Tracker) -> tuple[NDArray[np.float64], Objective]:
-    """A capsule fist (index .. little at ``FIST_FINGER_DEG``) and its tracked frame's objective
-    (previous poses and ``contact`` from the truth)."""
+def _fist_data(tracker: Tracker) -> tuple[NDArray[np.float64], ImageSoG, Detections, Silhouette | None]:
+    """A capsule fist (index .. little at ``FIST_FINGER_DEG``) rendered with the default
+    intrinsics: its true pose (26,) and ``tracker``'s data, detections and silhouette there."""
     from hand_sog_tracker.core.articulations import FIST_FINGER_DEG
-    from hand_sog_tracker.core.energy import contact_shares
 
     intr = default_intrinsics()
     truth = rest_pose((0.0, 20.0, 380.0))
     for c in range(1, 5):
         truth[chain_slice(c)] = np.radians(FIST_FINGER_DEG)
     pre = preprocess(render_depth(tracker.model, truth, intr, RenderOptions()), intr, tracker.config)
-    data, det, sil = tracker._data_near(pre, truth, detect=True)
+    return (truth, *tracker._data_near(pre, truth, detect=True))
+
+
+def _fist_frame(tracker: Tracker) -> tuple[NDArray[np.float64], Objective]:
+    """The capsule fist of :func:`_fist_data` and its tracked frame's objective (previous poses
+    and ``contact`` from the truth)."""
+    from hand_sog_tracker.core.energy import contact_shares
+
+    truth, data, det, sil = _fist_data(tracker)
     obj = Objective(
         tracker.model, data, tracker.config, previous=(truth, truth), targets=tracker._targets(truth, det),
         silhouette=sil, contact=contact_shares(truth),
