@@ -24,7 +24,9 @@ about 40 and 24 ms median on dev renders, 2026-11-27), see :meth:`hand_sog_track
    assignment cost) become the finalists (:class:`InitFinalists`);
 2. *finish*: the finalists are refined with the full objective (silhouette, fingertip
    detections) on this frame or the next one, the best gets the finger and finger-shift
-   restarts, and tracking starts from it.
+   restarts, and tracking starts from it; the lateral restarts (the hand moved sideways, see
+   :meth:`~hand_sog_tracker.core.restarts.RestartStrategies._lateral_restarts`) follow, before
+   the answer or, in the node, after it.
 """
 
 from __future__ import annotations

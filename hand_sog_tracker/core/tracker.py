@@ -215,8 +215,9 @@ class Tracker(RestartStrategies):
     #: result of :meth:`process` is the frame's fit, and the restarts run on
     #: :meth:`finish_frame` (or at the start of the next :meth:`process`); a candidate that wins
     #: there continues the track from the next frame on.  The node sets it: it answers a frame
-    #: before the restarts (up to 5-20 ms on the frames where they fire); off (the default), a
-    #: frame's result includes its restarts.
+    #: before the restarts (up to 5-20 ms on the frames where they fire; the lateral restarts of
+    #: a new track, after its first answer, about 35 ms); off (the default), a frame's result
+    #: includes its restarts.
     defer_restarts: bool = False
     #: Asked before and after every iteration of an answer's refinement (:meth:`_refined`,
     #: about 0.45 ms each); once it returns True the frame answers with its fit unrefined.
@@ -224,12 +225,11 @@ class Tracker(RestartStrategies):
     #: ms on frames with a curled finger would otherwise cost answered frames); None (the
     #: default): always refined, results independent of timing.
     refine_stop: Callable[[], bool] | None = None
-    #: (objective, fit, data, detections, previous pose, all restarts or only the scheduled
-    #: shift) of the frame whose restarts are due.
-    _deferred: tuple[Objective, OptimizeResult, ImageSoG, Detections, NDArray[np.float64], bool] | None = None
-    #: Restarts that :meth:`finish_frame` paused: (their steps, the fit of their frame, the
-    #: pose before it).
-    _running: tuple[Steps[OptimizeResult], OptimizeResult, NDArray[np.float64]] | None = None
+    #: (the restarts' steps, not started yet; the fit of their frame; the pose before it, None
+    #: on the frame a track starts on) of the frame whose restarts are due.
+    _deferred: tuple[Steps[OptimizeResult], OptimizeResult, NDArray[np.float64] | None] | None = None
+    #: Restarts that :meth:`finish_frame` paused: the same three.
+    _running: tuple[Steps[OptimizeResult], OptimizeResult, NDArray[np.float64] | None] | None = None
     #: (model, low, high) of :meth:`_maximise`: the joint limits as bounds (26,) each, read-only.
     _bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
     #: (tracking model, its :meth:`HandModel.with_joint_gaussians`) of :meth:`_refined`.
@@ -278,11 +278,10 @@ class Tracker(RestartStrategies):
         """
         deferred, self._deferred = self._deferred, None
         if deferred is not None:
-            obj, res, data, det, p1, full = deferred
             if self._running is None:
-                steps = self._restarts(obj, res, data, det) if full else self._scheduled_restarts(obj, res, det)
-                self._running = (steps, res, p1)
+                self._running = deferred
             else:
+                deferred[0].close()  # (never started: its frame runs no restarts of its own)
                 self._frame_count += 1  # (the schedule of the shift candidates goes on)
         if self._running is None:
             return False
@@ -299,7 +298,7 @@ class Tracker(RestartStrategies):
         if best is res or self._prev is None:
             return False
         if self._prev[0] is res.x:
-            self._prev = (best.x, p1)
+            self._prev = (best.x, best.x if p1 is None else p1)
             return True
         self._shift_pending = ShiftCandidate(best.x, best.steps, RESTART_ITERATIONS - SHIFT_CHUNK, res.x)
         return False
@@ -441,7 +440,8 @@ class Tracker(RestartStrategies):
         self._prev = (res.x, p1)
         self._status = TrackerStatus.TRACKING
         if self.defer_restarts:
-            self._deferred = (obj, res, data, det, p1, restarts)
+            steps = self._restarts(obj, res, data, det) if restarts else self._scheduled_restarts(obj, res, det)
+            self._deferred = (steps, res, p1)
         answer = self._refined(obj, res)
         if answer is not res.x:
             centres = gaussian_centres(self._model, answer)
@@ -625,8 +625,10 @@ class Tracker(RestartStrategies):
 
         One data extraction (quadtree, detections, silhouette) around the first finalist
         serves all; each finalist gets ``final_iterations`` with the full objective, the best
-        by score gets the finger and (forced) finger-shift restarts.  The detection restarts
-        are left to the tracked frames that follow.
+        by score gets the finger and (forced) finger-shift restarts, then the lateral restarts
+        (:meth:`_lateral_restarts`, about 75 objective evaluations: with :attr:`defer_restarts`
+        after the answer, as a tracked frame's restarts).  The detection restarts are left to
+        the tracked frames that follow.
         """
         cfg = self._config
         tq = time.perf_counter()
@@ -651,11 +653,15 @@ class Tracker(RestartStrategies):
         _, res, data, obj = best
         res = run(self._finger_restarts(obj, res, data))
         res = run(self._shift_restarts(obj, res, det, force=True))
+        if not self.defer_restarts:
+            res = run(self._lateral_restarts(obj, res, det))
         conf = coverage(self._model, res.x, data)
         if conf < cfg.lost_confidence:
             self._status = TrackerStatus.NO_HAND
             return self._result(None, conf, res.fun, data.n, timings)
         self._prev = (res.x, res.x)
+        if self.defer_restarts:
+            self._deferred = (self._lateral_restarts(obj, res, det), res, None)
         self._low_frames = 0
         self._status = TrackerStatus.TRACKING
         return self._result(res.x, conf, res.fun, data.n, timings)
