@@ -8,15 +8,17 @@ import numpy as np
 import pytest
 
 from hand_sog_tracker.core import tracker as tracker_module
+from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED, OPEN
 from hand_sog_tracker.core.depth_sog import preprocess
 from hand_sog_tracker.core.energy import Objective
-from hand_sog_tracker.core.hand_model import default_hand_model
+from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model
 from hand_sog_tracker.core.initialise import (
     DETECTION_DIRECTION_MIN_DEG,
     INIT_SEARCH,
     HandBlob,
     detection_direction,
     find_hand,
+    finger_combinations,
 )
 from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
 from hand_sog_tracker.core.restarts import RESTART_ITERATIONS
@@ -209,3 +211,45 @@ def test_the_hand_direction_follows_the_hand_where_the_wrist_turns_the_forearm(d
             assert _in_plane_deg(blob.hand_direction, hand_axis) < 10.0 < 20.0 < _in_plane_deg(
                 blob.directions[0], hand_axis
             )
+
+
+def test_finger_combinations_curl_each_subset_of_fingers_of_an_open_start() -> None:
+    start = np.zeros(26)
+    start[:6] = [5.0, -20.0, 400.0, 0.1, 0.2, 0.3]
+    start[6:] = OPEN
+    combos = finger_combinations(start)
+    assert len(combos) == 31
+    seen = set()
+    for bits, x in enumerate(combos, start=1):
+        assert np.array_equal(x[:6], start[:6])  # the wrist is the start's
+        for c in range(1, 5):
+            want = FINGER_CURLED if (bits >> c) & 1 else FINGER_EXTENDED
+            assert np.array_equal(x[chain_slice(c)], want)
+        thumb_curled = not np.array_equal(x[chain_slice(0)], FINGER_EXTENDED)
+        assert thumb_curled == bool(bits & 1)
+        seen.add(x.tobytes())
+    assert len(seen) == 31 and not np.any(start[6:] != OPEN)  # distinct; the start untouched
+
+
+def test_a_hand_found_mid_motion_with_two_fingers_out_is_found_with_the_rest_curled(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 11: a finger counting hand showing thumb and index (the others curled), found
+    without a track.  From the open, half-closed and closed start poses alone the best pose is
+    the hand turned palm-for-back, its thumb on the little finger's data (53-130 mm off); the
+    start poses with single fingers curled find it."""
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, mesh_sequence
+
+    sequence = mesh_sequence("fingercount", 60, INTR, seed=7, options=MeshRenderOptions("tof"))
+    frame = next(f for k, f in enumerate(sequence) if k == 40)
+    depth = np.round(frame.depth_mm)
+
+    def found() -> np.ndarray:
+        """Fingertip errors (5,), mm, of a new track on the frame."""
+        result = Tracker().process(depth, INTR)
+        assert result.fingertips_mm is not None
+        return np.linalg.norm(result.fingertips_mm - frame.fingertips_mm, axis=1)
+
+    assert found().max() < 20.0  # (the curled ring finger 17 mm off, the others 2-10)
+    monkeypatch.setattr(tracker_module, "INIT_SEARCH", replace(INIT_SEARCH, combination_below=-np.inf))
+    assert found().mean() > 50.0

@@ -21,7 +21,9 @@ about 40 and 24 ms median on dev renders, 2026-11-27), see :meth:`hand_sog_track
    ``coarse_quad_px``), the best by objective (both palm sides) are articulated on the full-resolution
    quadtree of the same region (and the best of the start poses along the hand end's axis and
    the detections, when there are such), and the best by the restarts' score (objective minus detection
-   assignment cost) become the finalists (:class:`InitFinalists`);
+   assignment cost) become the finalists (:class:`InitFinalists`); when even the best scores poorly
+   (``combination_below``), start poses with single fingers curled (:func:`finger_combinations`)
+   are tried as well;
 2. *finish*: the finalists are refined with the full objective (silhouette, fingertip
    detections) on this frame or the next one, the best gets the finger and finger-shift
    restarts, and tracking starts from it; the lateral restarts (the hand moved sideways, see
@@ -37,9 +39,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.articulations import CLOSED, HALF_CLOSED, OPEN
+from hand_sog_tracker.core.articulations import CLOSED, FINGER_CURLED, FINGER_EXTENDED, HALF_CLOSED, OPEN
 from hand_sog_tracker.core.depth_sog import Preprocessed
-from hand_sog_tracker.core.hand_model import JOINTS, N_PARAMS, HandModel
+from hand_sog_tracker.core.hand_model import JOINTS, N_PARAMS, HandModel, chain_slice
 from hand_sog_tracker.core.rotations import euler_from_matrix, rot_y  # euler_from_matrix re-exported
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 
@@ -53,6 +55,7 @@ __all__ = [
     "HAND_AXIS_BEHIND_PALM_MM",
     "detection_direction",
     "find_hand",
+    "finger_combinations",
     "initial_hypotheses",
     "euler_from_matrix",
 ]
@@ -117,6 +120,19 @@ class InitSearch:
         Best-scoring poses handed to the second stage.
     final_iterations : int
         Iterations of each finalist with the full objective in the second stage.
+    combination_below : float
+        The start poses with single fingers curled (:func:`finger_combinations`) are tried only
+        when the best of the others scores below this (the restarts' score, unitless; chosen
+        here: the first frames of 144 dev renders, open hands, scored 0.356-0.50, 1% under 0.36;
+        432 starts in the middle of dev renders 0.18-0.48, and every start where a combination
+        won scored under 0.36).  They cost about 30 ms: 62 evaluations to pick them, two fits.
+    combination_margin : float
+        The start poses with single fingers curled (:func:`finger_combinations`) compete for
+        the finalists only when the best of them beats the best of the others by this much of
+        the restarts' score (unitless; chosen here, issue 11).  On 432 starts in the middle of
+        dev renders their best won 54 times, by 0.05 in the median (up to 0.1); on the labelled
+        real frames 20 times in 112 runs, by 0.015-0.04, and put fingers on their neighbours
+        (112 runs 8.3 -> 10.6 mm without a margin).
     """
 
     coarse_quad_px: int = 8
@@ -126,6 +142,8 @@ class InitSearch:
     full_iterations: int = 8
     finalists: int = 2
     final_iterations: int = 10
+    combination_below: float = 0.36
+    combination_margin: float = 0.045
 
 
 #: The effort the tracker uses.
@@ -426,3 +444,28 @@ def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray
         theta[JOINTS] = joints
         out.append(theta)
     return out[:n]
+
+
+def finger_combinations(start: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+    """``start`` (26,) with its fingers each extended or curled: the 31 combinations with at
+    least one finger curled (a curled thumb as in :data:`CLOSED`), in the order of the bits
+    of 1..31 (bit c: chain c curled).
+
+    Issue 11: a hand found in the middle of a motion (after a loss, or a camera started late)
+    often has some fingers curled and others extended (finger counting, a grasp); from the
+    open, closed and half-closed start poses the fit curled or extended whole hands, and the
+    best pose often had the hand turned palm-for-back with its thumb on the little finger's
+    data (dev renders of finger counting started at frame 40: 100-130 mm off, while a fit from
+    the true pose scored 0.33-0.39 against 0.23-0.25).
+    """
+    out = []
+    for bits in range(1, 32):
+        x = np.array(start, dtype=np.float64)
+        for c in range(5):
+            curled = (bits >> c) & 1
+            if c == 0:
+                x[chain_slice(0)] = CLOSED[:4] if curled else FINGER_EXTENDED  # (the thumb's joints)
+            else:
+                x[chain_slice(c)] = FINGER_CURLED if curled else FINGER_EXTENDED
+        out.append(x)
+    return out

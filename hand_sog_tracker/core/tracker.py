@@ -40,6 +40,7 @@ from hand_sog_tracker.core.initialise import (
     InitFinalists,
     detection_direction,
     find_hand,
+    finger_combinations,
     initial_hypotheses,
 )
 from hand_sog_tracker.core.kinematics import (
@@ -572,18 +573,35 @@ class Tracker(RestartStrategies):
                 starts += initial_hypotheses(self._model, HandBlob(blob.palm, [d]), 2)
         rigid = np.zeros(starts[0].size, dtype=bool)
         rigid[:6] = True
-        parts = [self._hand_side(coarse, x0) for x0 in starts]
-        screened = self._screened(starts[:n_blob], parts[:n_blob], eff.screened)
-        aligned = []
-        for i, (x0, data) in enumerate(zip(starts, parts)):
-            if (i < n_blob and i not in screened) or data.n == 0:
-                continue
-            # Rigid alignment first, then articulation (seed 004's coarse-to-fine).
+
+        def align(i: int, x0: NDArray[np.float64], data: ImageSoG) -> tuple[float, int, NDArray[np.float64], bool]:
+            """Rigid alignment (seed 004's coarse-to-fine: before the articulation)."""
             res = self._maximise(
                 Objective(self._model, data, cfg), x0,
                 iterations=eff.rigid_iterations, initial_scale=2.0, active=rigid,
             )
-            aligned.append((res.fun, -i, res.x, bool(global_rotation(x0)[2, 2] > 0)))
+            return res.fun, -i, res.x, bool(global_rotation(x0)[2, 2] > 0)
+
+        def articulate(kept: list[tuple[float, int, NDArray[np.float64], bool]]) -> list[tuple[float, int, NDArray]]:
+            """(score, rank, pose) of each kept pose articulated on the fine data."""
+            out = []
+            for _, rank, x, _ in kept:
+                data = self._hand_side(fine, x)
+                if data.n == 0:
+                    continue
+                obj = Objective(self._model, data, cfg)
+                res = self._maximise(obj, x, iterations=eff.full_iterations, initial_scale=2.0)
+                # :meth:`_score` without evaluating the objective again (no salient term here).
+                out.append((res.fun - cfg.w_sal * self._assignment_cost(res.x, det, hidden_tips=False), rank, res.x))
+            return out
+
+        parts = [self._hand_side(coarse, x0) for x0 in starts]
+        screened = self._screened(starts[:n_blob], parts[:n_blob], eff.screened)
+        aligned = [
+            align(i, x0, data)
+            for i, (x0, data) in enumerate(zip(starts, parts))
+            if (i >= n_blob or i in screened) and data.n
+        ]
         # The blob's start poses compete for ``kept``; the best of the hand axis' and the
         # detection direction's is articulated besides them (taking a slot, the detection
         # direction's had displaced the right pose of a far hand whose detections missed two
@@ -592,18 +610,27 @@ class Tracker(RestartStrategies):
         kept = _balanced(sorted(blob_aligned, key=lambda a: a[:2], reverse=True), eff.kept)
         if len(blob_aligned) < len(aligned):
             kept.append(max((a for a in aligned if -a[1] >= n_blob), key=lambda a: a[:2]))
-        scored = []
-        for _, rank, x, _ in kept:
-            data = self._hand_side(fine, x)
-            if data.n == 0:
-                continue
-            obj = Objective(self._model, data, cfg)
-            res = self._maximise(obj, x, iterations=eff.full_iterations, initial_scale=2.0)
-            # :meth:`_score` without evaluating the objective again (no salient term here).
-            scored.append((res.fun - cfg.w_sal * self._assignment_cost(res.x, det, hidden_tips=False), rank, res.x))
+        scored = articulate(kept)
         if not scored:
             return None
         scored.sort(key=lambda s: s[:2], reverse=True)
+        if scored[0][0] < eff.combination_below:
+            # A poor best: maybe a hand found mid-motion, some fingers curled and others not
+            # (issue 11).  From the open hands of the blob's main direction (palm toward and
+            # away), the combination of curled fingers that scores best at its start pose on
+            # each palm side is aligned and articulated; they replace the others only when the
+            # best of them scores higher by ``combination_margin``.
+            n = len(starts)
+            combos = []
+            for k, x0 in enumerate(starts[:2]):
+                part = self._hand_side(coarse, x0)  # (the same for every combination: same wrist)
+                if part.n:
+                    screen = Objective(self._model, part, cfg)
+                    best = max(finger_combinations(x0), key=lambda c: screen(c, gradient=False)[0])
+                    combos.append(align(n + k, best, part))
+            tried = sorted(articulate(combos), key=lambda s: s[:2], reverse=True)
+            if tried and tried[0][0] >= scored[0][0] + eff.combination_margin:
+                scored = sorted(scored + tried, key=lambda s: s[:2], reverse=True)
         return [x for _, _, x in scored[: eff.finalists]]
 
     def _screened(self, starts: list[NDArray[np.float64]], parts: list[ImageSoG], n: int) -> set[int]:
