@@ -550,7 +550,9 @@ class Tracker(RestartStrategies):
         One quadtree (coarse) and one detection pass around the palm serve every start pose;
         each pose drops the data beyond its own wrist.  No silhouette term while the poses
         are still far off: it would pull them into the outline before the depth has placed
-        them (a hand flipped palm-for-back has the same outline).
+        them (a hand flipped palm-for-back has the same outline).  When the best start pose
+        scores poorly, the curled-finger combinations (:func:`finger_combinations`) are tried
+        too (``INIT_SEARCH.combination_below``, about 30 ms more).
         """
         cfg, eff = self._config, INIT_SEARCH
         blob = find_hand(pre, cfg)
