@@ -458,14 +458,11 @@ def finger_combinations(start: NDArray[np.float64]) -> list[NDArray[np.float64]]
     data (dev renders of finger counting started at frame 40: 100-130 mm off, while a fit from
     the true pose scored 0.33-0.39 against 0.23-0.25).
     """
+    curled = (CLOSED[:4], *[FINGER_CURLED] * 4)  # (CLOSED[:4]: the thumb's joints)
     out = []
     for bits in range(1, 32):
         x = np.array(start, dtype=np.float64)
         for c in range(5):
-            curled = (bits >> c) & 1
-            if c == 0:
-                x[chain_slice(0)] = CLOSED[:4] if curled else FINGER_EXTENDED  # (the thumb's joints)
-            else:
-                x[chain_slice(c)] = FINGER_CURLED if curled else FINGER_EXTENDED
+            x[chain_slice(c)] = curled[c] if (bits >> c) & 1 else FINGER_EXTENDED
         out.append(x)
     return out
