@@ -253,3 +253,45 @@ def test_a_hand_found_mid_motion_with_two_fingers_out_is_found_with_the_rest_cur
     assert found().max() < 20.0  # (the curled ring finger 17 mm off, the others 2-10)
     monkeypatch.setattr(tracker_module, "INIT_SEARCH", replace(INIT_SEARCH, combination_below=-np.inf))
     assert found().mean() > 50.0
+
+
+def test_a_hand_whose_fingertips_leave_the_image_is_found_fingers_up_not_on_its_forearm() -> None:
+    """Issue 11: a hand held close to the camera (wrist at 280 mm), its three longest fingertips
+    above the top of the image and its forearm leaving the bottom.  The blob touches the border
+    at both ends; the narrow runs of the fingers there are no forearm.  (Counting every border
+    pixel alike, the fingers' outweighed the forearm's: the hand was found upside down on the
+    forearm, every fingertip 200-250 mm off.)"""
+    from hand_sog_tracker.core.hand_model import rest_pose
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, pose_mesh, render_mesh_depth
+
+    pose = rest_pose((0.0, 42.0, 280.0))
+    posed = pose_mesh(pose)
+    depth = render_mesh_depth(pose, INTR, options=MeshRenderOptions("structured"), rng=np.random.default_rng(0), posed=posed)
+    assert (INTR.project(posed.fingertips)[1:4, 1] < 0).all()  # (middle, index, ring: out of view)
+    assert (depth[0] > 0).any() and (depth[-1] > 0).any()  # (fingers at the top, forearm at the bottom)
+    config = TrackerConfig()
+    blob = find_hand(preprocess(depth, INTR, config), config)
+    assert blob is not None and blob.directions[0][1] < -0.95  # fingers up in the image
+    assert blob.palm[1] < pose[1] - 20.0  # (the palm lies above the wrist)
+    res = Tracker(config).process(depth, INTR)
+    visible = INTR.project(posed.fingertips)[:, 1] >= 0
+    errors = np.linalg.norm(res.fingertips_mm - posed.fingertips, axis=1)
+    assert errors[visible].max() < 15.0 and errors.max() < 20.0, errors.round(1)
+
+
+def test_a_forearm_with_a_missing_pixel_at_the_border_is_still_a_forearm() -> None:
+    """A forearm leaving the bottom of the image, 38 px (53 mm) wide there, with one column of
+    missing pixels in its middle: two runs of 26 mm, each too narrow for a forearm on its own.
+    Joined, they are one, and the fingers point up.  (Without the join, the blob's extents
+    decided and the hand was found upside down: a validation render's fingertips 262 mm off.)"""
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence
+
+    shape = MeshShape(1.011, 0.953, 1.001)
+    frame = next(iter(mesh_sequence("fingerwave", 1, INTR, shape=shape, seed=5011, options=MeshRenderOptions("structured"))))
+    depth = frame.depth_mm.copy()
+    h = depth.shape[0]
+    columns = np.flatnonzero(depth[h - 2] > 0)
+    depth[h - 2 :, int(columns.mean())] = 0
+    config = TrackerConfig()
+    blob = find_hand(preprocess(depth, INTR, config), config)
+    assert blob is not None and blob.directions[0][1] < -0.95

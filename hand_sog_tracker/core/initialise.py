@@ -4,8 +4,10 @@ No rest pose is required.  The nearest sizeable blob of in-range depth is taken
 as hand (plus forearm), less what lies more than
 :data:`HAND_DEPTH_BAND_MM` behind its nearest points (an arm joins hand and body
 in one surface).  Its 3D principal axis gives the arm direction; the end
-of the blob that touches the image border is the forearm, so the hand lies at
-the other end (when neither end touches the border both are tried).  Start
+of the blob that leaves the image in a run as wide as a forearm is the forearm, so the
+hand lies at the other end; else a side reaching far beyond the palm is the forearm (fingers
+leaving the image are no forearm; when both ends leave it, or nothing decides, both
+directions are tried).  Start
 poses then combine palm toward / away from the camera, open / closed hand and
 in-plane rotations; the tracker keeps the one with the best objective.  A wrist
 bent sideways turns hand and forearm apart, so open hands along the hand end's own axis
@@ -73,6 +75,13 @@ MAX_BLOB_AREA_MM2 = 150_000.0
 #: on the other side) is taken to hold a forearm on that side (mm; a hand reaches about 135
 #: mm from its palm centre to the fingertips).
 FOREARM_MIN_EXTENT_MM = 150.0
+#: A run of blob pixels along the image border narrower than this (mm at its depth) is a finger
+#: leaving the view, not a forearm: it is no evidence of where the forearm is (a finger is 15-22 mm
+#: wide, a wrist or forearm 45-70 mm; two fingers side by side count as a forearm, which leaves
+#: the direction open, see :func:`_forearm_side`).
+FOREARM_MIN_WIDTH_MM = 30.0
+#: Runs along the border this close (px) count as one (missing pixels; fingers pressed together).
+BORDER_GAP_PX = 3
 #: Depth extent (mm) of a hand (plus wrist) behind its nearest point: what lies farther behind
 #: is cut off as arm or body (commit ea81b12).
 HAND_DEPTH_BAND_MM = 250.0
@@ -306,8 +315,6 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
         axis = np.array([0.0, -1.0, 0.0])
     axis /= np.linalg.norm(axis)
     t = (pts - c) @ axis
-    h, w = depth.shape
-    border = (us <= 1) | (vs <= 1) | (us >= w - 2) | (vs >= h - 2)
     dist = cv2.distanceTransform(_without_holes(blob).astype(np.uint8), cv2.DIST_L2, 5)
     # Extent of the blob on either side of its thickest point along the axis:
     # fingers reach about a hand length from the palm, a forearm much farther,
@@ -316,10 +323,10 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     t0 = t[k0]
     ext_pos = float(np.percentile(t, 99) - t0)
     ext_neg = float(t0 - np.percentile(t, 1))
-    sign = 0.0
-    if border.sum() >= 3 and abs(t[border].mean()) > 30.0:
-        sign = -float(np.sign(t[border].mean()))
-    elif max(ext_pos, ext_neg) > FOREARM_MIN_EXTENT_MM and max(ext_pos, ext_neg) > 1.4 * min(ext_pos, ext_neg):
+    sign = _forearm_side(blob, depth, intr, vs, us, t)
+    if sign is None:  # (the blob leaves the view at both ends: both directions are tried)
+        sign = 0.0
+    elif sign == 0.0 and max(ext_pos, ext_neg) > FOREARM_MIN_EXTENT_MM and max(ext_pos, ext_neg) > 1.4 * min(ext_pos, ext_neg):
         sign = 1.0 if ext_pos < ext_neg else -1.0
     if sign != 0.0:
         # The hand end is the far side from the forearm.
@@ -346,6 +353,60 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
         # same, 128 others 0.01 mm worse in the mean).
         angles = angles[:3]
     return HandBlob(palm=palm, directions=[_in_plane(main, a) for a in angles], hand_direction=hand_direction)
+
+
+def _forearm_side(
+    blob: NDArray[np.bool_],
+    depth: NDArray[np.float32],
+    intr: Intrinsics,
+    vs: NDArray[np.int64],
+    us: NDArray[np.int64],
+    t: NDArray[np.float64],
+) -> float | None:
+    """Where the blob leaves the image, along its axis: ``-1.0`` or ``1.0`` when a forearm leaves
+    it on the side of ``t`` (mm along the axis, per blob pixel ``vs, us``) of the opposite sign
+    (the hand end is that sign's side), ``0.0`` when nothing arm-like leaves it, None when the
+    blob leaves it at both ends (fingers at one end, or a forearm at each: undecided).
+
+    Only runs along the border at least :data:`FOREARM_MIN_WIDTH_MM` wide are arm-like; the
+    narrower runs of fingers leaving the view count only toward "both ends".  (Issue 11: a
+    hand held close, whose fingertips leave the top of the image, was found upside down on its
+    forearm: the fingers' border pixels outweighed the forearm's.)
+    """
+    h, w = blob.shape
+    arm = np.zeros(blob.shape, dtype=bool)
+    # Each border's two outermost lines together, runs closer than BORDER_GAP_PX joined (a
+    # sensor's missing pixel splits no forearm in two).
+    lines = (
+        (np.s_[0, :], np.s_[1, :], intr.fx),
+        (np.s_[h - 1, :], np.s_[h - 2, :], intr.fx),
+        (np.s_[:, 0], np.s_[:, 1], intr.fy),
+        (np.s_[:, w - 1], np.s_[:, w - 2], intr.fy),
+    )
+    for line, inner, f in lines:
+        inside = blob[line] | blob[inner]
+        if not inside.any():
+            continue
+        edges = np.flatnonzero(np.diff(np.concatenate(([0], inside.astype(np.int8), [0]))))
+        starts, ends = edges[0::2], edges[1::2]
+        joined = np.concatenate(([True], starts[1:] - ends[:-1] > BORDER_GAP_PX))
+        for a, b in zip(starts[joined], np.append(ends[:-1][joined[1:]], ends[-1])):
+            on = (blob[line][a:b], blob[inner][a:b])
+            z = np.concatenate((depth[line][a:b][on[0]], depth[inner][a:b][on[1]]))
+            if (b - a) * float(np.median(z)) / f >= FOREARM_MIN_WIDTH_MM:
+                arm[line][a:b] = blob[line][a:b]
+    near_border = (us <= 1) | (vs <= 1) | (us >= w - 2) | (vs >= h - 2)
+    ends = (near_border & (t > 30.0)).sum() >= 3, (near_border & (t < -30.0)).sum() >= 3
+    on_arm = arm[vs, us]
+    if on_arm.sum() < 3:
+        return None if all(ends) else 0.0
+    ta = t[on_arm]
+    if (ta > 30.0).sum() >= 3 and (ta < -30.0).sum() >= 3:
+        return None
+    mean = float(ta.mean())
+    if abs(mean) > 30.0:
+        return -float(np.sign(mean))
+    return None if all(ends) else 0.0
 
 
 def _hand_axis(
