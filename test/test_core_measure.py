@@ -113,3 +113,18 @@ def test_reference_widths_follow_the_default_model() -> None:
     assert fingers.shape == (4,) and np.all((fingers > 12) & (fingers < 22))
     # A scaled model's reference is the default's (the factors are relative to the default model).
     assert np.allclose(reference_widths(model.scaled(HandShape(1.1, 0.9, 1.2, 1.2)))[0], fingers)
+
+
+def test_the_robust_mean_of_two_clusters_without_a_value_near_their_median_is_nan_without_a_warning() -> None:
+    """Run lengths of a finger measured half on its own data and half merged with a surface
+    behind it (a wall 120 mm behind the wrist): no value lies within [0.75, 1.33] times the
+    median, and there is nothing to average (NumPy would warn about the empty mean)."""
+    import warnings
+
+    from hand_sog_tracker.core.measure import _robust_mean
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(_robust_mean([2.67, 2.72, 2.73, 15.0, 13.3, 14.7]))
+        assert _robust_mean([10.0, 10.5, 30.0]) == pytest.approx(10.25)
+        assert np.isnan(_robust_mean([]))

@@ -330,8 +330,8 @@ def _robust_mean(values: Sequence[float]) -> float:
         return float("nan")
     v = np.asarray(values, dtype=np.float64)
     med = float(np.median(v))
-    keep = v[(v >= 0.75 * med) & (v <= 1.33 * med)]
-    return float(keep.mean())
+    keep = v[(v >= 0.75 * med) & (v <= 1.33 * med)]  # (empty for a median <= 0)
+    return float(keep.mean()) if keep.size else float("nan")
 
 
 def measure_widths(
