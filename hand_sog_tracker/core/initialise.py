@@ -80,8 +80,9 @@ FOREARM_MIN_EXTENT_MM = 150.0
 #: wide, a wrist or forearm 45-70 mm; two fingers side by side count as a forearm, which leaves
 #: the direction open, see :func:`_forearm_side`).
 FOREARM_MIN_WIDTH_MM = 30.0
-#: Runs along the border this close (px) count as one (missing pixels; fingers pressed together).
-BORDER_GAP_PX = 3
+#: Runs along the border this close (px) count as one: a column of missing pixels splits no
+#: forearm in two (and fingers a pixel apart count as one run: as fingers pressed together).
+BORDER_GAP_PX = 1
 #: Depth extent (mm) of a hand (plus wrist) behind its nearest point: what lies farther behind
 #: is cut off as arm or body (commit ea81b12).
 HAND_DEPTH_BAND_MM = 250.0
@@ -375,8 +376,8 @@ def _forearm_side(
     """
     h, w = blob.shape
     arm = np.zeros(blob.shape, dtype=bool)
-    # Each border's two outermost lines together, runs closer than BORDER_GAP_PX joined (a
-    # sensor's missing pixel splits no forearm in two).
+    # Each border's two outermost lines together (a sensor's missing pixel splits no forearm
+    # in two), runs up to BORDER_GAP_PX apart joined.
     lines = (
         (np.s_[0, :], np.s_[1, :], intr.fx),
         (np.s_[h - 1, :], np.s_[h - 2, :], intr.fx),
