@@ -266,7 +266,8 @@ def test_a_hand_whose_fingertips_leave_the_image_is_found_fingers_up_not_on_its_
 
     pose = rest_pose((0.0, 42.0, 280.0))
     posed = pose_mesh(pose)
-    depth = render_mesh_depth(pose, INTR, options=MeshRenderOptions("structured"), rng=np.random.default_rng(0), posed=posed)
+    options = MeshRenderOptions("structured")
+    depth = render_mesh_depth(pose, INTR, options=options, rng=np.random.default_rng(0), posed=posed)
     assert (INTR.project(posed.fingertips)[1:4, 1] < 0).all()  # (middle, index, ring: out of view)
     assert (depth[0] > 0).any() and (depth[-1] > 0).any()  # (fingers at the top, forearm at the bottom)
     config = TrackerConfig()
@@ -287,7 +288,8 @@ def test_a_forearm_with_a_missing_pixel_at_the_border_is_still_a_forearm() -> No
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence
 
     shape = MeshShape(1.011, 0.953, 1.001)
-    frame = next(iter(mesh_sequence("fingerwave", 1, INTR, shape=shape, seed=5011, options=MeshRenderOptions("structured"))))
+    options = MeshRenderOptions("structured")
+    frame = next(iter(mesh_sequence("fingerwave", 1, INTR, shape=shape, seed=5011, options=options)))
     depth = frame.depth_mm.copy()
     h = depth.shape[0]
     columns = np.flatnonzero(depth[h - 2] > 0)

@@ -161,6 +161,26 @@ def test_a_wall_in_the_depth_window_is_no_hand() -> None:
     assert np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).max() < 15.0
 
 
+@pytest.mark.parametrize("motion, seed", [("fingercount", 3), ("abdadd", 4)])
+def test_a_hand_80_mm_in_front_of_a_wall_is_found_and_tracked(motion: str, seed: int) -> None:
+    """A wall 80 mm behind the wrist (a hand held just above a table): the hand finder cuts it
+    off in a narrow depth band, and the initialisation's search and the tracked frames see
+    depth windows that end before it (the release before found no hand in any frame: hand
+    and wall were one blob in every band, too large for a hand; with the blob found, the wall
+    in the window made the silhouette the whole image: 28.6 mm on 6 dev renders)."""
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, mesh_sequence
+
+    intr = default_intrinsics()
+    options = MeshRenderOptions("structured", background_mm=480.0)
+    tracker = Tracker()
+    for frame in mesh_sequence(motion, 6, intr, seed=seed, options=options):
+        assert np.count_nonzero(frame.depth_mm >= 475.0) > 0.8 * frame.depth_mm.size  # (the wall)
+        res = tracker.process(frame.depth_mm, intr)
+        assert res.status is TrackerStatus.TRACKING
+        errors = np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1)
+        assert errors.max() < 15.0, errors.round(1)
+
+
 def test_far_hand_gets_finer_data_and_is_tracked() -> None:
     """A hand at 0.78 m before a Kinect-like 640x480 camera (processed at 320x240): its data
     get the leaves of a near hand (2 px instead of 4), and the fingers are tracked."""

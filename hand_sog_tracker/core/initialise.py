@@ -90,6 +90,15 @@ HAND_DEPTH_BAND_MM = 250.0
 #: :data:`MAX_BLOB_AREA_MM2` (mm): a body 150-250 mm behind the hand (held in front of the chest)
 #: is then cut off; a wall stays too large in every band.
 NARROW_BANDS_MM = (175.0, 120.0)
+#: Narrower bands still (mm), tried last, for a wall or a table top 50-120 mm behind the hand:
+#: the part within one is taken only when at most :data:`SURFACE_GAP_SHARE` of its pixels lie
+#: in the band's last :data:`SURFACE_GAP_MM` (chosen here: hands 50 mm in front of a wall,
+#: 0.5-1.1%; the slice of a wall tilted by 14-18 deg, 16-24%: no hand).  With a wall 80 mm
+#: behind the wrist, 9 mesh dev renders scored 111 mm before, most frames without a hand
+#: found, 6.3 mm with these bands.
+SURFACE_BANDS_MM = (90.0, 60.0)
+SURFACE_GAP_MM = 15.0
+SURFACE_GAP_SHARE = 0.05
 #: The hand end's own axis (:attr:`HandBlob.hand_direction`) is the principal direction of the
 #: blob's points less than this far behind the palm centre along the blob's axis: hand, wrist and
 #: the start of the forearm (mm; chosen here, issue 11: on the 8 labelled real frames its in-plane
@@ -199,11 +208,15 @@ class HandBlob:
         it lies more than :data:`DETECTION_DIRECTION_MIN_DEG` from ``directions[0]`` (a wrist
         bent sideways: the blob's axis, of hand and forearm, lies between the two); else None.
         With it, ``directions`` leaves out the blob's most turned directions.
+    far_mm : float
+        Depth of the blob's farthest pixel (mm; what lies farther behind was cut off as a body
+        or a surface, see :data:`HAND_DEPTH_BAND_MM`), inf when not known.
     """
 
     palm: NDArray[np.float64]
     directions: list[NDArray[np.float64]]
     hand_direction: NDArray[np.float64] | None = None
+    far_mm: float = np.inf
 
 
 def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
@@ -212,7 +225,8 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
     Blobs (8-connected valid pixels) are taken nearest first (median depth); a blob must
     measure at least :data:`MIN_BLOB_AREA_MM2`, and at most :data:`MAX_BLOB_AREA_MM2` after
     the cut at :data:`HAND_DEPTH_BAND_MM` behind its nearest points (or a narrower band of
-    :data:`NARROW_BANDS_MM`).
+    :data:`NARROW_BANDS_MM`, or of :data:`SURFACE_BANDS_MM` whose last millimetres are nearly
+    empty).
     """
     depth = pre.depth_mm
     mask = (depth > 0).astype(np.uint8)
@@ -233,10 +247,16 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
             candidates.append((z, lab))
     for _, lab in sorted(candidates):
         component = labels == lab
-        for band_mm in (HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM):
-            blob = _hand_part(depth, component, intr, band_mm)
-            if _area_mm2(np.count_nonzero(blob), float(np.median(depth[blob])), intr) <= MAX_BLOB_AREA_MM2:
-                return blob
+        near = float(np.percentile(depth[component], 2))
+        for band_mm in (HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM, *SURFACE_BANDS_MM):
+            blob = _hand_part(depth, component, intr, band_mm, near)
+            z = depth[blob]
+            if _area_mm2(z.size, float(np.median(z)), intr) > MAX_BLOB_AREA_MM2:
+                continue
+            last = np.count_nonzero(z > near + band_mm - SURFACE_GAP_MM)
+            if band_mm in SURFACE_BANDS_MM and last > SURFACE_GAP_SHARE * z.size:
+                continue  # (a slice of a surface, not a hand in front of one)
+            return blob
     return None
 
 
@@ -246,12 +266,18 @@ def _area_mm2(n_px: int, z_mm: float, intr: Intrinsics) -> float:
 
 
 def _hand_part(
-    depth: NDArray[np.float32], blob: NDArray[np.bool_], intr: Intrinsics, band_mm: float = HAND_DEPTH_BAND_MM
+    depth: NDArray[np.float32],
+    blob: NDArray[np.bool_],
+    intr: Intrinsics,
+    band_mm: float = HAND_DEPTH_BAND_MM,
+    near: float | None = None,
 ) -> NDArray[np.bool_]:
     """An arm reaching toward the camera joins hand and body in one surface: the largest part
-    of ``blob`` within a hand's depth extent (``band_mm``) of its nearest points, if that is
-    large enough for a hand; else ``blob``."""
-    near = float(np.percentile(depth[blob], 2))
+    of ``blob`` within a hand's depth extent (``band_mm``) of its nearest points (``near``, mm:
+    the 2nd percentile of its depths unless given), if that is large enough for a hand; else
+    ``blob``."""
+    if near is None:
+        near = float(np.percentile(depth[blob], 2))
     band = (blob & (depth <= near + band_mm)).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(band, connectivity=8)
     if n <= 1:
@@ -327,7 +353,7 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     sign = _forearm_side(blob, depth, intr, vs, us, t)
     if sign is None:  # (the blob leaves the view at both ends: both directions are tried)
         sign = 0.0
-    elif sign == 0.0 and max(ext_pos, ext_neg) > FOREARM_MIN_EXTENT_MM and max(ext_pos, ext_neg) > 1.4 * min(ext_pos, ext_neg):
+    elif sign == 0.0 and max(ext_pos, ext_neg) > max(FOREARM_MIN_EXTENT_MM, 1.4 * min(ext_pos, ext_neg)):
         sign = 1.0 if ext_pos < ext_neg else -1.0
     if sign != 0.0:
         # The hand end is the far side from the forearm.
@@ -353,7 +379,12 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
         # (+-1.2 rad; without them 360 perturbed runs of the labelled real frames tracked the
         # same, 128 others 0.01 mm worse in the mean).
         angles = angles[:3]
-    return HandBlob(palm=palm, directions=[_in_plane(main, a) for a in angles], hand_direction=hand_direction)
+    return HandBlob(
+        palm=palm,
+        directions=[_in_plane(main, a) for a in angles],
+        hand_direction=hand_direction,
+        far_mm=float(zs.max()),
+    )
 
 
 def _forearm_side(

@@ -97,6 +97,15 @@ EXTRA_GAIN = 0.002
 #: Data farther than this beyond the wrist plane are treated as forearm (mm; chosen here: 0,
 #: the model has no forearm).
 WRIST_MARGIN_MM = 0.0
+#: A tracked frame's depth window ends this far behind the farthest Gaussian centre of its
+#: start pose (mm; chosen here), or ``roi_radius_mm`` behind the hand's centre when that is
+#: nearer: a wall or a table top closer behind the hand than the window's half depth would
+#: otherwise be data, and the silhouette of the window would be the whole image.
+WINDOW_BEHIND_MM = 70.0
+#: The initialisation's search window ends this far behind the hand blob's farthest pixel (mm;
+#: chosen here: depth noise at the blob's edge), when that is nearer than ``roi_radius_mm``
+#: behind the start poses' centre.
+BLOB_BEHIND_MM = 20.0
 #: Whether detections of fingers seen end-on (knuckles of a fist look the same) pull
 #: fingertips (chosen here: off; they only seed the curled restart candidates).
 SALIENT_END_ON = False
@@ -138,9 +147,16 @@ def coverage(
 
 
 def hand_roi(
-    model: HandModel, theta: NDArray[np.float64], intr: Intrinsics, radius_mm: float
+    model: HandModel,
+    theta: NDArray[np.float64],
+    intr: Intrinsics,
+    radius_mm: float,
+    behind_mm: float | None = None,
 ) -> tuple[tuple[int, int, int, int], tuple[float, float]]:
     """Pixel box and depth window around the hand at ``theta``.
+
+    The window is ``radius_mm`` either side of the Gaussians' mean depth; with ``behind_mm``
+    its far end is at most that far behind the farthest Gaussian centre.
 
     Returns
     -------
@@ -162,7 +178,10 @@ def hand_roi(
         math.ceil(u + r_px) + 1,
         math.ceil(v + r_px) + 1,
     )
-    return roi, (c[2] - radius_mm, c[2] + radius_mm)
+    far = c[2] + radius_mm
+    if behind_mm is not None:
+        far = min(far, float(np.maximum.reduce(P[:, 2])) + behind_mm)
+    return roi, (c[2] - radius_mm, far)
 
 
 def _balanced(ranked: list[tuple], n: int) -> list[tuple]:
@@ -363,6 +382,7 @@ class Tracker(RestartStrategies):
         theta: NDArray[np.float64],
         detect: bool = False,
         outline: bool = True,
+        behind_mm: float | None = None,
     ) -> tuple[ImageSoG, Detections, Silhouette | None]:
         """Data Gaussians around the hand at ``theta``, without the forearm.
 
@@ -374,7 +394,7 @@ class Tracker(RestartStrategies):
         ``outline`` the silhouette of the depth in the same depth window (None
         without it or when ``w_sil`` is 0).
         """
-        roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
+        roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm, behind_mm)
         sil = silhouette(pre, window, roi) if outline and self._config.w_sil > 0 else None
         det = Detections.empty()
         axis = global_rotation(theta)[:, 1]  # the hand's long axis (camera frame)
@@ -383,7 +403,8 @@ class Tracker(RestartStrategies):
             if det.n:
                 along = (det.points - theta[:3]) @ axis
                 det = det.subset(along > -WRIST_MARGIN_MM)
-        leaf = leaf_px(self._config.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
+        # (The leaves follow the hand's depth: the window's centre before ``behind_mm``.)
+        leaf = leaf_px(self._config.min_quad_px, window[0] + self._config.roi_radius_mm, pre.intrinsics)
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf)
         if data.n == 0:
             return data, det, sil
@@ -405,7 +426,7 @@ class Tracker(RestartStrategies):
         # constant-velocity extrapolation damped by alpha.
         x0 = p1 + ALPHA * (p1 - p2)
         tq = time.perf_counter()
-        data, det, sil = self._data_near(pre, x0, detect=True)
+        data, det, sil = self._data_near(pre, x0, detect=True, behind_mm=WINDOW_BEHIND_MM)
         tq2 = time.perf_counter()
         targets = self._targets(x0, det)
         obj = Objective(
@@ -560,9 +581,12 @@ class Tracker(RestartStrategies):
             return None
         starts = initial_hypotheses(self._model, blob, cfg.init_hypotheses)
         roi, window = hand_roi(self._model, starts[0], pre.intrinsics, cfg.roi_radius_mm)
+        # (The leaves follow the window's centre; the window ends behind the blob: what lies
+        # farther was cut off as a body or a wall.)
+        fine_px = leaf_px(cfg.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
+        window = (window[0], min(window[1], blob.far_mm + BLOB_BEHIND_MM))
         coarse = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, max(eff.coarse_quad_px, cfg.min_quad_px))
         # (The coarse data keep their leaves for a far hand too: the search was tuned on them.)
-        fine_px = leaf_px(cfg.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
         fine = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, fine_px)
         det = detect_fingertips(pre, roi, window)
         if det.n:
