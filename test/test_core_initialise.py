@@ -260,7 +260,7 @@ def test_a_hand_whose_fingertips_leave_the_image_is_found_fingers_up_not_on_its_
     above the top of the image and its forearm leaving the bottom.  The blob touches the border
     at both ends; the narrow runs of the fingers there are no forearm.  (Counting every border
     pixel alike, the fingers' outweighed the forearm's: the hand was found upside down on the
-    forearm, every fingertip 200-250 mm off.)"""
+    forearm, its fingertips 147-289 mm off.)"""
     from hand_sog_tracker.core.hand_model import rest_pose
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, pose_mesh, render_mesh_depth
 
