@@ -200,10 +200,15 @@ def preprocess(
     intrinsics : Intrinsics
         Intrinsics of ``depth_mm``.
     config : TrackerConfig
-        Uses ``near_mm``, ``far_mm``, ``median_kernel`` and ``max_width_px``.
+        Uses ``near_mm``, ``far_mm``, ``median_kernel``, ``max_width_px`` and ``min_focal_px``.
     """
     arr = _validated(depth_mm, intrinsics)
     k = max(1, int(np.ceil(arr.shape[1] / config.max_width_px)))
+    # (Not below ``min_focal_px`` of focal length: the quadtree, detector and silhouette were
+    # tuned at 287 px; a wide-angle 640x480 camera decimated to 320x240 has 192.)
+    f = float(np.sqrt(intrinsics.fx * intrinsics.fy))
+    while k > 1 and f / k < config.min_focal_px:
+        k -= 1
     if k > 1:
         # Decimation keeps every k-th pixel, on the lattice through the pixel nearest the
         # principal point: pixel u' sits at input pixel k * u' + ou.  Anchored there, the

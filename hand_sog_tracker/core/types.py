@@ -91,7 +91,10 @@ class TrackerConfig:
     quadtree_threshold_mm: float = 20.0
     min_quad_px: int = 4  #: smallest quadtree leaf side at processing resolution: 2, 4 or 8 (see leaf_px)
     median_kernel: int = 3  #: 0 or 1 disables the median filter; else odd 3 or 5
-    max_width_px: int = 320  #: images wider than this are decimated first
+    max_width_px: int = 320  #: images wider than this are decimated first ...
+    #: ... but not below this focal length (px) at the processing resolution: a wide-angle camera
+    #: keeps more pixels (a D435-like 640x480, fx = 385, is processed at 640x480; 0: off)
+    min_focal_px: float = 240.0
     iterations: int = 7
     #: A frame with a curled finger answers with its fit refined this many iterations on the
     #: model with joint Gaussians (0: off; issue 11, see tracker.REFINE_CURL_RAD)
@@ -122,6 +125,8 @@ class TrackerConfig:
             raise InputError(f"median_kernel must be 0, 1, 3 or 5, got {self.median_kernel}")
         if self.max_width_px < 80:
             raise InputError("max_width_px must be at least 80")
+        if not (0.0 <= self.min_focal_px <= 10000.0):
+            raise InputError("min_focal_px must be in [0, 10000]")
         if not (1 <= self.iterations <= 200):
             raise InputError("iterations must be in [1, 200]")
         if not (0 <= self.refine_iterations <= 50):

@@ -115,6 +115,9 @@ _TRACKER_META: dict[str, tuple[str, float | None, float | None]] = {
         "Smallest quadtree leaf side at processing resolution (px): 2, 4 or 8; halved for a far hand.", 2, 8),
     "median_kernel": ("Median filter size on the depth image: 0 or 1 = off, 3 or 5.", 0, 5),
     "max_width_px": ("Wider images are decimated to at most this width first (px).", 80, 4096),
+    "min_focal_px": (
+        "... but not below this focal length at the processing resolution (px; 0 = off): "
+        "a wide-angle camera keeps more pixels.", 0.0, 10000.0),
     "iterations": ("Gradient-ascent iterations per frame.", 1, 200),
     "refine_iterations": (
         "Iterations refining the answer of a frame with a curled finger on the model with joint Gaussians "
