@@ -395,10 +395,10 @@ def _forearm_side(
     us: NDArray[np.int64],
     t: NDArray[np.float64],
 ) -> float | None:
-    """Where the blob leaves the image, along its axis: ``-1.0`` or ``1.0`` when a forearm leaves
-    it on the side of ``t`` (mm along the axis, per blob pixel ``vs, us``) of the opposite sign
-    (the hand end is that sign's side), ``0.0`` when nothing arm-like leaves it, None when the
-    blob leaves it at both ends (fingers at one end, or a forearm at each: undecided).
+    """Where the blob leaves the image, along its axis (``t``: mm along it, per blob pixel
+    ``vs, us``): ``s`` = 1.0 or -1.0 when a forearm leaves it where ``s t < 0`` (the hand end is
+    where ``s t > 0``), 0.0 when nothing arm-like leaves it, None when the blob leaves it at
+    both ends (fingers at one end, or a forearm at each: undecided).
 
     Only runs along the border at least :data:`FOREARM_MIN_WIDTH_MM` wide are arm-like; the
     narrower runs of fingers leaving the view count only toward "both ends".  (Issue 11: a
@@ -428,17 +428,17 @@ def _forearm_side(
             if (b - a) * float(np.median(z)) / f >= FOREARM_MIN_WIDTH_MM:
                 arm[line][a:b] = blob[line][a:b]
     near_border = (us <= 1) | (vs <= 1) | (us >= w - 2) | (vs >= h - 2)
-    ends = (near_border & (t > 30.0)).sum() >= 3, (near_border & (t < -30.0)).sum() >= 3
+    both_ends = (near_border & (t > 30.0)).sum() >= 3 and (near_border & (t < -30.0)).sum() >= 3
     on_arm = arm[vs, us]
     if on_arm.sum() < 3:
-        return None if all(ends) else 0.0
+        return None if both_ends else 0.0
     ta = t[on_arm]
     if (ta > 30.0).sum() >= 3 and (ta < -30.0).sum() >= 3:
         return None
     mean = float(ta.mean())
     if abs(mean) > 30.0:
         return -float(np.sign(mean))
-    return None if all(ends) else 0.0
+    return None if both_ends else 0.0
 
 
 def _hand_axis(
