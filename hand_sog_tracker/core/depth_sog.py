@@ -204,9 +204,7 @@ def preprocess(
     """
     arr = _validated(depth_mm, intrinsics)
     k = max(1, int(np.ceil(arr.shape[1] / config.max_width_px)))
-    # (Not below ``min_focal_px`` of focal length: the quadtree, detector and silhouette were
-    # tuned at 287 px; a wide-angle 640x480 camera decimated to 320x240 has 192.)
-    f = float(np.sqrt(intrinsics.fx * intrinsics.fy))
+    f = float(np.sqrt(intrinsics.fx * intrinsics.fy))  # (tuned at 287 px; see min_focal_px)
     while k > 1 and f / k < config.min_focal_px:
         k -= 1
     if k > 1:

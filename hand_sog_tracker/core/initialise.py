@@ -253,8 +253,8 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
             z = depth[blob]
             if _area_mm2(z.size, float(np.median(z)), intr) > MAX_BLOB_AREA_MM2:
                 continue
-            last = np.count_nonzero(z > near + band_mm - SURFACE_GAP_MM)
-            if band_mm in SURFACE_BANDS_MM and last > SURFACE_GAP_SHARE * z.size:
+            surface = band_mm in SURFACE_BANDS_MM
+            if surface and np.count_nonzero(z > near + band_mm - SURFACE_GAP_MM) > SURFACE_GAP_SHARE * z.size:
                 continue  # (a slice of a surface, not a hand in front of one)
             return blob
     return None

@@ -147,16 +147,9 @@ def coverage(
 
 
 def hand_roi(
-    model: HandModel,
-    theta: NDArray[np.float64],
-    intr: Intrinsics,
-    radius_mm: float,
-    behind_mm: float | None = None,
+    model: HandModel, theta: NDArray[np.float64], intr: Intrinsics, radius_mm: float
 ) -> tuple[tuple[int, int, int, int], tuple[float, float]]:
     """Pixel box and depth window around the hand at ``theta``.
-
-    The window is ``radius_mm`` either side of the Gaussians' mean depth; with ``behind_mm``
-    its far end is at most that far behind the farthest Gaussian centre.
 
     Returns
     -------
@@ -178,10 +171,7 @@ def hand_roi(
         math.ceil(u + r_px) + 1,
         math.ceil(v + r_px) + 1,
     )
-    far = c[2] + radius_mm
-    if behind_mm is not None:
-        far = min(far, float(np.maximum.reduce(P[:, 2])) + behind_mm)
-    return roi, (c[2] - radius_mm, far)
+    return roi, (c[2] - radius_mm, c[2] + radius_mm)
 
 
 def _balanced(ranked: list[tuple], n: int) -> list[tuple]:
@@ -392,9 +382,15 @@ class Tracker(RestartStrategies):
         down the arm.  With ``detect``, also the fingertip detections in the same
         region (used by the salient term and the restarts), else none; and with
         ``outline`` the silhouette of the depth in the same depth window (None
-        without it or when ``w_sil`` is 0).
+        without it or when ``w_sil`` is 0).  With ``behind_mm`` the depth window ends at most
+        that far behind the farthest Gaussian centre at ``theta``.
         """
-        roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm, behind_mm)
+        roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
+        # (The leaves follow the window's centre, the hand's depth, whatever ``behind_mm``.)
+        leaf = leaf_px(self._config.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
+        if behind_mm is not None:
+            far = float(np.maximum.reduce(posed_centres(self._model, theta)[:, 2])) + behind_mm
+            window = (window[0], min(window[1], far))
         sil = silhouette(pre, window, roi) if outline and self._config.w_sil > 0 else None
         det = Detections.empty()
         axis = global_rotation(theta)[:, 1]  # the hand's long axis (camera frame)
@@ -403,8 +399,6 @@ class Tracker(RestartStrategies):
             if det.n:
                 along = (det.points - theta[:3]) @ axis
                 det = det.subset(along > -WRIST_MARGIN_MM)
-        # (The leaves follow the hand's depth: the window's centre before ``behind_mm``.)
-        leaf = leaf_px(self._config.min_quad_px, window[0] + self._config.roi_radius_mm, pre.intrinsics)
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf)
         if data.n == 0:
             return data, det, sil
@@ -648,9 +642,8 @@ class Tracker(RestartStrategies):
             # best of them scores higher by ``combination_margin``.
             n = len(starts)
             combos = []
-            for k, x0 in enumerate(starts[:2]):
-                part = self._hand_side(coarse, x0)  # (the same for every combination: same wrist)
-                if part.n:
+            for k, (x0, part) in enumerate(zip(starts[:2], parts)):
+                if part.n:  # (the start's data serve every combination: the same wrist)
                     screen = Objective(self._model, part, cfg)
                     best = max(finger_combinations(x0), key=lambda c: screen(c, gradient=False)[0])
                     combos.append(align(n + k, best, part))
