@@ -16,6 +16,7 @@ from hand_sog_tracker.core.initialise import (
     DETECTION_DIRECTION_MIN_DEG,
     INIT_SEARCH,
     HandBlob,
+    _nearest_blob,
     detection_direction,
     find_hand,
     finger_combinations,
@@ -234,13 +235,15 @@ def test_finger_combinations_curl_each_subset_of_fingers_of_an_open_start() -> N
 def test_a_hand_found_mid_motion_with_two_fingers_out_is_found_with_the_rest_curled(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """Issue 11: a finger counting hand showing thumb and index (the others curled), found
-    without a track.  From the open, half-closed and closed start poses alone the best pose is
-    the hand turned palm-for-back, its thumb on the little finger's data (53-130 mm off); the
-    start poses with single fingers curled find it."""
+    """Issue 11: a finger counting hand showing thumb and index (the index half bent, the others
+    curled), found without a track.  From the open, half-closed and closed start poses alone the
+    best pose is one finger or more off (97-155 mm here); the start poses with single fingers
+    curled find it.  (The frame of an earlier version of this test, ToF seed 7, is found without
+    them since the hand finder fills every small hole: its palm estimate had been thrown off by
+    the renderer's restored sparse dropout.)"""
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, mesh_sequence
 
-    sequence = mesh_sequence("fingercount", 60, INTR, seed=7, options=MeshRenderOptions("tof"))
+    sequence = mesh_sequence("fingercount", 60, INTR, seed=3, options=MeshRenderOptions("structured"))
     frame = next(f for k, f in enumerate(sequence) if k == 40)
     depth = np.round(frame.depth_mm)
 
@@ -250,7 +253,7 @@ def test_a_hand_found_mid_motion_with_two_fingers_out_is_found_with_the_rest_cur
         assert result.fingertips_mm is not None
         return np.linalg.norm(result.fingertips_mm - frame.fingertips_mm, axis=1)
 
-    assert found().max() < 20.0  # (the curled ring finger 17 mm off, the others 2-10)
+    assert found().max() < 20.0  # (3-11 mm)
     monkeypatch.setattr(tracker_module, "INIT_SEARCH", replace(INIT_SEARCH, combination_below=-np.inf))
     assert found().mean() > 50.0
 
@@ -297,3 +300,24 @@ def test_a_forearm_with_a_missing_pixel_at_the_border_is_still_a_forearm() -> No
     config = TrackerConfig()
     blob = find_hand(preprocess(depth, INTR, config), config)
     assert blob is not None and blob.directions[0][1] < -0.95
+
+
+def test_the_blob_ends_at_the_hands_surface_not_at_flying_pixels() -> None:
+    """A ToF camera's flying pixels between a hand and a wall 80 mm behind it join the blob;
+    its far end (where the search window ends) is the hand's farthest surface pixel all the
+    same, not theirs (60 mm farther on this frame)."""
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, mesh_sequence
+
+    frames = [
+        next(iter(mesh_sequence("fingerwave", 1, INTR, seed=5002, options=options)))
+        for options in (MeshRenderOptions("clean"), MeshRenderOptions("tof", background_mm=480.0))
+    ]
+    config = TrackerConfig()
+    hand_far = float(frames[0].depth_mm.max())
+    pre = preprocess(frames[1].depth_mm, INTR, config)
+    blob = find_hand(pre, config)
+    assert blob is not None
+    z = pre.depth_mm[_nearest_blob(pre)]
+    assert z.max() > hand_far + 40.0  # (the flying pixels in the blob)
+    # (Its farthest surface pixels lie a little inside the outline, where the skin turns away.)
+    assert hand_far - 15.0 < blob.far_mm < hand_far + 5.0, (blob.far_mm, hand_far)

@@ -6,6 +6,7 @@ import json
 import struct
 import time
 
+import cv2
 import numpy as np
 import pytest
 
@@ -351,6 +352,27 @@ def test_sensor_models_and_determinism() -> None:
     assert np.all(wall[~on] == 800.0) and np.array_equal(wall[on], clean[on])
     with pytest.raises(InputError):
         MeshRenderOptions(sensor="lidar")
+
+
+def test_tof_sparse_dropout_reaches_the_hand_without_a_wall() -> None:
+    """Sparse random dropout (0.2% of the pixels) falls inside the hand too, with or without a
+    wall: before the fix it was written to a copy whenever the valid depth did not span the
+    image's width, so that a hand alone had none."""
+    intr = default_intrinsics()
+    theta = motion_poses("pinch", 30, seed=1)[0]
+    clean = render_mesh_depth(theta, intr, options=CLEAN)
+    # The interior of the hand: 5 x 5 neighbourhoods all on the hand and within 10 mm (no edge,
+    # no grazing surface, where the other dropouts fall).
+    k = np.ones((5, 5), np.uint8)
+    on = cv2.erode((clean > 0).astype(np.uint8), k) > 0
+    interior = on & (cv2.dilate(clean, k) - cv2.erode(clean, k) < 10.0)
+    assert interior.sum() > 3000
+    for wall in (None, 700.0):
+        opts = MeshRenderOptions(sensor="tof", background_mm=wall)
+        renders = [render_mesh_depth(theta, intr, options=opts, rng=np.random.default_rng(s)) for s in range(4)]
+        counts = [int(np.count_nonzero(interior & (depth == 0))) for depth in renders]
+        share = sum(counts) / (4 * interior.sum())
+        assert 0.001 < share < 0.004, (wall, counts)
 
 
 def test_mesh_sequence_is_deterministic_and_times_frames() -> None:

@@ -99,6 +99,14 @@ NARROW_BANDS_MM = (175.0, 120.0)
 SURFACE_BANDS_MM = (90.0, 60.0)
 SURFACE_GAP_MM = 15.0
 SURFACE_GAP_SHARE = 0.05
+#: A blob pixel is on a surface when it and its 8 neighbours all belong to the blob and lie within
+#: this depth range (mm): :attr:`HandBlob.far_mm` is the farthest such pixel.  Flying pixels (a
+#: ToF sensor's mixed returns between the hand and a wall behind it) join the blob in 1-2 px
+#: fringes at depths between the two: 80 mm in front of a wall, the blob's farthest pixel lay 60 mm
+#: behind the hand's, and the initialisation's window took in the wall (chosen here: over the
+#: inner pixels of 54 mesh dev frames at 400 mm without a wall, the 3 x 3 depth range is 1.3 mm
+#: median, 8 mm at the 99th percentile; 0.7% of them reach 15 mm, at the fingers' edges).
+SURFACE_RANGE_MM = 15.0
 #: The hand end's own axis (:attr:`HandBlob.hand_direction`) is the principal direction of the
 #: blob's points less than this far behind the palm centre along the blob's axis: hand, wrist and
 #: the start of the forearm (mm; chosen here, issue 11: on the 8 labelled real frames its in-plane
@@ -184,12 +192,17 @@ class InitFinalists:
     pre : Preprocessed
         The frame they were fitted to (the second stage runs on it when no newer frame
         comes first).
+    end_mm : float
+        The depth (mm) where the search's window ended at the latest, a little behind the hand
+        blob (:attr:`HandBlob.far_mm`): what lies farther was cut off as a body or a wall, and
+        the second stage's window ends there too.
     """
 
     poses: list[NDArray[np.float64]]
     model: HandModel
     config: TrackerConfig
     pre: Preprocessed
+    end_mm: float = np.inf
 
 
 @dataclass(frozen=True, eq=False)
@@ -209,8 +222,9 @@ class HandBlob:
         bent sideways: the blob's axis, of hand and forearm, lies between the two); else None.
         With it, ``directions`` leaves out the blob's most turned directions.
     far_mm : float
-        Depth of the blob's farthest pixel (mm; what lies farther behind was cut off as a body
-        or a surface, see :data:`HAND_DEPTH_BAND_MM`), inf when not known.
+        Depth of the blob's farthest pixel on a surface (mm, see :data:`SURFACE_RANGE_MM`; what
+        lies farther behind was cut off as a body or a surface, see :data:`HAND_DEPTH_BAND_MM`),
+        inf when not known.
     """
 
     palm: NDArray[np.float64]
@@ -297,25 +311,24 @@ def _in_plane(direction: NDArray[np.float64], angle: float) -> NDArray[np.float6
 #: palm is searched: a blob riddled with sensor dropouts has no thick part (chosen here: with 10%
 #: of the pixels dropped at random, 10 dev renders went from 15.7 to 7.1 mm and 10 others from
 #: 9.9 to 8.3 mm; up to 30 px gave 7.0 and 8.0 mm, but filled enclosed gaps between fingers
-#: too: the capsule random bag went from 4.0 to 6.6 mm).
+#: too: the capsule random bag went from 4.0 to 6.6 mm).  Every such hole is filled: a few single
+#: dropped pixels in the palm already move the distance transform's maximum (a ToF sensor's 0.2%
+#: sparse dropout: the palm estimate's error along the hand had a standard deviation of 17 mm on
+#: 54 dev frames, 5 mm filled; fresh trackers on frames 10, 25 and 40 of 144 dev renders: 13.6 ->
+#: 10.3 mm on their first frame, 49 -> 26 starts over 25 mm).  Until this release they were
+#: filled only when they made up 1% of the blob: tracked from the first frame, the dev,
+#: validation and check sets were 0.06-0.29 mm better that way.
 MAX_HOLE_PX = 4
-#: ... and only when they add up to at least this fraction of the blob's pixels (a sensor that
-#: drops pixels: 3% of the blob with 3% of the pixels dropped; the mesh renders' sensor models
-#: leave at most 0.3%, so that on them the palm search is unchanged: with every small hole filled,
-#: the automatically calibrated tracking of 2 x 144 dev renders was 0.04-0.11 mm worse).
-MIN_HOLE_FRACTION = 0.01
 
 
 def _without_holes(blob: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """``blob`` with its small holes (:data:`MAX_HOLE_PX`, not touching the image border) filled
-    when there are enough of them (:data:`MIN_HOLE_FRACTION`); else ``blob``."""
+    """``blob`` (H, W) with its small holes (:data:`MAX_HOLE_PX`, not touching the image border)
+    filled."""
     n, labels, stats, _ = cv2.connectedComponentsWithStats((~blob).astype(np.uint8), connectivity=4)
     h, w = blob.shape
     x, y, bw, bh, area = (stats[:, k] for k in range(5))
     small = (area <= MAX_HOLE_PX) & (x > 0) & (y > 0) & (x + bw < w) & (y + bh < h)
     small[0] = False  # label 0: the blob itself
-    if int(area[small].sum()) < MIN_HOLE_FRACTION * int(np.count_nonzero(blob)):
-        return blob
     return blob | small[labels]
 
 
@@ -383,8 +396,26 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
         palm=palm,
         directions=[_in_plane(main, a) for a in angles],
         hand_direction=hand_direction,
-        far_mm=float(zs.max()),
+        far_mm=_surface_far(depth, blob),
     )
+
+
+def _surface_far(depth: NDArray[np.float32], blob: NDArray[np.bool_]) -> float:
+    """Depth (mm) of the farthest pixel of ``blob`` (H, W) on a surface (see
+    :data:`SURFACE_RANGE_MM`) in ``depth`` (H, W) mm; its farthest pixel when none is."""
+    square = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
+    inner = cv2.erode(blob.astype(np.uint8), square).astype(bool)
+    if not inner.any():
+        return float(depth[blob].max())
+    on_blob = np.where(blob, depth, np.float32(0.0))
+    spread = cv2.dilate(on_blob, square)
+    spread -= cv2.erode(np.where(blob, depth, np.float32(_NO_DEPTH_MM)), square)
+    surface = inner & (spread < SURFACE_RANGE_MM)
+    return float(depth[surface].max()) if surface.any() else float(depth[blob].max())
+
+
+#: Depth standing for "no pixel" in :func:`_surface_far`'s minimum filter (mm).
+_NO_DEPTH_MM = np.float32(1e9)
 
 
 def _forearm_side(

@@ -102,9 +102,9 @@ WRIST_MARGIN_MM = 0.0
 #: nearer: a wall or a table top closer behind the hand than the window's half depth would
 #: otherwise be data, and the silhouette of the window would be the whole image.
 WINDOW_BEHIND_MM = 70.0
-#: The initialisation's search window ends this far behind the hand blob's farthest pixel (mm;
-#: chosen here: depth noise at the blob's edge), when that is nearer than ``roi_radius_mm``
-#: behind the start poses' centre.
+#: The initialisation's search window (and its finish's) ends this far behind the hand blob's
+#: farthest surface pixel (mm; chosen here: depth noise at the blob's edge), when that is nearer
+#: than ``roi_radius_mm`` behind the start poses' centre.
 BLOB_BEHIND_MM = 20.0
 #: Whether detections of fingers seen end-on (knuckles of a fist look the same) pull
 #: fingertips (chosen here: off; they only seed the curled restart candidates).
@@ -372,7 +372,7 @@ class Tracker(RestartStrategies):
         theta: NDArray[np.float64],
         detect: bool = False,
         outline: bool = True,
-        behind_mm: float | None = None,
+        end_mm: float | None = None,
     ) -> tuple[ImageSoG, Detections, Silhouette | None]:
         """Data Gaussians around the hand at ``theta``, without the forearm.
 
@@ -382,15 +382,15 @@ class Tracker(RestartStrategies):
         down the arm.  With ``detect``, also the fingertip detections in the same
         region (used by the salient term and the restarts), else none; and with
         ``outline`` the silhouette of the depth in the same depth window (None
-        without it or when ``w_sil`` is 0).  With ``behind_mm`` the depth window ends at most
-        that far behind the farthest Gaussian centre at ``theta``.
+        without it or when ``w_sil`` is 0).  With ``end_mm`` the depth window ends there at the
+        latest (mm): a wall or a table top behind the hand is then no data, and the silhouette
+        of the window is the hand's.
         """
         roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
-        # (The leaves follow the window's centre, the hand's depth, whatever ``behind_mm``.)
+        # (The leaves follow the window's centre, the hand's depth, whatever ``end_mm``.)
         leaf = leaf_px(self._config.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
-        if behind_mm is not None:
-            far = float(np.maximum.reduce(posed_centres(self._model, theta)[:, 2])) + behind_mm
-            window = (window[0], min(window[1], far))
+        if end_mm is not None:
+            window = (window[0], min(window[1], end_mm))
         sil = silhouette(pre, window, roi) if outline and self._config.w_sil > 0 else None
         det = Detections.empty()
         axis = global_rotation(theta)[:, 1]  # the hand's long axis (camera frame)
@@ -420,7 +420,8 @@ class Tracker(RestartStrategies):
         # constant-velocity extrapolation damped by alpha.
         x0 = p1 + ALPHA * (p1 - p2)
         tq = time.perf_counter()
-        data, det, sil = self._data_near(pre, x0, detect=True, behind_mm=WINDOW_BEHIND_MM)
+        end = float(np.max(posed_centres(self._model, x0)[:, 2])) + WINDOW_BEHIND_MM
+        data, det, sil = self._data_near(pre, x0, detect=True, end_mm=end)
         tq2 = time.perf_counter()
         targets = self._targets(x0, det)
         obj = Objective(
@@ -534,7 +535,7 @@ class Tracker(RestartStrategies):
             return None
         t0 = time.perf_counter()
         pending, self._pending = self._pending, None
-        result = self._init_finish(pending.pre, pending.poses)
+        result = self._init_finish(pending.pre, pending)
         result.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
         return result
 
@@ -548,18 +549,18 @@ class Tracker(RestartStrategies):
         """
         pending, self._pending = self._pending, None
         if pending is not None and pending.model is self._model and pending.config == self._config:
-            return self._init_finish(pre, pending.poses)
-        poses = self._init_search(pre)
-        if poses is None:
+            return self._init_finish(pre, pending)
+        found = self._init_search(pre)
+        if found is None:
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, {})
         if self.split_initialisation:
-            self._pending = InitFinalists(poses=poses, model=self._model, config=self._config, pre=pre)
+            self._pending = found
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, {})
-        return self._init_finish(pre, poses)
+        return self._init_finish(pre, found)
 
-    def _init_search(self, pre: Preprocessed) -> list[NDArray[np.float64]] | None:
+    def _init_search(self, pre: Preprocessed) -> InitFinalists | None:
         """First stage: the finalist poses (26,) for the hand in ``pre``, best first, or None.
 
         One quadtree (coarse) and one detection pass around the palm serve every start pose;
@@ -650,7 +651,13 @@ class Tracker(RestartStrategies):
             tried = sorted(articulate(combos), key=lambda s: s[:2], reverse=True)
             if tried and tried[0][0] >= scored[0][0] + eff.combination_margin:
                 scored = sorted(scored + tried, key=lambda s: s[:2], reverse=True)
-        return [x for _, _, x in scored[: eff.finalists]]
+        return InitFinalists(
+            poses=[x for _, _, x in scored[: eff.finalists]],
+            model=self._model,
+            config=cfg,
+            pre=pre,
+            end_mm=blob.far_mm + BLOB_BEHIND_MM,
+        )
 
     def _screened(self, starts: list[NDArray[np.float64]], parts: list[ImageSoG], n: int) -> set[int]:
         """Indices of the ``n`` start poses (26,) of ``starts`` with the palm toward the camera
@@ -666,19 +673,22 @@ class Tracker(RestartStrategies):
             chosen.update(-s[1] for s in sorted((s for s in scored if s[2] == side), reverse=True)[:n])
         return chosen
 
-    def _init_finish(self, pre: Preprocessed, poses: list[NDArray[np.float64]]) -> TrackResult:
-        """Second stage: refine the finalist ``poses`` on ``pre``; the track starts from the best.
+    def _init_finish(self, pre: Preprocessed, found: InitFinalists) -> TrackResult:
+        """Second stage: refine the finalists ``found`` on ``pre``; the track starts from the best.
 
-        One data extraction (quadtree, detections, silhouette) around the first finalist
-        serves all; each finalist gets ``final_iterations`` with the full objective, the best
-        by score gets the finger and (forced) finger-shift restarts, then the lateral restarts
-        (:meth:`_lateral_restarts`, about 75 objective evaluations: with :attr:`defer_restarts`
-        after the answer, as a tracked frame's restarts).  The detection restarts are left to
-        the tracked frames that follow.
+        One data extraction (quadtree, detections, silhouette) around the first finalist serves
+        all, in a depth window that ends where the search's did at the latest (behind the hand
+        blob: a wall there was data, and the silhouette the whole image); each finalist gets
+        ``final_iterations`` with the full objective, the best by score gets the finger and
+        (forced) finger-shift restarts, then the lateral restarts (:meth:`_lateral_restarts`,
+        about 75 objective evaluations: with :attr:`defer_restarts` after the answer, as a
+        tracked frame's restarts).  The detection restarts are left to the tracked frames that
+        follow.
         """
         cfg = self._config
         tq = time.perf_counter()
-        data, det, sil = self._data_near(pre, poses[0], detect=True)
+        poses = found.poses
+        data, det, sil = self._data_near(pre, poses[0], detect=True, end_mm=found.end_mm)
         timings = {"quadtree": (time.perf_counter() - tq) * 1e3}
         if data.n == 0:
             self._status = TrackerStatus.NO_HAND

@@ -86,7 +86,9 @@ def _tof(depth: NDArray[np.float32], cos: NDArray[np.float32], rng: np.random.Ge
     d += sigma * rng.standard_normal(d.shape, dtype=np.float32)
     np.maximum(d, 0.0, out=d)
     n_drop = rng.binomial(d.size, _TOF_RANDOM_DROPOUT)
-    d.reshape(-1)[rng.integers(0, d.size, n_drop)] = 0.0
+    # (``flat``: ``d`` is a view of the depth image; reshaping a view that is not contiguous
+    # copies it, and the dropout was lost on every image whose valid depth did not span its width.)
+    d.flat[rng.integers(0, d.size, n_drop)] = 0.0
     np.round(d, out=d)  # ToF cameras report whole millimetres
 
 
