@@ -405,17 +405,10 @@ def _surface_far(depth: NDArray[np.float32], blob: NDArray[np.bool_]) -> float:
     :data:`SURFACE_RANGE_MM`) in ``depth`` (H, W) mm; its farthest pixel when none is."""
     square = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
     inner = cv2.erode(blob.astype(np.uint8), square).astype(bool)
-    if not inner.any():
-        return float(depth[blob].max())
-    on_blob = np.where(blob, depth, np.float32(0.0))
-    spread = cv2.dilate(on_blob, square)
-    spread -= cv2.erode(np.where(blob, depth, np.float32(_NO_DEPTH_MM)), square)
+    # (An inner pixel's 3 x 3 window lies on the blob: there the depth's own range is the blob's.)
+    spread = cv2.dilate(depth, square) - cv2.erode(depth, square)
     surface = inner & (spread < SURFACE_RANGE_MM)
-    return float(depth[surface].max()) if surface.any() else float(depth[blob].max())
-
-
-#: Depth standing for "no pixel" in :func:`_surface_far`'s minimum filter (mm).
-_NO_DEPTH_MM = np.float32(1e9)
+    return float(depth[surface if surface.any() else blob].max())
 
 
 def _forearm_side(
