@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
 from hand_sog_tracker.core.depth_sog import ImageSoG, preprocess
 from hand_sog_tracker.core.energy import Objective
-from hand_sog_tracker.core.hand_model import FINGER_PIP, chain_slice, default_hand_model, rest_pose
+from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, chain_slice, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.optimizer import OptimizeResult, run
 from hand_sog_tracker.core.restarts import RESTART_ITERATIONS, SHIFT_CHUNK, SHIFT_EVERY
@@ -199,6 +199,74 @@ def test_a_hand_in_front_of_a_wall_seen_by_a_tof_camera_is_found_on_its_first_fr
     assert res.status is TrackerStatus.TRACKING
     errors = np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1)
     assert errors.max() < 15.0, errors.round(1)
+
+
+def _first_mesh_frame(motion: str, shape: tuple[float, float, float], seed: int, sensor: str = "tof"):
+    """Frame 0 of a mesh render of ``motion`` by a hand of ``shape`` (length, width, thickness)."""
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence
+
+    intr = default_intrinsics()
+    seq = mesh_sequence(motion, 1, intr, shape=MeshShape(*shape), seed=seed, options=MeshRenderOptions(sensor))
+    return next(iter(seq)), intr
+
+
+def test_a_small_hand_starts_on_the_small_model_with_every_finger_on_its_own() -> None:
+    """A hand of 0.89 the mesh's length (0.84 of the default model's): the default model's
+    fingers are too long, and each explained the next longer finger's data better than its
+    own (index and middle on the index, ring on the middle, little on the ring: 26-33 mm off,
+    for 8 frames).  The tracker starts it on the model scaled to ``SMALL_HAND_LENGTH``; given
+    the default model explicitly, it keeps that model."""
+    from hand_sog_tracker.core.tracker import SMALL_HAND_LENGTH
+
+    frame, intr = _first_mesh_frame("fistopen", (0.8937, 0.9316, 0.9947), seed=3010)
+    tracker = Tracker()
+    res = tracker.process(frame.depth_mm, intr)
+    assert res.status is TrackerStatus.TRACKING
+    assert tracker.model.shape.length == SMALL_HAND_LENGTH
+    errors = np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1)
+    assert errors.max() < 12.0, errors.round(1)
+    given = default_hand_model(True)
+    fixed = Tracker(model=given)
+    fixed.process(frame.depth_mm, intr)
+    assert fixed.model.shape == given.shape
+
+
+def test_a_small_hands_fist_keeps_the_default_model() -> None:
+    """Curled fingers do not show their length: the small model may score higher on a fist
+    (its fingers opened onto the knuckles), so the size is chosen only between open fits."""
+    from hand_sog_tracker.core.articulations import FINGER_CURLED
+    from hand_sog_tracker.core.tracker import SMALL_HAND_MAX_FLEX
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, render_mesh_depth
+    from hand_sog_tracker.synth.motions import motion_poses
+
+    theta = motion_poses("fistopen", 1, seed=3010)[0].copy()
+    for c in range(1, 5):
+        theta[chain_slice(c)] = FINGER_CURLED
+    intr = default_intrinsics()
+    depth = render_mesh_depth(theta, intr, MeshShape(0.8937, 0.9316, 0.9947), options=MeshRenderOptions("tof"))
+    tracker = Tracker()
+    res = tracker.process(depth, intr)
+    assert res.status is TrackerStatus.TRACKING
+    assert tracker.model.shape.length == 1.0
+    flex = res.pose[FINGER_MCP] + res.pose[FINGER_PIP]
+    assert flex.mean() > SMALL_HAND_MAX_FLEX  # (fitted curled)
+
+
+def test_a_large_hand_starts_on_the_default_model() -> None:
+    """A hand of 1.1 the mesh's length: the small model scores lower, the default is kept;
+    after a model is set (a calibration) no other size is tried on a new track."""
+    frame, intr = _first_mesh_frame("fingerwave", (1.1, 1.05, 1.0), seed=3001, sensor="structured")
+    tracker = Tracker()
+    res = tracker.process(frame.depth_mm, intr)
+    assert res.status is TrackerStatus.TRACKING
+    assert tracker.model.shape.length == 1.0
+    errors = np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1)
+    assert errors.max() < 15.0, errors.round(1)
+    calibrated = default_hand_model(True).scaled(dataclasses.replace(tracker.model.shape, length=0.8))
+    tracker.set_model(calibrated)
+    tracker.reset()
+    tracker.process(frame.depth_mm, intr)
+    assert tracker.model.shape.length == 0.8
 
 
 def test_far_hand_gets_finer_data_and_is_tracked() -> None:
@@ -405,7 +473,8 @@ def test_a_new_track_of_a_small_hand_with_two_fingers_on_one_moves_sideways_afte
     place over (two model fingers on the index, the little finger's data unexplained).  With
     deferred restarts (the node) the answer is that pose and the restarts after it move the
     hand sideways onto the right fingers; without deferral that pose is the answer, and both
-    trackers go on from the same pose."""
+    trackers go on from the same pose.  (The trackers are given the default model: on their
+    own they start this hand on the small model, fingers right from the first answer.)"""
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence
 
     intr = default_intrinsics()
@@ -413,7 +482,7 @@ def test_a_new_track_of_a_small_hand_with_two_fingers_on_one_moves_sideways_afte
     options = MeshRenderOptions("structured")
     frame = next(iter(mesh_sequence("abdadd", 2, intr, shape=shape, seed=7085, options=options)))
     depth = np.round(frame.depth_mm)  # (as a 16UC1 image)
-    deferred, plain = Tracker(), Tracker()
+    deferred, plain = Tracker(model=default_hand_model(True)), Tracker(model=default_hand_model(True))
     deferred.defer_restarts = True
     first = deferred.process(depth, intr)
     assert first.fingertips_mm is not None

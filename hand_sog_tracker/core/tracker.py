@@ -30,8 +30,10 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
 from hand_sog_tracker.core.energy import Objective, TipTargets, contact_shares, gaussian_support
 from hand_sog_tracker.core.hand_model import (
+    FINGER_MCP,
     FINGER_PIP,
     HandModel,
+    HandShape,
     default_hand_model,
 )
 from hand_sog_tracker.core.initialise import (
@@ -123,6 +125,26 @@ SALIENT_END_ON = False
 #: the camera, MCP 58 and PIP 53 deg) was refined 6 mm further off; without a gate open
 #: fingertips lost 0.2 mm.
 REFINE_CURL_RAD = math.radians(60.0)
+#: A tracker on its default model (none given, none set since) starts every track by also
+#: fitting the initialisation's finalists with the default model scaled to this length factor
+#: (unitless; chosen here, issue 11), and tracks with it when its best finalist scores
+#: ``SMALL_HAND_GAIN`` higher (:meth:`RestartStrategies._score`, unitless) than the default
+#: model's.  The default model's fingers are too long for a small hand, and a too long model
+#: finger explains the next longer finger's data better than its own: small hands started with
+#: the fingers one place over, for 8-10 frames, until a finger shift caught it.  The scores
+#: rise as the model shrinks on most hands (144 mesh dev renders, first frame: the 0.85 model
+#: scored 0.069 above the default on average on hands of length 0.79-0.83, 0.068 on 0.83-0.87,
+#: 0.044 on 0.87-0.91, 0.025 on 0.91-0.95, 0.003 on 0.95-1.0 and -0.028 on larger ones; over
+#: 0.04 on 16 of 17, 19 of 22, 8 of 17, 4 of 25 and none of the 63 others), hence a margin
+#: rather than the best score.  Only between two fits of open fingers (``SMALL_HAND_MAX_FLEX``:
+#: mean MCP + PIP flexion of index .. little, rad, as the calibration's open frames): curled
+#: fingers do not show their length, and a fist seen from the back (labelled real frame 7) or a
+#: hand with a finger curled toward the camera (frame 2) scored 0.04-0.09 higher on the small
+#: model with its fingers opened onto the knuckles (27 -> 34 mm).  The automatic calibration
+#: then starts from the model in use.
+SMALL_HAND_LENGTH = 0.85
+SMALL_HAND_GAIN = 0.04
+SMALL_HAND_MAX_FLEX = 0.6
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 
 
@@ -174,6 +196,18 @@ def hand_roi(
     return roi, (c[2] - radius_mm, c[2] + radius_mm)
 
 
+def _open(theta: NDArray[np.float64]) -> bool:
+    """Whether the fingers (index .. little) at ``theta`` are open enough to tell a hand's size:
+    mean MCP + PIP flexion under ``SMALL_HAND_MAX_FLEX``."""
+    return float(np.mean(theta[FINGER_MCP] + theta[FINGER_PIP])) < SMALL_HAND_MAX_FLEX
+
+
+def _size_models(right: bool) -> tuple[HandModel, HandModel]:
+    """The default model of this handedness and the same scaled to ``SMALL_HAND_LENGTH``."""
+    default = default_hand_model(right).mirrored(right)
+    return default, default.scaled(HandShape(length=SMALL_HAND_LENGTH)).mirrored(right)
+
+
 def _balanced(ranked: list[tuple], n: int) -> list[tuple]:
     """The first ``n`` of ``ranked`` (best first, last item: which way the palm faces), half
     of them from each side while both have enough (the rigid fit's objective prefers the
@@ -192,13 +226,20 @@ class Tracker(RestartStrategies):
     ----------
     config : TrackerConfig, optional
     model : HandModel, optional
-        Hand model (mm); default: the default adult hand of ``config.right_hand``.
+        Hand model (mm), kept as given; default: the default adult hand of
+        ``config.right_hand``, on which every new track may start the smaller hand of
+        ``SMALL_HAND_LENGTH`` instead (until :meth:`set_model`).
     """
 
     def __init__(self, config: TrackerConfig | None = None, model: HandModel | None = None) -> None:
         self._config = config or TrackerConfig()
-        base = model if model is not None else default_hand_model(self._config.right_hand)
-        self._model = base.mirrored(self._config.right_hand)
+        # (the default model, the small one) while the model is the default (SMALL_HAND_LENGTH).
+        self._sizes: tuple[HandModel, HandModel] | None = None
+        if model is None:
+            self._sizes = _size_models(self._config.right_hand)
+            self._model = self._sizes[0]
+        else:
+            self._model = model.mirrored(self._config.right_hand)
         self._prev: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self._steps: NDArray[np.float64] | None = None  # last frame's final step lengths (26,)
         self._low_frames = 0
@@ -268,6 +309,7 @@ class Tracker(RestartStrategies):
     def set_model(self, model: HandModel) -> None:
         """Use another hand model (e.g. after calibration); keeps the track."""
         self._model = model.mirrored(self._config.right_hand)
+        self._sizes = None
         self._shift_pending = None
         self._deferred = None
         self._running = None
@@ -317,6 +359,8 @@ class Tracker(RestartStrategies):
         """Change the configuration; a handedness change also resets the track."""
         if config.right_hand != self._config.right_hand:
             self._model = self._model.mirrored(config.right_hand)
+            if self._sizes is not None:
+                self._sizes = _size_models(config.right_hand)
             self.reset()
         self._config = config
 
@@ -357,6 +401,8 @@ class Tracker(RestartStrategies):
             self._shift_pending = None
             self._running = None  # (restarts paused on the lost track's last frame)
             self._restart_wait = 0
+            if self._sizes is not None and self._pending is None:
+                self._model = self._sizes[0]  # (a new track on the default model: its size is chosen again)
             result = self._initialise(pre)
         t2 = time.perf_counter()
         result.timings_ms["preprocess"] = (t1 - t0) * 1e3
@@ -683,7 +729,8 @@ class Tracker(RestartStrategies):
         (forced) finger-shift restarts, then the lateral restarts (:meth:`_lateral_restarts`,
         about 75 objective evaluations: with :attr:`defer_restarts` after the answer, as a
         tracked frame's restarts).  The detection restarts are left to the tracked frames that
-        follow.
+        follow.  On the default model the finalists are also refined on the small model, which
+        the track starts on when it scores ``SMALL_HAND_GAIN`` higher with open fingers.
         """
         cfg = self._config
         tq = time.perf_counter()
@@ -693,16 +740,15 @@ class Tracker(RestartStrategies):
         if data.n == 0:
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, timings)
-        best = None
-        for x in poses:
-            data_x = self._hand_side(data, x)
-            if data_x.n == 0:
-                continue
-            obj = Objective(self._model, data_x, cfg, targets=self._targets(x, det), silhouette=sil)
-            cand = self._maximise(obj, x, iterations=INIT_SEARCH.final_iterations)
-            score = self._score(self._plain(obj), cand.x, det, hidden_tips=False)
-            if best is None or score > best[0]:
-                best = (score, cand, data_x, obj)
+        best = self._best_finalist(poses, data, det, sil)
+        if best is not None and self._sizes is not None:
+            default = self._model
+            self._model = self._sizes[1]
+            small = self._best_finalist(poses, data, det, sil)
+            if small is not None and small[0] > best[0] + SMALL_HAND_GAIN and _open(best[1].x) and _open(small[1].x):
+                best = small
+            else:
+                self._model = default
         if best is None:
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, timings)
@@ -721,6 +767,24 @@ class Tracker(RestartStrategies):
         self._low_frames = 0
         self._status = TrackerStatus.TRACKING
         return self._result(res.x, conf, res.fun, data.n, timings)
+
+    def _best_finalist(
+        self, poses: list[NDArray[np.float64]], data: ImageSoG, det: Detections, sil: Silhouette | None
+    ) -> tuple[float, OptimizeResult, ImageSoG, Objective] | None:
+        """The initialisation's finalists ``poses`` (26,) each refined ``final_iterations`` on
+        the tracker's model with the full objective: (score, fit, its data, its objective) of
+        the best by :meth:`_score`, or None when no finalist has data on its hand side."""
+        best = None
+        for x in poses:
+            data_x = self._hand_side(data, x)
+            if data_x.n == 0:
+                continue
+            obj = Objective(self._model, data_x, self._config, targets=self._targets(x, det), silhouette=sil)
+            cand = self._maximise(obj, x, iterations=INIT_SEARCH.final_iterations)
+            score = self._score(self._plain(obj), cand.x, det, hidden_tips=False)
+            if best is None or score > best[0]:
+                best = (score, cand, data_x, obj)
+        return best
 
     def _on_hand_side(self, points: NDArray[np.float64], theta: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Which ``points`` (n, 3) mm lie on the hand side of the wrist plane at ``theta``."""
