@@ -136,7 +136,9 @@ REFINE_CURL_RAD = math.radians(60.0)
 #: scored 0.069 above the default on average on hands of length 0.79-0.83, 0.068 on 0.83-0.87,
 #: 0.044 on 0.87-0.91, 0.025 on 0.91-0.95, 0.003 on 0.95-1.0 and -0.028 on larger ones; over
 #: 0.04 on 16 of 17, 19 of 22, 8 of 17, 4 of 25 and none of the 63 others), hence a margin
-#: rather than the best score.  Only between two fits of open fingers (``SMALL_HAND_MAX_FLEX``:
+#: rather than the best score.  (0.03: dev renders 5.79 -> 5.71 mm, but labelled real frame 4,
+#: whose objective prefers its fingers one place over, went so in 4 of 14 runs instead of 2:
+#: 8.28 -> 8.86 mm over the 112 runs.)  Only between two fits of open fingers (``SMALL_HAND_MAX_FLEX``:
 #: mean MCP + PIP flexion of index .. little, rad, as the calibration's open frames): curled
 #: fingers do not show their length, and a fist seen from the back (labelled real frame 7) or a
 #: hand with a finger curled toward the camera (frame 2) scored 0.04-0.09 higher on the small
