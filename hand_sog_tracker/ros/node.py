@@ -712,6 +712,9 @@ class TrackerNode(CalibrationService, Node):
         model = self._tracker.model
         if self._described is not None and self._described[0] is model and self._described[1] == camera_frame:
             return
+        if self._described is None or self._described[0].shape != model.shape:
+            # (a calibration, or a new track of a small hand on the default model's small size)
+            self.get_logger().info(f"hand model in use: {model.shape}")
         self._described = (model, camera_frame)
         self._description_pub.publish(String(data=hand_urdf(model, camera_frame=camera_frame or None)))
 
