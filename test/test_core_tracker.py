@@ -23,7 +23,7 @@ from hand_sog_tracker.core.tracker import REFINE_CURL_RAD, Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import DepthImageError, InputError, IntrinsicsError
 from hand_sog_tracker.synth.render import RenderOptions, render_depth
-from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
+from hand_sog_tracker.synth.sequence import SyntheticFrame, default_intrinsics, synthetic_sequence
 
 
 def track(motion: str, n: int, **kw) -> tuple[np.ndarray, list[TrackerStatus]]:
@@ -201,7 +201,9 @@ def test_a_hand_in_front_of_a_wall_seen_by_a_tof_camera_is_found_on_its_first_fr
     assert errors.max() < 15.0, errors.round(1)
 
 
-def _first_mesh_frame(motion: str, shape: tuple[float, float, float], seed: int, sensor: str = "tof"):
+def _first_mesh_frame(
+    motion: str, shape: tuple[float, float, float], seed: int, sensor: str = "tof"
+) -> tuple[SyntheticFrame, Intrinsics]:
     """Frame 0 of a mesh render of ``motion`` by a hand of ``shape`` (length, width, thickness)."""
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence
 
