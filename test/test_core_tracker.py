@@ -271,6 +271,25 @@ def test_a_large_hand_starts_on_the_default_model() -> None:
     assert tracker.model.shape.length == 0.8
 
 
+def test_a_hand_found_mid_motion_palm_away_is_not_fitted_flipped() -> None:
+    """A left hand counting (index and thumb out, the others curled), found on frame 40: the
+    search (no silhouette term) scored two poses flipped palm-for-back highest, and the finish
+    chose between those two only: the model's thumb on the little finger's side (165 mm off).
+    The best pose of the other side now joins the finalists, and the finish's full objective
+    takes it."""
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence
+
+    intr = default_intrinsics()
+    shape = MeshShape(1.0698, 1.0537, 0.9956)
+    options = MeshRenderOptions("structured")
+    frame = list(mesh_sequence("fingercount", 41, intr, shape=shape, right=False, seed=3139, options=options))[40]
+    res = Tracker(TrackerConfig(right_hand=False)).process(np.round(frame.depth_mm), intr)
+    assert res.fingertips_mm is not None
+    apart = np.linalg.norm(res.fingertips_mm[:, None] - frame.fingertips_mm[None], axis=2)  # (model, true)
+    assert np.array_equal(apart.argmin(axis=1), np.arange(5))  # every fingertip on its own finger
+    assert np.diag(apart)[[0, 3, 4]].max() < 15.0, np.diag(apart).round(1)  # thumb, ring, little
+
+
 def test_far_hand_gets_finer_data_and_is_tracked() -> None:
     """A hand at 0.78 m before a Kinect-like 640x480 camera (processed at 320x240): its data
     get the leaves of a near hand (2 px instead of 4), and the fingers are tracked."""

@@ -144,7 +144,8 @@ class InitSearch:
     full_iterations : int
         Iterations (all parameters) of each kept pose on the full-resolution data.
     finalists : int
-        Best-scoring poses handed to the second stage.
+        Best-scoring poses handed to the second stage (with the best of the other palm side
+        when none of them has it).
     final_iterations : int
         Iterations of each finalist with the full objective in the second stage.
     combination_below : float

@@ -199,6 +199,12 @@ def hand_roi(
     return roi, (c[2] - radius_mm, c[2] + radius_mm)
 
 
+def _back_toward(theta: NDArray[np.float64]) -> bool:
+    """Whether the back of the hand at ``theta`` faces the camera (the palm normal, hand z,
+    points away from it): the side of a start pose (:func:`_balanced`)."""
+    return bool(global_rotation(theta)[2, 2] > 0)
+
+
 def _open(theta: NDArray[np.float64]) -> bool:
     """Whether the fingers (index .. little) at ``theta`` are open enough to tell a hand's size:
     mean MCP + PIP flexion under ``SMALL_HAND_MAX_FLEX``."""
@@ -650,7 +656,7 @@ class Tracker(RestartStrategies):
                 Objective(self._model, data, cfg), x0,
                 iterations=eff.rigid_iterations, initial_scale=2.0, active=rigid,
             )
-            return res.fun, -i, res.x, bool(global_rotation(x0)[2, 2] > 0)
+            return res.fun, -i, res.x, _back_toward(x0)
 
         def articulate(kept: list[tuple[float, int, NDArray[np.float64], bool]]) -> list[tuple[float, int, NDArray]]:
             """(score, rank, pose) of each kept pose articulated on the fine data."""
@@ -700,8 +706,15 @@ class Tracker(RestartStrategies):
             tried = sorted(articulate(combos), key=lambda s: s[:2], reverse=True)
             if tried and tried[0][0] >= scored[0][0] + eff.combination_margin:
                 scored = sorted(scored + tried, key=lambda s: s[:2], reverse=True)
+        # The best of the other palm side joins the finalists when none of them has it: the search
+        # scores without the silhouette, so a hand flipped palm-for-back can score highest there,
+        # and the finish's full objective tells the two apart (issue 11: a finger counting hand
+        # found mid-motion, index and thumb out, ended with its thumb on the little finger's side).
+        finalists = [x for _, _, x in scored[: eff.finalists]]
+        sides = {_back_toward(x) for x in finalists}
+        finalists += [x for _, _, x in scored if _back_toward(x) not in sides][:1]
         return InitFinalists(
-            poses=[x for _, _, x in scored[: eff.finalists]],
+            poses=finalists,
             model=self._model,
             config=cfg,
             pre=pre,
@@ -716,7 +729,7 @@ class Tracker(RestartStrategies):
         scored = []
         for i, (x0, part) in enumerate(zip(starts, parts)):
             value = Objective(self._model, part, self._config)(x0, gradient=False)[0] if part.n else -np.inf
-            scored.append((value, -i, bool(global_rotation(x0)[2, 2] > 0)))
+            scored.append((value, -i, _back_toward(x0)))
         chosen: set[int] = set()
         for side in (True, False):
             chosen.update(-s[1] for s in sorted((s for s in scored if s[2] == side), reverse=True)[:n])
