@@ -757,11 +757,11 @@ class Tracker(RestartStrategies):
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, timings)
         best = self._best_finalist(poses, data, det, sil)
-        if best is not None and self._sizes is not None:
+        if best is not None and self._sizes is not None and _open(best[1].x):
             default = self._model
             self._model = self._sizes[1]
             small = self._best_finalist(poses, data, det, sil)
-            if small is not None and small[0] > best[0] + SMALL_HAND_GAIN and _open(best[1].x) and _open(small[1].x):
+            if small is not None and small[0] > best[0] + SMALL_HAND_GAIN and _open(small[1].x):
                 best = small
             else:
                 self._model = default
