@@ -213,8 +213,8 @@ def _open(theta: NDArray[np.float64]) -> bool:
 
 def _size_models(right: bool) -> tuple[HandModel, HandModel]:
     """The default model of this handedness and the same scaled to ``SMALL_HAND_LENGTH``."""
-    default = default_hand_model(right).mirrored(right)
-    return default, default.scaled(HandShape(length=SMALL_HAND_LENGTH)).mirrored(right)
+    default = default_hand_model(right)
+    return default, default.scaled(HandShape(length=SMALL_HAND_LENGTH))
 
 
 def _balanced(ranked: list[tuple], n: int) -> list[tuple]:
