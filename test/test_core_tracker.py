@@ -628,6 +628,50 @@ def test_a_finger_leaning_on_its_curled_neighbours_place_swaps_with_it() -> None
     assert tracker._swap_pair(bent) is None
 
 
+def test_an_open_finger_on_its_neighbours_data_is_curled_into_the_palm() -> None:
+    """The curl restarts (issue 11): mesh hand counting "three" (thumb, index and middle up; ring
+    and little curled toward the camera), clean depth, tracked with the ring finger open on the
+    middle finger's data (as dev render 3001 did for its last 8 frames, 110-124 mm).  Every model
+    Gaussian lies on data; the middle fingertip has no detection of its own (the ring's took it).
+    The restarts curl the ring finger into the palm; at the truth, and with the hand seen from
+    the side, nothing is tried."""
+    from hand_sog_tracker.core.restarts import CURL_WAIT
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, mesh_fingertips, render_mesh_depth
+    from hand_sog_tracker.synth.motions import default_start_pose
+
+    intr = default_intrinsics()
+    truth = default_start_pose()  # palm to the camera
+    curled = (1.4, 0.0, 1.66, 0.96)  # as finger counting's end
+    for c, joints in ((1, FINGER_EXTENDED), (2, FINGER_EXTENDED), (3, curled), (4, curled)):
+        truth[chain_slice(c)] = joints
+    depth = render_mesh_depth(truth, intr, options=MeshRenderOptions("clean"))
+    true_tips = mesh_fingertips(truth)
+    tracker = Tracker(TrackerConfig(), model=default_hand_model())
+    wrong = truth.copy()
+    wrong[chain_slice(3)] = (0.0, -0.1, 0.3, 0.0)  # the ring finger open, toward the middle finger
+    pre = preprocess(depth, intr, tracker.config)
+    data, det, sil = tracker._data_near(pre, wrong, detect=True)
+    obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(wrong, det), silhouette=sil)
+    res = tracker._maximise(obj, wrong, iterations=21)
+    err_wrong = np.linalg.norm(fingertips(tracker.model, res.x) - true_tips, axis=1)
+    assert err_wrong[3] > 100.0, err_wrong.round(0)  # the fit alone keeps it open
+    tracker._frame_count = 1  # (off the shift schedule)
+    out = run(tracker._restarts(obj, res, data, det))
+    err = np.linalg.norm(fingertips(tracker.model, out.x) - true_tips, axis=1)
+    assert err.max() < 12.0, (err_wrong.round(0), err.round(0))
+    assert tracker._curl_wait == CURL_WAIT
+    # Tried once, then not for CURL_WAIT rounds of the restarts.
+    assert run(tracker._curl_restarts(obj, res, det)) is res and tracker._curl_wait == CURL_WAIT - 1
+    # At the truth: the open fingers have their detections, the curled ones are not tried.
+    tracker._curl_wait = 0
+    fit = tracker._maximise(obj, truth, iterations=7)
+    assert run(tracker._curl_restarts(obj, fit, det)) is fit and tracker._curl_wait == 0
+    # The hand seen from the side: the depth cannot tell a curled finger from an open one.
+    side = dataclasses.replace(res, x=res.x.copy())
+    side.x[4] += np.pi / 2
+    assert run(tracker._curl_restarts(obj, side, det)) is side and tracker._curl_wait == 0
+
+
 def test_a_fist_fitted_from_its_true_pose_stays_closer_when_curled_fingers_may_touch() -> None:
     """``E_col``'s contact share (issue 11): a capsule fist fitted for 40 iterations from its
     true pose, as on a tracked frame (``contact`` from that pose), keeps its fingertips closer to

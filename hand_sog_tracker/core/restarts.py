@@ -8,6 +8,8 @@ and ``_limits``); :meth:`~RestartStrategies._restarts` runs them for a tracked f
   extended, curled and like the other fingers;
 - :meth:`~RestartStrategies._swap_restarts`: a finger held at its abduction limit over a curled
   neighbour's place swaps flexions with that neighbour;
+- :meth:`~RestartStrategies._curl_restarts`: an open finger without a fingertip detection of its
+  own is tried curled into the palm;
 - :meth:`~RestartStrategies._shift_restarts`: every finger takes its neighbour's articulation;
 - :meth:`~RestartStrategies._detection_restarts`: a finger is pulled onto a fingertip
   detection no model finger explains;
@@ -71,6 +73,9 @@ __all__ = [
     "SWAP_MAX_CURL_RAD",
     "SWAP_PALM_COS",
     "SWAP_MARGIN",
+    "CURL_MAX_FLEX_RAD",
+    "CURL_MARGIN",
+    "CURL_WAIT",
 ]
 
 # Tuning constants, documented like those of :mod:`hand_sog_tracker.core.tracker` (what, unit,
@@ -156,6 +161,23 @@ SWAP_CURL_GAP_RAD = 0.8
 SWAP_MAX_CURL_RAD = 2.2
 SWAP_PALM_COS = 0.85
 SWAP_MARGIN = 0.02
+#: Curl restarts (:meth:`RestartStrategies._curl_restarts`, issue 11, all chosen here).  A
+#: finger of index .. little flexed less than ``CURL_MAX_FLEX_RAD`` (MCP + PIP + DIP, rad)
+#: whose tip has no detection of its own within ``SHIFT_SKIP_MM`` (the optimal assignment),
+#: with the palm or the back of the hand toward the camera (``SWAP_PALM_COS``), is tried with
+#: :data:`FINGER_CURLED`; the candidate wins by ``CURL_MARGIN`` of
+#: :meth:`RestartStrategies._score`.  A finger tried waits ``CURL_WAIT`` rounds of the restarts
+#: (tracked frames: every frame at 30 Hz, see ``Tracker.restart_interval_s``).
+#: On mesh renders of finger counting (clean depth, palm to the camera) the ring finger, as it
+#: curled into the palm, stayed open on the middle finger's data for the last 8-12 frames
+#: (110-124 mm); the candidate with the ring curled scored 0.043-0.049 higher.  The other
+#: scores seen: wrong curls (an open finger whose detection was missing) won at margins 0.01
+#: (dev 5.83 -> 6.57 mm, 29 renders worse) and 0.02 (5.83 -> 5.95, 8 worse), and in hands seen
+#: from the side (a rotating hand, validation 9.6 -> 12.4 mm without the palm condition).
+#: Without the wait it fired on up to 27 of 60 frames of a render, with it on 4-5.
+CURL_MAX_FLEX_RAD = 1.5
+CURL_MARGIN = 0.04
+CURL_WAIT = 10
 #: After restarts triggered by an unexplained detection all lost, they are not tried again
 #: for this many frames (count; chosen here).
 RESTART_COOLDOWN = 5
@@ -208,6 +230,8 @@ class RestartStrategies:
     _frame_count: int
     _restart_wait: int
     _shift_pending: ShiftCandidate | None
+    #: Rounds of the restarts until :meth:`_curl_restarts` may try again.
+    _curl_wait: int
     _limits: Callable[[], tuple[NDArray[np.float64], NDArray[np.float64]]]
     #: The tracker's fit that pauses after every iteration (``Tracker._fit``).
     _fit: Callable[..., Steps[OptimizeResult]]
@@ -219,14 +243,16 @@ class RestartStrategies:
     def _restarts(
         self, obj: Objective, res: OptimizeResult, data: ImageSoG, det: Detections
     ) -> Steps[OptimizeResult]:
-        """A tracked frame's restarts: finger, swap, then shift, then detection restarts.
+        """A tracked frame's restarts: finger, swap, curl, then shift, then detection restarts.
 
         When the restarts set off by an unexplained detection all lost, the shift and detection
         restarts wait ``RESTART_COOLDOWN`` frames (such a detection is often a knuckle or a
-        forearm edge); the finger and swap restarts run every time.
+        forearm edge); the finger, swap and curl restarts run every time (the curl restarts
+        with their own wait per finger).
         """
         res = yield from self._finger_restarts(obj, res, data)
         res = yield from self._swap_restarts(obj, res, det)
+        res = yield from self._curl_restarts(obj, res, det)
         if self._restart_wait > 0:
             self._restart_wait -= 1
             self._frame_count += 1  # (the shift restarts' schedule goes on)
@@ -308,6 +334,47 @@ class RestartStrategies:
         if self._score(plain, cand.x, det, value=cand.fun) > best_val + SWAP_MARGIN:
             return cand
         return res
+
+    def _curl_restarts(self, obj: Objective, res: OptimizeResult, det: Detections) -> Steps[OptimizeResult]:
+        """Curl an open finger that has no fingertip detection of its own into the palm.
+
+        When a finger curls into the palm, its model finger can stay open on the neighbouring
+        finger's data: every model Gaussian still explains data, and neither the finger
+        restarts (the tip is on data) nor the swaps (the neighbour is open too) see it.  Its
+        fingertip then has no detection of its own, like a curled finger's.  Each finger of
+        index .. little flexed less than ``CURL_MAX_FLEX_RAD`` whose tip has no detection of
+        its own within ``SHIFT_SKIP_MM`` (with the palm or the back of the hand toward the
+        camera, ``SWAP_PALM_COS``) is tried with :data:`FINGER_CURLED`, refined
+        ``RESTART_ITERATIONS``; the best candidate replaces ``res`` if its :meth:`_score` is
+        higher by ``CURL_MARGIN``.  A finger tried waits ``CURL_WAIT`` rounds of these restarts
+        before the next try.
+        """
+        if self._curl_wait > 0:
+            self._curl_wait -= 1
+            return res
+        if det.n == 0 or abs(global_rotation(res.x)[2, 2]) < SWAP_PALM_COS:
+            return res
+        flex = res.x[FINGER_MCP] + res.x[FINGER_PIP] + res.x[FINGER_DIP]  # index .. little (4,)
+        fingers = [c for c in range(1, 5) if flex[c - 1] < CURL_MAX_FLEX_RAD]
+        if not fingers:
+            return res
+        tips = fingertips(self._model, res.x)
+        assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
+        own = assigned >= 0
+        own[own] = np.linalg.norm(tips[own] - det.points[assigned[own]], axis=1) < SHIFT_SKIP_MM
+        if own[fingers].all():
+            return res
+        self._curl_wait = CURL_WAIT
+        plain = self._plain(obj)
+        best, best_val = res, self._score(plain, res.x, det) + CURL_MARGIN
+        for c in fingers:
+            x0 = res.x.copy()
+            x0[chain_slice(c)] = FINGER_CURLED
+            cand = yield from self._fit(plain, x0, iterations=RESTART_ITERATIONS)
+            val = self._score(plain, cand.x, det, value=cand.fun)
+            if val > best_val:
+                best, best_val = cand, val
+        return best
 
     def _swap_pair(self, theta: NDArray[np.float64]) -> tuple[int, int] | None:
         """``(finger, neighbour)`` (chains 1-4) for :meth:`_swap_restarts` at ``theta`` (26,),

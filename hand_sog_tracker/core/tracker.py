@@ -255,6 +255,7 @@ class Tracker(RestartStrategies):
         self._status = TrackerStatus.NO_HAND
         self._frame_count = 0
         self._restart_wait = 0  # frames to skip the detection-triggered restarts
+        self._curl_wait = 0  # rounds of the restarts to skip the curl restarts
         self._shift_pending: ShiftCandidate | None = None
 
     #: Spread the initialisation over two frames (issue 14): the frame that finds the hand
@@ -410,6 +411,7 @@ class Tracker(RestartStrategies):
             self._shift_pending = None
             self._running = None  # (restarts paused on the lost track's last frame)
             self._restart_wait = 0
+            self._curl_wait = 0
             if self._sizes is not None and self._pending is None:
                 self._model = self._sizes[0]  # (a new track on the default model: its size is chosen again)
             result = self._initialise(pre)
