@@ -181,6 +181,49 @@ def test_a_hand_80_mm_in_front_of_a_wall_is_found_and_tracked(motion: str, seed:
         assert errors.max() < 15.0, errors.round(1)
 
 
+def test_a_hand_50_mm_in_front_of_a_wall_its_forearm_bent_back_into_it_is_tracked() -> None:
+    """A wall 50 mm behind the wrist, the wrist bent so that the forearm recedes into it (dev
+    render 3000's wrist): the forearm fills 8.7% of the narrowest depth band's last 15 mm, and
+    the release before took that for a slice of the wall and found no hand in any frame.  Both
+    hands are tracked from the first frame; the tracked frames' windows end before the wall."""
+    from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence
+
+    intr = default_intrinsics()
+    options = MeshRenderOptions("structured", background_mm=450.0, wrist_deviation_deg=-25.0, wrist_flexion_deg=20.0)
+    for right in (True, False):
+        tracker = Tracker(TrackerConfig(right_hand=right))
+        for frame in mesh_sequence("abdadd", 6, intr, shape=MeshShape(0.97, 1.02, 1.07), right=right, seed=3000,
+                                   options=options):
+            res = tracker.process(frame.depth_mm, intr)
+            assert res.status is TrackerStatus.TRACKING
+            errors = np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1)
+            assert errors.max() < 12.0, errors.round(1)
+
+
+def test_a_tracked_frames_window_ends_before_a_surface_behind_the_hand() -> None:
+    """:func:`before_surface`: a wall filling the hand's region 60 mm behind its farthest
+    Gaussian centre ends the window before it; a forearm receding through the same depths (a
+    strip 60 mm wide) does not, nor does nothing behind the hand."""
+    from hand_sog_tracker.core.tracker import SURFACE_MARGIN_MM, before_surface
+
+    intr = default_intrinsics()
+    roi = (60, 20, 260, 220)
+    far = 400.0
+    start, end = far + 15.0, far + 70.0
+    hand = np.zeros((intr.height, intr.width), np.float32)
+    hand[60:160, 130:190] = 390.0
+    assert before_surface(hand, intr, roi, start, end) == end
+    wall = np.where(hand > 0, hand, np.float32(460.0))
+    cut = before_surface(wall, intr, roi, start, end)
+    assert 460.0 - 15.0 - SURFACE_MARGIN_MM <= cut < 460.0 - SURFACE_MARGIN_MM
+    # A forearm from the wrist (v = 160) down to the image's edge, 400 -> 470 mm deep: at 430 mm
+    # 60 mm are 40 px, and each 15 mm of depth spans 26 rows.
+    forearm = hand.copy()
+    rows = np.arange(160, intr.height)
+    forearm[160:, 140:180] = (400.0 + 70.0 * (rows - 160) / (intr.height - 160))[:, None]
+    assert before_surface(forearm, intr, roi, start, end) == end
+
+
 def test_a_hand_in_front_of_a_wall_seen_by_a_tof_camera_is_found_on_its_first_frame() -> None:
     """80 mm in front of a wall, a ToF camera's flying pixels join the hand blob in fringes
     between hand and wall: the blob's farthest pixel lay 60 mm behind the hand's, so that the

@@ -91,14 +91,19 @@ HAND_DEPTH_BAND_MM = 250.0
 #: is then cut off; a wall stays too large in every band.
 NARROW_BANDS_MM = (175.0, 120.0)
 #: Narrower bands still (mm), tried last, for a wall or a table top 50-120 mm behind the hand:
-#: the part within one is taken only when at most :data:`SURFACE_GAP_SHARE` of its pixels lie
-#: in the band's last :data:`SURFACE_GAP_MM` (chosen here: hands 50 mm in front of a wall,
-#: 0.5-1.1%; the slice of a wall tilted by 14-18 deg, 16-24%: no hand).  With a wall 80 mm
-#: behind the wrist, 9 mesh dev renders scored 111 mm before, most frames without a hand
-#: found, 6.3 mm with these bands.
+#: the part within one is taken only when at most its share in :data:`SURFACE_GAP_SHARES` of
+#: its pixels lie in the band's last :data:`SURFACE_GAP_MM` (chosen here: hands 50 mm in front
+#: of a wall, 0.5-1.1%; the slice of a wall tilted by 14-18 deg, 16-24%: no hand).  With a wall
+#: 80 mm behind the wrist, 9 mesh dev renders scored 111 mm before, most frames without a hand
+#: found, 6.3 mm with these bands.  The narrowest band allows 12%: with the wrist bent away from
+#: the camera, a forearm receding into a wall 50 mm behind the wrist filled 8.7% of its last 15
+#: mm, and no band found the hand (renders of an open hand never tracked; on the first 24 dev
+#: and 24 validation renders 26.7 and 25.9 -> 16.6 and 16.3 mm mean error, 80 and 120 mm walls
+#: as before).  12% in the 90 mm band too took in a wall's slice with a hand (validation 5020,
+#: abduction, 4.9 -> 44.6 mm).
 SURFACE_BANDS_MM = (90.0, 60.0)
 SURFACE_GAP_MM = 15.0
-SURFACE_GAP_SHARE = 0.05
+SURFACE_GAP_SHARES = (0.05, 0.12)
 #: A blob pixel is on a surface when it and its 8 neighbours all belong to the blob and lie within
 #: this depth range (mm): :attr:`HandBlob.far_mm` is the farthest such pixel.  Flying pixels (a
 #: ToF sensor's mixed returns between the hand and a wall behind it) join the blob in 1-2 px
@@ -263,13 +268,13 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
     for _, lab in sorted(candidates):
         component = labels == lab
         near = float(np.percentile(depth[component], 2))
-        for band_mm in (HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM, *SURFACE_BANDS_MM):
+        shares = [None] * (1 + len(NARROW_BANDS_MM)) + list(SURFACE_GAP_SHARES)
+        for band_mm, share in zip((HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM, *SURFACE_BANDS_MM), shares):
             blob = _hand_part(depth, component, intr, band_mm, near)
             z = depth[blob]
             if _area_mm2(z.size, float(np.median(z)), intr) > MAX_BLOB_AREA_MM2:
                 continue
-            surface = band_mm in SURFACE_BANDS_MM
-            if surface and np.count_nonzero(z > near + band_mm - SURFACE_GAP_MM) > SURFACE_GAP_SHARE * z.size:
+            if share is not None and np.count_nonzero(z > near + band_mm - SURFACE_GAP_MM) > share * z.size:
                 continue  # (a slice of a surface, not a hand in front of one)
             return blob
     return None

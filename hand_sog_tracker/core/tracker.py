@@ -69,7 +69,7 @@ from hand_sog_tracker.core.types import (
     TrackResult,
 )
 
-__all__ = ["Tracker", "coverage", "hand_roi"]
+__all__ = ["Tracker", "before_surface", "coverage", "hand_roi"]
 
 # Tuning constants.  Each says what it is, its unit and where its value comes from: "paper 000"
 # (the tracker's paper), "seed 001/004" (the salient-point and restart papers) or "chosen
@@ -104,6 +104,23 @@ WRIST_MARGIN_MM = 0.0
 #: nearer: a wall or a table top closer behind the hand than the window's half depth would
 #: otherwise be data, and the silhouette of the window would be the whole image.
 WINDOW_BEHIND_MM = 70.0
+#: ... and before a surface behind the hand (:func:`before_surface`; chosen here): the first
+#: ``SURFACE_SLICE_MM`` slice of depths, from ``SURFACE_SEARCH_MM`` behind the farthest Gaussian
+#: centre on, whose pixels in the hand's region of interest cover more than
+#: ``SURFACE_SLICE_MM2`` ends it ``SURFACE_MARGIN_MM`` before that slice.  A wall or a table top
+#: fills one slice over the whole region (a fronto-parallel wall about 0.07 m^2); a forearm
+#: receding from the hand a strip of it (60 mm wide, 25-50 mm long per 15 mm of depth).  On
+#: the first 24 dev and 24 validation mesh renders (automatic calibration) with a wall 50 mm
+#: behind the wrist, the wall lay inside the 70 mm window: 16.6 and 16.3 mm mean error
+#: (with :data:`~hand_sog_tracker.core.initialise.SURFACE_GAP_SHARES`), 8.0 and 10.9 mm with
+#: it; a fixed 35 mm window did as well there (7.0 / 10.9) but moved renders of a rotating hand
+#: without a wall both ways (seeds 7000-7095: 5.86 -> 5.94 mm).
+SURFACE_SEARCH_MM = 15.0
+SURFACE_SLICE_MM = 15.0
+SURFACE_SLICE_MM2 = 5000.0
+SURFACE_MARGIN_MM = 5.0
+#: Bin width (mm) of :func:`before_surface`'s depth histogram.
+_SURFACE_BIN_MM = 5.0
 #: The initialisation's search window (and its finish's) ends this far behind the hand blob's
 #: farthest surface pixel (mm; chosen here: depth noise at the blob's edge), when that is nearer
 #: than ``roi_radius_mm`` behind the start poses' centre.
@@ -197,6 +214,49 @@ def hand_roi(
         math.ceil(v + r_px) + 1,
     )
     return roi, (c[2] - radius_mm, c[2] + radius_mm)
+
+
+def before_surface(
+    depth_mm: NDArray[np.float32], intr: Intrinsics, roi: tuple[int, int, int, int], start_mm: float, end_mm: float
+) -> float:
+    """Where a depth window ending at ``end_mm`` should end instead, before a surface behind the
+    hand (a wall, a table top): see :data:`SURFACE_SLICE_MM2`.
+
+    Parameters
+    ----------
+    depth_mm : array, shape (H, W), float32
+        Depth (mm, 0 invalid) at the resolution of ``intr``.
+    intr : Intrinsics
+    roi : (u0, v0, u1, v1)
+        The hand's pixel box (:func:`hand_roi`; clipped to the image here).
+    start_mm, end_mm : float
+        The depths searched (mm): from ``start_mm`` (behind the hand) to ``end_mm``.
+
+    Returns
+    -------
+    float
+        ``SURFACE_MARGIN_MM`` before the nearest slice of ``SURFACE_SLICE_MM`` whose pixels (every
+        second row and column, counted four times) cover more than ``SURFACE_SLICE_MM2`` at
+        their depth, but not before ``start_mm``; ``end_mm`` when there is none.
+    """
+    h, w = depth_mm.shape
+    sub = depth_mm[max(roi[1], 0) : min(roi[3], h) : 2, max(roi[0], 0) : min(roi[2], w) : 2]
+    behind = sub[(sub > start_mm) & (sub <= end_mm)]
+    if behind.size == 0:
+        return end_mm
+    per_bin = _SURFACE_BIN_MM
+    n_bins = int(math.ceil((end_mm - start_mm) / per_bin))
+    counts = np.bincount(
+        np.minimum(((behind - start_mm) // per_bin).astype(np.int64), n_bins - 1), minlength=n_bins
+    ).astype(np.float64)
+    z = start_mm + per_bin * (np.arange(n_bins) + 0.5)
+    area = counts * (4.0 * z * z / (intr.fx * intr.fy))  # mm^2 (each counted pixel stands for 4)
+    k = int(round(SURFACE_SLICE_MM / per_bin))
+    slices = np.convolve(area, np.ones(k))[k - 1 :]  # slices[i]: bins i .. i + k - 1
+    hit = np.flatnonzero(slices > SURFACE_SLICE_MM2)
+    if hit.size == 0:
+        return end_mm
+    return max(start_mm, start_mm + per_bin * float(hit[0]) - SURFACE_MARGIN_MM)
 
 
 def _back_toward(theta: NDArray[np.float64]) -> bool:
@@ -477,7 +537,9 @@ class Tracker(RestartStrategies):
         # constant-velocity extrapolation damped by alpha.
         x0 = p1 + ALPHA * (p1 - p2)
         tq = time.perf_counter()
-        end = float(np.max(posed_centres(self._model, x0)[:, 2])) + WINDOW_BEHIND_MM
+        far = float(np.max(posed_centres(self._model, x0)[:, 2]))
+        roi, _ = hand_roi(self._model, x0, pre.intrinsics, cfg.roi_radius_mm)
+        end = before_surface(pre.depth_mm, pre.intrinsics, roi, far + SURFACE_SEARCH_MM, far + WINDOW_BEHIND_MM)
         data, det, sil = self._data_near(pre, x0, detect=True, end_mm=end)
         tq2 = time.perf_counter()
         targets = self._targets(x0, det)
