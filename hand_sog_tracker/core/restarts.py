@@ -161,16 +161,18 @@ SWAP_CURL_GAP_RAD = 0.8
 SWAP_MAX_CURL_RAD = 2.2
 SWAP_PALM_COS = 0.85
 SWAP_MARGIN = 0.02
-#: Curl restarts (:meth:`RestartStrategies._curl_restarts`, issue 11, all chosen here).  A
-#: finger of index .. little flexed less than ``CURL_MAX_FLEX_RAD`` (MCP + PIP + DIP, rad)
-#: whose tip has no detection of its own within ``SHIFT_SKIP_MM`` (the optimal assignment),
-#: with the palm or the back of the hand toward the camera (``SWAP_PALM_COS``), is tried with
-#: :data:`FINGER_CURLED`; the candidate wins by ``CURL_MARGIN`` of
-#: :meth:`RestartStrategies._score`.  A finger tried waits ``CURL_WAIT`` rounds of the restarts
-#: (tracked frames: every frame at 30 Hz, see ``Tracker.restart_interval_s``).
+#: Curl restarts (:meth:`RestartStrategies._curl_restarts`, issue 11, all chosen here).  When
+#: a finger of index .. little flexed less than ``CURL_MAX_FLEX_RAD`` (MCP + PIP + DIP, rad) has
+#: no detection of its own within ``SHIFT_SKIP_MM`` (the optimal assignment), with the palm or
+#: the back of the hand toward the camera (``SWAP_PALM_COS``), every such open finger is tried
+#: with :data:`FINGER_CURLED`; a candidate wins by ``CURL_MARGIN`` of
+#: :meth:`RestartStrategies._score`.  After a try none is tried for ``CURL_WAIT`` rounds of the
+#: restarts (tracked frames: every frame at 30 Hz, see ``Tracker.restart_interval_s``).
 #: On mesh renders of finger counting (clean depth, palm to the camera) the ring finger, as it
 #: curled into the palm, stayed open on the middle finger's data for the last 8-12 frames
-#: (110-124 mm); the candidate with the ring curled scored 0.043-0.049 higher.  The other
+#: (110-124 mm); the candidate with the ring curled scored 0.043-0.049 higher.  The open finger
+#: without a detection of its own may be the neighbour (the ring fingertip took the middle
+#: finger's detection): hence every open finger is tried.  The other
 #: scores seen: wrong curls (an open finger whose detection was missing) won at margins 0.01
 #: (dev 5.83 -> 6.57 mm, 29 renders worse) and 0.02 (5.83 -> 5.95, 8 worse), and in hands seen
 #: from the side (a rotating hand, validation 9.6 -> 12.4 mm without the palm condition).
@@ -248,7 +250,7 @@ class RestartStrategies:
         When the restarts set off by an unexplained detection all lost, the shift and detection
         restarts wait ``RESTART_COOLDOWN`` frames (such a detection is often a knuckle or a
         forearm edge); the finger, swap and curl restarts run every time (the curl restarts
-        with their own wait per finger).
+        with their own wait after a try, ``CURL_WAIT``).
         """
         res = yield from self._finger_restarts(obj, res, data)
         res = yield from self._swap_restarts(obj, res, det)
@@ -341,13 +343,13 @@ class RestartStrategies:
         When a finger curls into the palm, its model finger can stay open on the neighbouring
         finger's data: every model Gaussian still explains data, and neither the finger
         restarts (the tip is on data) nor the swaps (the neighbour is open too) see it.  Its
-        fingertip then has no detection of its own, like a curled finger's.  Each finger of
-        index .. little flexed less than ``CURL_MAX_FLEX_RAD`` whose tip has no detection of
-        its own within ``SHIFT_SKIP_MM`` (with the palm or the back of the hand toward the
-        camera, ``SWAP_PALM_COS``) is tried with :data:`FINGER_CURLED`, refined
-        ``RESTART_ITERATIONS``; the best candidate replaces ``res`` if its :meth:`_score` is
-        higher by ``CURL_MARGIN``.  A finger tried waits ``CURL_WAIT`` rounds of these restarts
-        before the next try.
+        fingertip, or its open neighbour's, then has no detection of its own, like a curled
+        finger's.  When a finger of index .. little flexed less than ``CURL_MAX_FLEX_RAD`` has no
+        detection of its own within ``SHIFT_SKIP_MM`` (with the palm or the back of the hand
+        toward the camera, ``SWAP_PALM_COS``), each such open finger is tried with
+        :data:`FINGER_CURLED`, refined ``RESTART_ITERATIONS``; the best candidate replaces
+        ``res`` if its :meth:`_score` is higher by ``CURL_MARGIN``.  After a try, the next
+        ``CURL_WAIT`` rounds of the restarts try none.
         """
         if self._curl_wait > 0:
             self._curl_wait -= 1
