@@ -490,6 +490,7 @@ class Tracker(RestartStrategies):
         detect: bool = False,
         outline: bool = True,
         end_mm: float | None = None,
+        roi_window: tuple[tuple[int, int, int, int], tuple[float, float]] | None = None,
     ) -> tuple[ImageSoG, Detections, Silhouette | None]:
         """Data Gaussians around the hand at ``theta``, without the forearm.
 
@@ -501,9 +502,12 @@ class Tracker(RestartStrategies):
         ``outline`` the silhouette of the depth in the same depth window (None
         without it or when ``w_sil`` is 0).  With ``end_mm`` the depth window ends there at the
         latest (mm): a wall or a table top behind the hand is then no data, and the silhouette
-        of the window is the hand's.
+        of the window is the hand's.  ``roi_window``: :func:`hand_roi` at ``theta`` when already
+        computed.
         """
-        roi, window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
+        if roi_window is None:
+            roi_window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
+        roi, window = roi_window
         # (The leaves follow the window's centre, the hand's depth, whatever ``end_mm``.)
         leaf = leaf_px(self._config.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
         if end_mm is not None:
@@ -538,9 +542,11 @@ class Tracker(RestartStrategies):
         x0 = p1 + ALPHA * (p1 - p2)
         tq = time.perf_counter()
         far = float(np.max(posed_centres(self._model, x0)[:, 2]))
-        roi, _ = hand_roi(self._model, x0, pre.intrinsics, cfg.roi_radius_mm)
-        end = before_surface(pre.depth_mm, pre.intrinsics, roi, far + SURFACE_SEARCH_MM, far + WINDOW_BEHIND_MM)
-        data, det, sil = self._data_near(pre, x0, detect=True, end_mm=end)
+        roi_window = hand_roi(self._model, x0, pre.intrinsics, cfg.roi_radius_mm)
+        end = before_surface(
+            pre.depth_mm, pre.intrinsics, roi_window[0], far + SURFACE_SEARCH_MM, far + WINDOW_BEHIND_MM
+        )
+        data, det, sil = self._data_near(pre, x0, detect=True, end_mm=end, roi_window=roi_window)
         tq2 = time.perf_counter()
         targets = self._targets(x0, det)
         obj = Objective(
