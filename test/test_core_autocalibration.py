@@ -118,6 +118,19 @@ def test_an_automatic_fit_that_shrinks_the_hand_too_much_is_not_used() -> None:
     assert not usable_automatically(HandShape(length=AUTO_MIN_LENGTH - 0.01, width=1.2))
 
 
+def test_an_automatic_fit_at_an_end_of_its_search_range_is_not_used() -> None:
+    """The best fit lay beyond the search range: its frames did not hold the hand's size (a
+    mesh render 50 mm in front of a wall: length 1.25 and width 0.8 for a hand of 0.99 x 1.06)."""
+    from hand_sog_tracker.core.calibration import SEARCH_RANGE
+
+    lo, hi = SEARCH_RANGE
+    assert not usable_automatically(HandShape(length=hi, width=lo))
+    assert not usable_automatically(HandShape(length=hi, width=1.0))
+    assert not usable_automatically(HandShape(length=1.0, width=lo))
+    assert not usable_automatically(HandShape(length=1.0, width=hi))
+    assert usable_automatically(HandShape(length=hi - 0.01, width=lo + 0.01))
+
+
 def test_the_guard_rules_follow_the_margin_and_frame_drop_given() -> None:
     """One verdict, two guards: a fit whose mean held-out score falls by 0.005 and one frame's by
     0.08 is refused by ~/calibrate's guard and passes the automatic fit's."""

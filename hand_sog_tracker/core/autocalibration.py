@@ -29,7 +29,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.calibration import DEFAULT_FIT_FRAMES, DEFAULT_HOLDOUT_FRAMES, select_frames
+from hand_sog_tracker.core.calibration import DEFAULT_FIT_FRAMES, DEFAULT_HOLDOUT_FRAMES, SEARCH_RANGE, select_frames
 from hand_sog_tracker.core.hand_model import HandModel, HandShape
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 
@@ -215,9 +215,19 @@ def choose_fit_frames(
 
 
 def usable_automatically(shape: HandShape) -> bool:
-    """Whether an automatic fit of ``shape`` replaces the model (length at least
-    :data:`AUTO_MIN_LENGTH`); a smaller fitted hand keeps the model, and no fit is tried again."""
-    return shape.length >= AUTO_MIN_LENGTH
+    """Whether an automatic fit of ``shape`` replaces the model: length at least
+    :data:`AUTO_MIN_LENGTH`, and neither length nor width at an end of the fit's
+    :data:`~hand_sog_tracker.core.calibration.SEARCH_RANGE` (the best fit lay beyond it: the
+    frames did not hold the hand's size; a mesh render 50 mm in front of a wall was fitted at
+    length 1.25 and width 0.8 for a hand of 0.99 and 1.06).  A fit not used keeps the model,
+    and no fit is tried again."""
+    lo, hi = SEARCH_RANGE
+    inside = all(lo + AUTO_EDGE < v < hi - AUTO_EDGE for v in (shape.length, shape.width))
+    return shape.length >= AUTO_MIN_LENGTH and inside
+
+
+#: How close (scale factor) to an end of the fit's search range counts as at the end.
+AUTO_EDGE = 0.005
 
 
 class AutoCalibration:
