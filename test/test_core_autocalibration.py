@@ -129,6 +129,12 @@ def test_an_automatic_fit_at_an_end_of_its_search_range_is_not_used() -> None:
     assert not usable_automatically(HandShape(length=1.0, width=lo))
     assert not usable_automatically(HandShape(length=1.0, width=hi))
     assert usable_automatically(HandShape(length=hi - 0.01, width=lo + 0.01))
+    # The node logs why a fit is not used.
+    from hand_sog_tracker.core.autocalibration import why_not_used
+
+    assert "search range" in (why_not_used(HandShape(length=hi, width=lo)) or "")
+    assert "smaller than length" in (why_not_used(HandShape(length=AUTO_MIN_LENGTH - 0.01)) or "")
+    assert why_not_used(HandShape(length=1.1, width=1.1)) is None
 
 
 def test_the_guard_rules_follow_the_margin_and_frame_drop_given() -> None:

@@ -9,9 +9,10 @@ more lenient guard (:data:`AUTO_GUARD_MARGIN`, :data:`AUTO_FRAME_DROP`): as soon
 recent tracked frames hold :data:`AUTO_MIN_FRAMES` frames of one camera among which
 :func:`~hand_sog_tracker.core.calibration.select_frames` finds an open hand to fit on (on at
 least :data:`AUTO_MIN_FIT_FRAMES` frames) and frames to check the fit on.  An accepted fit
-replaces the model for the rest of the run if it does not shrink the hand below
-:data:`AUTO_MIN_LENGTH` (it is not saved: ``~/calibrate`` saves); a refused or failed one is
-tried again :data:`AUTO_RETRY_S` later, at most :data:`AUTO_ATTEMPTS` times.  A saved user
+replaces the model for the rest of the run unless :func:`why_not_used` finds a reason (a hand
+shrunk below :data:`AUTO_MIN_LENGTH`, a fit at an end of its search range); it is not saved
+(``~/calibrate`` saves).  A refused or failed one is tried again :data:`AUTO_RETRY_S` later, at
+most :data:`AUTO_ATTEMPTS` times.  A saved user
 model, or a successful ``~/calibrate``, turns it off.
 
 This module holds what the node and ``evaluate_bag`` share: :class:`FrameHistory` (the
@@ -49,6 +50,7 @@ __all__ = [
     "HistoryFrame",
     "choose_fit_frames",
     "usable_automatically",
+    "why_not_used",
 ]
 
 #: Tracked frames kept (count), at most one per :data:`HISTORY_SPACING_S` (s): the last half
@@ -215,15 +217,28 @@ def choose_fit_frames(
 
 
 def usable_automatically(shape: HandShape) -> bool:
-    """Whether an automatic fit of ``shape`` replaces the model: length at least
-    :data:`AUTO_MIN_LENGTH`, and neither length nor width at an end of the fit's
-    :data:`~hand_sog_tracker.core.calibration.SEARCH_RANGE` (the best fit lay beyond it: the
-    frames did not hold the hand's size; a mesh render 50 mm in front of a wall was fitted at
-    length 1.25 and width 0.8 for a hand of 0.99 and 1.06).  A fit not used keeps the model,
-    and no fit is tried again."""
+    """Whether an automatic fit of ``shape`` replaces the model (:func:`why_not_used` says
+    nothing against it).  A fit not used keeps the model, and no fit is tried again."""
+    return why_not_used(shape) is None
+
+
+def why_not_used(shape: HandShape) -> str | None:
+    """Why an automatic fit of ``shape`` does not replace the model, or None when it does: a
+    length under :data:`AUTO_MIN_LENGTH`, or a length or width at an end of the fit's
+    :data:`~hand_sog_tracker.core.calibration.SEARCH_RANGE` (within :data:`AUTO_EDGE`: the best
+    fit lay beyond it, the frames did not hold the hand's size; a mesh render 50 mm in front of
+    a wall was fitted at length 1.25 and width 0.8 for a hand of 0.99 and 1.06)."""
+    if shape.length < AUTO_MIN_LENGTH:
+        return (
+            f"a hand smaller than length {AUTO_MIN_LENGTH} keeps the default model (it tracks such "
+            "hands better on average)"
+        )
     lo, hi = SEARCH_RANGE
-    inside = all(lo + AUTO_EDGE < v < hi - AUTO_EDGE for v in (shape.length, shape.width))
-    return shape.length >= AUTO_MIN_LENGTH and inside
+    for name in ("length", "width"):
+        value = getattr(shape, name)
+        if not lo + AUTO_EDGE < value < hi - AUTO_EDGE:
+            return f"its {name} lies at an end of the search range {lo}-{hi}: the frames did not hold the hand's size"
+    return None
 
 
 #: How close (scale factor) to an end of the fit's search range counts as at the end.

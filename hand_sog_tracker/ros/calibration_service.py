@@ -25,7 +25,6 @@ from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from hand_sog_tracker.core.autocalibration import (
-    AUTO_MIN_LENGTH,
     HISTORY_FRAMES,
     HISTORY_SPACING_S,
     AutoCalibration,
@@ -33,7 +32,7 @@ from hand_sog_tracker.core.autocalibration import (
     FrameHistory,
     HistoryFrame,
     choose_fit_frames,
-    usable_automatically,
+    why_not_used,
 )
 from hand_sog_tracker.core.calibration import (
     DEFAULT_HOLDOUT_FRAMES,
@@ -270,11 +269,9 @@ class CalibrationService:
                     f"{res.validation.describe() if res.validation else ''} ({res.seconds:.2f} s)"
                 )
                 accepted = True  # by the guard: no further attempts
-                if not usable_automatically(s):
-                    logger.info(
-                        f"automatic calibration: {fitted}; a hand smaller than length {AUTO_MIN_LENGTH} "
-                        "keeps the default model (it tracks such hands better on average)"
-                    )
+                reason = why_not_used(s)
+                if reason is not None:
+                    logger.info(f"automatic calibration: {fitted}; not used: {reason}")
                     return
                 with self._tracker_lock:
                     used = generation == self._model_generation and self._auto_calib.enabled
