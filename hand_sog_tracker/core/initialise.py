@@ -104,6 +104,10 @@ NARROW_BANDS_MM = (175.0, 120.0)
 SURFACE_BANDS_MM = (90.0, 60.0)
 SURFACE_GAP_MM = 15.0
 SURFACE_GAP_SHARES = (0.05, 0.12)
+#: The bands :func:`_nearest_blob` tries in turn, each with its gap share (None: no gap test).
+_BANDS = tuple(
+    [(band, None) for band in (HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM)] + list(zip(SURFACE_BANDS_MM, SURFACE_GAP_SHARES))
+)
 #: A blob pixel is on a surface when it and its 8 neighbours all belong to the blob and lie within
 #: this depth range (mm): :attr:`HandBlob.far_mm` is the farthest such pixel.  Flying pixels (a
 #: ToF sensor's mixed returns between the hand and a wall behind it) join the blob in 1-2 px
@@ -268,8 +272,7 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
     for _, lab in sorted(candidates):
         component = labels == lab
         near = float(np.percentile(depth[component], 2))
-        shares = [None] * (1 + len(NARROW_BANDS_MM)) + list(SURFACE_GAP_SHARES)
-        for band_mm, share in zip((HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM, *SURFACE_BANDS_MM), shares):
+        for band_mm, share in _BANDS:
             blob = _hand_part(depth, component, intr, band_mm, near)
             z = depth[blob]
             if _area_mm2(z.size, float(np.median(z)), intr) > MAX_BLOB_AREA_MM2:

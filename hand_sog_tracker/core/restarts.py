@@ -360,11 +360,7 @@ class RestartStrategies:
         fingers = [c for c in range(1, 5) if flex[c - 1] < CURL_MAX_FLEX_RAD]
         if not fingers:
             return res
-        tips = fingertips(self._model, res.x)
-        assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
-        own = assigned >= 0
-        own[own] = np.linalg.norm(tips[own] - det.points[assigned[own]], axis=1) < SHIFT_SKIP_MM
-        if own[fingers].all():
+        if self._own_detections(res.x, det)[fingers].all():
             return res
         self._curl_wait = CURL_WAIT
         plain = self._plain(obj)
@@ -585,15 +581,18 @@ class RestartStrategies:
         return TipTargets(points, weights)
 
     def _tips_seen(self, theta: NDArray[np.float64], det: Detections) -> bool:
-        """Whether every fingertip at ``theta`` (26,) has a detection of its own (the optimal
-        assignment, :func:`assign_detections`) within ``SHIFT_SKIP_MM``."""
-        if det.n < 5:
-            return False
+        """Whether every fingertip at ``theta`` (26,) has a detection of its own
+        (:meth:`_own_detections`)."""
+        return det.n >= 5 and bool(self._own_detections(theta, det).all())
+
+    def _own_detections(self, theta: NDArray[np.float64], det: Detections) -> NDArray[np.bool_]:
+        """Per fingertip at ``theta`` (26,), thumb .. little (5,): whether it has a detection of
+        its own (the optimal assignment, :func:`assign_detections`) within ``SHIFT_SKIP_MM``."""
         tips = fingertips(self._model, theta)
         assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
-        if (assigned < 0).any():
-            return False
-        return bool((np.linalg.norm(tips - det.points[assigned], axis=1) < SHIFT_SKIP_MM).all())
+        own = assigned >= 0
+        own[own] = np.linalg.norm(tips[own] - det.points[assigned[own]], axis=1) < SHIFT_SKIP_MM
+        return own
 
     def _lonely(self, theta: NDArray[np.float64], det: Detections) -> NDArray[np.int64]:
         """The detections no fingertip at ``theta`` (26,) explains: confident ones farther than

@@ -189,9 +189,14 @@ def coverage(
 
 
 def hand_roi(
-    model: HandModel, theta: NDArray[np.float64], intr: Intrinsics, radius_mm: float
+    model: HandModel,
+    theta: NDArray[np.float64],
+    intr: Intrinsics,
+    radius_mm: float,
+    centres: NDArray[np.float64] | None = None,
 ) -> tuple[tuple[int, int, int, int], tuple[float, float]]:
-    """Pixel box and depth window around the hand at ``theta``.
+    """Pixel box and depth window around the hand at ``theta`` (``centres``: its
+    :func:`posed_centres`, shape (m, 3) mm, when already computed).
 
     Returns
     -------
@@ -199,7 +204,7 @@ def hand_roi(
         End-exclusive pixel box at the resolution of ``intr``.
     window : (near_mm, far_mm)
     """
-    P = posed_centres(model, theta)
+    P = posed_centres(model, theta) if centres is None else centres
     c = np.add.reduce(P, axis=0) / P.shape[0]  # (= P.mean(axis=0), without its Python layer)
     z = max(c[2], 50.0)
     # The centre's pixel as Intrinsics.project computes it, by Python floats (the same IEEE
@@ -541,8 +546,9 @@ class Tracker(RestartStrategies):
         # constant-velocity extrapolation damped by alpha.
         x0 = p1 + ALPHA * (p1 - p2)
         tq = time.perf_counter()
-        far = float(np.max(posed_centres(self._model, x0)[:, 2]))
-        roi_window = hand_roi(self._model, x0, pre.intrinsics, cfg.roi_radius_mm)
+        start_centres = posed_centres(self._model, x0)
+        far = float(np.max(start_centres[:, 2]))
+        roi_window = hand_roi(self._model, x0, pre.intrinsics, cfg.roi_radius_mm, start_centres)
         end = before_surface(
             pre.depth_mm, pre.intrinsics, roi_window[0], far + SURFACE_SEARCH_MM, far + WINDOW_BEHIND_MM
         )
