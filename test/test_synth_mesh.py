@@ -314,6 +314,30 @@ def test_shape_factors_change_what_they_should() -> None:
         MeshShape(length=0.2)
 
 
+@pytest.mark.parametrize("right", [True, False])
+def test_per_finger_length_factors_lengthen_that_finger_alone(right: bool) -> None:
+    """``MeshShape.fingers``: a long ring finger and a short little finger, the rest as before."""
+    theta = rest_pose((0.0, 40.0, 400.0))
+    base = pose_mesh(theta, MeshShape(length=0.95), right=right, forearm=False)
+    shape = MeshShape(length=0.95, fingers=(1.0, 1.0, 1.0, 1.08, 0.9))
+    odd = pose_mesh(theta, shape, right=right, forearm=False)
+    d0 = np.linalg.norm(base.fingertips - base.joints[:, 0], axis=1)
+    d1 = np.linalg.norm(odd.fingertips - odd.joints[:, 0], axis=1)
+    np.testing.assert_allclose(d1[3:] / d0[3:], (1.08, 0.9), rtol=0.03)
+    np.testing.assert_allclose(odd.fingertips[:3], base.fingertips[:3], atol=1e-9)
+    np.testing.assert_allclose(odd.joints[:, 0], base.joints[:, 0], atol=1e-9)
+    # The skin follows its bones: the ring finger's rendered end moves out with its truth.
+    intr = default_intrinsics(640, 480)
+    far = render_mesh_depth(theta, intr, shape, right=right, options=CLEAN_NO_ARM, posed=odd)
+    near = render_mesh_depth(theta, intr, MeshShape(length=0.95), right=right, options=CLEAN_NO_ARM, posed=base)
+    u = int(round(intr.project(odd.fingertips[3:4])[0, 0]))
+    assert (far[:, u] > 0).nonzero()[0].min() < (near[:, u] > 0).nonzero()[0].min() - 3  # (v grows down the hand)
+    assert MeshShape(fingers=[1, 1, 1, 1, 1]) == MeshShape()  # (stored as a tuple of floats)
+    for bad in ((1.0, 1.0), (1.0, 1.0, 1.0, 1.0, 0.2), (1.0, 1.0, float("nan"), 1.0, 1.0)):
+        with pytest.raises(InputError):
+            MeshShape(fingers=bad)
+
+
 # --- sensors, determinism ----------------------------------------------------------------------
 
 

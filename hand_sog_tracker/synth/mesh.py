@@ -51,7 +51,10 @@ right hand, and is mirrored back (hand ``x -> -x``), exactly as
 bone lengths of fingers and thumb and the vertex coordinates along their
 bones; ``palm_width`` scales hand x of the palm vertices and of the chain
 pivots (MCP bases, thumb CMC); ``thickness`` scales vertex coordinates
-perpendicular to the finger and thumb bones.
+perpendicular to the finger and thumb bones; ``fingers`` scales one chain's
+bone lengths and the coordinates along its bones further (thumb .. little:
+hands whose fingers' proportions differ from the mesh's, as the tracker's
+model's ``HandShape.fingers`` do).
 
 Ground-truth fingertips
 -----------------------
@@ -66,8 +69,8 @@ distance from the bone axis of those vertices 2-12 mm behind the tip joint
 (after the uniform scale: thumb 8.7, index 7.1, middle 7.3, ring 6.8,
 little 6.2 mm)
 and the lateral offset = the centre of their extent; the truth is
-``(lateral_x * T, end * L - r * T, lateral_z * T)`` in the distal bone's
-frame (``L`` = length, ``T`` = thickness factor).  A perfect fit therefore
+``(lateral_x * T, end * L F_c - r * T, lateral_z * T)`` in the distal bone's
+frame (``L`` = length, ``F_c`` = the chain's ``fingers`` factor, ``T`` = thickness factor).  A perfect fit therefore
 scores about 0 mm.
 
 Rasteriser and sensors
@@ -166,17 +169,26 @@ class MeshShape:
         Hand-x positions of the palm vertices and of the chain bases.
     thickness : float
         Vertex offsets perpendicular to the finger and thumb bones.
+    fingers : tuple of 5 floats
+        Per chain (thumb .. little), times ``length``: its bone lengths and the vertex
+        coordinates along its bones (a hand with a long ring finger and a short little finger:
+        other proportions than the mesh's, for measuring how the tracker copes with them).
     """
 
     length: float = 1.0
     palm_width: float = 1.0
     thickness: float = 1.0
+    fingers: tuple[float, float, float, float, float] = (1.0, 1.0, 1.0, 1.0, 1.0)
 
     def __post_init__(self) -> None:
         for name in ("length", "palm_width", "thickness"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and 0.5 <= v <= 2.0):
                 raise InputError(f"MeshShape.{name} must be in [0.5, 2.0], got {v!r}")
+        fingers = tuple(float(v) for v in self.fingers)
+        if len(fingers) != 5 or not all(np.isfinite(v) and 0.5 <= v <= 2.0 for v in fingers):
+            raise InputError(f"MeshShape.fingers must be 5 factors in [0.5, 2.0], got {self.fingers!r}")
+        object.__setattr__(self, "fingers", fingers)  # (a tuple of floats: hashable, compared by value)
 
     def as_tuple(self) -> tuple[float, float, float]:
         """``(length, palm_width, thickness)``."""
@@ -380,15 +392,17 @@ def _shaped(right: bool, shape: MeshShape) -> tuple[NDArray[np.float64], ...]:
     """Shape-scaled bind data: local (n, 4, 3), bases (5, 3), lengths (5, 3), tip offsets (5, 3)."""
     hand = load_mesh_hand(right)
     L, W, T = shape.as_tuple()
+    along = L * np.asarray(shape.fingers)  # (5,) each chain's factor along its bones
     palm = hand.infl_bone == 0
-    local = np.where(
-        palm[:, :, None],
-        hand.infl_local * np.array([W, 1.0, 1.0]),
-        hand.infl_local * np.array([T, L, T]),
-    )
+    # The length factor of each influence's chain (bones 1-15: chain (bone - 1) // 3; palm: unused).
+    along_infl = along[np.maximum(hand.infl_bone - 1, 0) // 3]  # (n, 4)
+    finger_local = hand.infl_local * np.array([T, 1.0, T])
+    finger_local[:, :, 1] *= along_infl
+    local = np.where(palm[:, :, None], hand.infl_local * np.array([W, 1.0, 1.0]), finger_local)
     bases = hand.bases * np.array([W, 1.0, 1.0])
-    lengths = hand.lengths * L
-    tip = np.stack([hand.tip_lateral[:, 0] * T, hand.tip_end * L - hand.tip_radius * T, hand.tip_lateral[:, 1] * T], 1)
+    lengths = hand.lengths * along[:, None]
+    tip_y = hand.tip_end * along - hand.tip_radius * T
+    tip = np.stack([hand.tip_lateral[:, 0] * T, tip_y, hand.tip_lateral[:, 1] * T], 1)
     fore = _forearm_mesh(W)
     for a in (local, bases, lengths, tip, fore[0]):
         a.setflags(write=False)
