@@ -254,6 +254,28 @@ def test_a_hand_found_mid_motion_with_two_fingers_out_is_found_with_the_rest_cur
         return np.linalg.norm(result.fingertips_mm - frame.fingertips_mm, axis=1)
 
     assert found().max() < 20.0  # (3-11 mm)
+    # Split (issue 14), the combinations wait for the second stage (on the first stage's data):
+    # a first stage within its budget, the same pose.
+    whole = Tracker().process(depth, INTR)
+    calls = [0]
+    original = Objective.__call__
+
+    def counted(self, theta, gradient=True):
+        calls[0] += 1
+        return original(self, theta, gradient)
+
+    monkeypatch.setattr(Objective, "__call__", counted)
+    split = Tracker()
+    split.split_initialisation = True
+    assert split.process(depth, INTR).pose is None
+    pending = split._pending
+    assert pending is not None and pending.rest is not None and pending.poses == []
+    first = calls[0]
+    assert first <= 130, first  # (the bound of test_each_stage_stays_within_its_budget_...)
+    done = split.finish_initialisation()
+    assert done is not None and calls[0] - first > 62  # (the combinations: 31 per palm side to pick them)
+    np.testing.assert_array_equal(done.pose, whole.pose)
+    monkeypatch.setattr(Objective, "__call__", original)
     monkeypatch.setattr(tracker_module, "INIT_SEARCH", replace(INIT_SEARCH, combination_below=-np.inf))
     assert found().mean() > 50.0
 

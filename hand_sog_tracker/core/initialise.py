@@ -26,6 +26,9 @@ about 40 and 24 ms median on dev renders, 2026-11-27), see :meth:`hand_sog_track
    assignment cost) become the finalists (:class:`InitFinalists`); when even the best scores poorly
    (``combination_below``), start poses with single fingers curled (:func:`finger_combinations`)
    are tried as well;
+   with a split initialisation those are tried at the start of the second stage instead (on
+   the first stage's frame and data: the same finalists), where there is more room: a search
+   that needs them no longer runs past 50 ms, the finish after them mostly stays under it;
 2. *finish*: the finalists are refined with the full objective (silhouette, fingertip
    detections) on this frame or the next one, the best gets the finger and finger-shift
    restarts, and tracking starts from it; the lateral restarts (the hand moved sideways, see
@@ -36,6 +39,7 @@ about 40 and 24 ms median on dev renders, 2026-11-27), see :meth:`hand_sog_track
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -162,7 +166,9 @@ class InitSearch:
         when the best of the others scores below this (the restarts' score, unitless; chosen
         here: the first frames of 144 dev renders, open hands, scored 0.356-0.50, 1% under 0.36;
         432 starts in the middle of dev renders 0.18-0.48, and every start where a combination
-        won scored under 0.36).  They cost about 30 ms: 62 evaluations to pick them, two fits.
+        won scored under 0.36).  They cost about 20 ms: 62 evaluations to pick them, two fits
+        (with a split initialisation they run at the start of the second stage: on the
+        benchmark's hard case the first stage then took 32-44 ms, 32-56 ms before).
     combination_margin : float
         The start poses with single fingers curled (:func:`finger_combinations`) compete for
         the finalists only when the best of them beats the best of the others by this much of
@@ -206,6 +212,10 @@ class InitFinalists:
         The depth (mm) where the search's window ended at the latest, a little behind the hand
         blob (:attr:`HandBlob.far_mm`): what lies farther was cut off as a body or a wall, and
         the second stage's window ends there too.
+    rest : callable or None
+        The search's last step when it was left to the second stage (the curled-finger
+        combinations, on the first stage's frame and data): returns the finalist poses, and
+        ``poses`` is empty until then.  None: ``poses`` are final.
     """
 
     poses: list[NDArray[np.float64]]
@@ -213,6 +223,11 @@ class InitFinalists:
     config: TrackerConfig
     pre: Preprocessed
     end_mm: float = np.inf
+    rest: Callable[[], list[NDArray[np.float64]]] | None = None
+
+    def final_poses(self) -> list[NDArray[np.float64]]:
+        """The finalist poses, after the search's last step when it was left for later."""
+        return self.poses if self.rest is None else self.rest()
 
 
 @dataclass(frozen=True, eq=False)

@@ -699,7 +699,9 @@ class Tracker(RestartStrategies):
         are still far off: it would pull them into the outline before the depth has placed
         them (a hand flipped palm-for-back has the same outline).  When the best start pose
         scores poorly, the curled-finger combinations (:func:`finger_combinations`) are tried
-        too (``INIT_SEARCH.combination_below``, about 30 ms more).
+        too (``INIT_SEARCH.combination_below``, about 20 ms more; with
+        :attr:`split_initialisation` at the start of the second stage, see
+        :attr:`InitFinalists.rest`).
         """
         cfg, eff = self._config, INIT_SEARCH
         blob = find_hand(pre, cfg)
@@ -766,35 +768,47 @@ class Tracker(RestartStrategies):
         if not scored:
             return None
         scored.sort(key=lambda s: s[:2], reverse=True)
-        if scored[0][0] < eff.combination_below:
-            # A poor best: maybe a hand found mid-motion, some fingers curled and others not
-            # (issue 11).  From the open hands of the blob's main direction (palm toward and
-            # away), the combination of curled fingers that scores best at its start pose on
-            # each palm side is aligned and articulated; they replace the others only when the
-            # best of them scores higher by ``combination_margin``.
-            n = len(starts)
-            combos = []
-            for k, (x0, part) in enumerate(zip(starts[:2], parts)):
-                if part.n:  # (the start's data serve every combination: the same wrist)
-                    screen = Objective(self._model, part, cfg)
-                    best = max(finger_combinations(x0), key=lambda c: screen(c, gradient=False)[0])
-                    combos.append(align(n + k, best, part))
-            tried = sorted(articulate(combos), key=lambda s: s[:2], reverse=True)
-            if tried and tried[0][0] >= scored[0][0] + eff.combination_margin:
-                scored = sorted(scored + tried, key=lambda s: s[:2], reverse=True)
-        # The best of the other palm side joins the finalists when none of them has it: the search
-        # scores without the silhouette, so a hand flipped palm-for-back can score highest there,
-        # and the finish's full objective tells the two apart (issue 11: a finger counting hand
-        # found mid-motion, index and thumb out, ended with its thumb on the little finger's side).
-        finalists = [x for _, _, x in scored[: eff.finalists]]
-        sides = {_back_toward(x) for x in finalists}
-        finalists += [x for _, _, x in scored if _back_toward(x) not in sides][:1]
+
+        def finalists() -> list[NDArray[np.float64]]:
+            """The finalist poses (26,), best first, after the curled-finger combinations when
+            the best pose scores poorly (the search's last step)."""
+            ranked = scored
+            if ranked[0][0] < eff.combination_below:
+                # A poor best: maybe a hand found mid-motion, some fingers curled and others not
+                # (issue 11).  From the open hands of the blob's main direction (palm toward and
+                # away), the combination of curled fingers that scores best at its start pose on
+                # each palm side is aligned and articulated; they replace the others only when the
+                # best of them scores higher by ``combination_margin``.
+                n = len(starts)
+                combos = []
+                for k, (x0, part) in enumerate(zip(starts[:2], parts)):
+                    if part.n:  # (the start's data serve every combination: the same wrist)
+                        screen = Objective(self._model, part, cfg)
+                        best = max(finger_combinations(x0), key=lambda c: screen(c, gradient=False)[0])
+                        combos.append(align(n + k, best, part))
+                tried = sorted(articulate(combos), key=lambda s: s[:2], reverse=True)
+                if tried and tried[0][0] >= ranked[0][0] + eff.combination_margin:
+                    ranked = sorted(ranked + tried, key=lambda s: s[:2], reverse=True)
+            # The best of the other palm side joins the finalists when none of them has it: the
+            # search scores without the silhouette, so a hand flipped palm-for-back can score
+            # highest there, and the finish's full objective tells the two apart (issue 11: a
+            # finger counting hand found mid-motion, index and thumb out, ended with its thumb on
+            # the little finger's side).
+            poses = [x for _, _, x in ranked[: eff.finalists]]
+            sides = {_back_toward(x) for x in poses}
+            return poses + [x for _, _, x in ranked if _back_toward(x) not in sides][:1]
+
+        # With a split initialisation the combinations (about 15 ms) are left to the second
+        # stage, on this frame's data: the first stage stays within its budget, the finalists
+        # are the same.
+        later = self.split_initialisation and scored[0][0] < eff.combination_below
         return InitFinalists(
-            poses=finalists,
+            poses=[] if later else finalists(),
             model=self._model,
             config=cfg,
             pre=pre,
             end_mm=blob.far_mm + BLOB_BEHIND_MM,
+            rest=finalists if later else None,
         )
 
     def _screened(self, starts: list[NDArray[np.float64]], parts: list[ImageSoG], n: int) -> set[int]:
@@ -825,8 +839,8 @@ class Tracker(RestartStrategies):
         the track starts on when it scores ``SMALL_HAND_GAIN`` higher with open fingers.
         """
         cfg = self._config
+        poses = found.final_poses()
         tq = time.perf_counter()
-        poses = found.poses
         data, det, sil = self._data_near(pre, poses[0], detect=True, end_mm=found.end_mm)
         timings = {"quadtree": (time.perf_counter() - tq) * 1e3}
         if data.n == 0:
