@@ -45,7 +45,7 @@ from hand_sog_tracker.tools.records import (
     build_evaluation,
 )
 
-__all__ = ["evaluate_core"]
+__all__ = ["auto_fit", "evaluate_core"]
 
 
 def _status_name(status: TrackerStatus) -> str:
@@ -90,7 +90,7 @@ def _calibrate_model(
     return res.model, info
 
 
-def _auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> dict[str, Any]:
+def auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> dict[str, Any]:
     """Run one automatic fit in place (``frames``: a due
     :class:`~hand_sog_tracker.core.autocalibration.FitFrames`); switch the tracker's model if the
     guard accepts the fit and it is :func:`usable_automatically`.  Returns what happened (for the
@@ -208,7 +208,7 @@ def evaluate_core(
                     due = auto.due(history, f.stamp_ns)
                     if due is not None:
                         auto.started(f.stamp_ns)
-                        info = _auto_fit(tracker, due, cfg)
+                        info = auto_fit(tracker, due, cfg)
                         auto.finished(bool(info["accepted"]))
                         auto_fits.append({"frame": f.index, **info})
                 if f.depth_mm is not None and f.intrinsics is not None:

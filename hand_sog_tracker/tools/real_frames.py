@@ -40,7 +40,8 @@ from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 from hand_sog_tracker.errors import HandSogError, InputError
 
 __all__ = [
-    "PASSES", "VARIANTS", "WIDE_VARIANTS", "Variant", "labelled_frame", "static_tip_errors", "run_real_frames", "main",
+    "PASSES", "VARIANTS", "WIDE_VARIANTS", "Variant", "labelled_frame", "static_tip_errors", "run_real_frames",
+    "number_list", "main",
 ]
 
 #: Times each frame is processed (count): the first pass finds the hand, the other nine track it
@@ -190,11 +191,16 @@ def _summary(runs: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def _frame_list(spec: str) -> list[int]:
+def number_list(spec: str) -> list[int]:
+    """``"1-8"``, ``"2,3"`` or both (``"1-3,7"``) as a list of integers; ValueError when a part
+    is no integer or an empty range (``"5-1"``)."""
     out: list[int] = []
     for part in spec.split(","):
         lo, _, hi = part.partition("-")
-        out += list(range(int(lo), int(hi or lo) + 1))
+        first, last = int(lo), int(hi or lo)
+        if last < first:
+            raise ValueError(f"empty range {part!r}")
+        out += range(first, last + 1)
     return out
 
 
@@ -225,7 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         labels = json.loads(args.labels.read_text())
-        frames = _frame_list(args.frames) if args.frames else sorted(int(k) for k in labels["frames"])
+        frames = number_list(args.frames) if args.frames else sorted(int(k) for k in labels["frames"])
         runs = run_real_frames(
             args.frames_dir, labels, frames, mirrored=not args.no_mirror,
             variants=VARIANTS[:1] if args.unperturbed else WIDE_VARIANTS if args.wide else VARIANTS,
