@@ -798,7 +798,7 @@ class Tracker(RestartStrategies):
             sides = {_back_toward(x) for x in poses}
             return poses + [x for _, _, x in ranked if _back_toward(x) not in sides][:1]
 
-        # With a split initialisation the combinations (about 15 ms) are left to the second
+        # With a split initialisation the combinations (about 20 ms) are left to the second
         # stage, on this frame's data: the first stage stays within its budget, the finalists
         # are the same.
         later = self.split_initialisation and scored[0][0] < eff.combination_below
