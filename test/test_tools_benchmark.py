@@ -23,6 +23,7 @@ def test_stages_include_detector_quadtree_and_assignment() -> None:
     assert st["detector"]["median"] < st["total"]["median"]
     assert st["quadtree_only"]["median"] < st["total"]["median"]
     assert st["answer"]["median"] <= st["total"]["median"] and st["answer"]["p95"] <= st["total"]["p95"]
+    assert all(st[key]["median"] <= st[key]["p95"] <= st[key]["max"] for key in st if np.isfinite(st[key]["median"]))
 
 
 def test_compare_runs_both_trees_and_prints_the_ratio(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
