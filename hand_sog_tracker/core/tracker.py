@@ -40,9 +40,9 @@ from hand_sog_tracker.core.initialise import (
     INIT_SEARCH,
     HandBlob,
     InitFinalists,
+    best_combination,
     detection_direction,
     find_hand,
-    finger_combinations,
     initial_hypotheses,
 )
 from hand_sog_tracker.core.kinematics import (
@@ -699,7 +699,7 @@ class Tracker(RestartStrategies):
         are still far off: it would pull them into the outline before the depth has placed
         them (a hand flipped palm-for-back has the same outline).  When the best start pose
         scores poorly, the curled-finger combinations (:func:`finger_combinations`) are tried
-        too (``INIT_SEARCH.combination_below``, about 20 ms more; with
+        too (``INIT_SEARCH.combination_below``, about 15 ms more; with
         :attr:`split_initialisation` at the start of the second stage, see
         :attr:`InitFinalists.rest`).
         """
@@ -784,7 +784,7 @@ class Tracker(RestartStrategies):
                 for k, (x0, part) in enumerate(zip(starts[:2], parts)):
                     if part.n:  # (the start's data serve every combination: the same wrist)
                         screen = Objective(self._model, part, cfg)
-                        best = max(finger_combinations(x0), key=lambda c: screen(c, gradient=False)[0])
+                        best = best_combination(x0, lambda c, s=screen: s(c, gradient=False)[0])
                         combos.append(align(n + k, best, part))
                 tried = sorted(articulate(combos), key=lambda s: s[:2], reverse=True)
                 if tried and tried[0][0] >= ranked[0][0] + eff.combination_margin:
@@ -798,7 +798,7 @@ class Tracker(RestartStrategies):
             sides = {_back_toward(x) for x in poses}
             return poses + [x for _, _, x in ranked if _back_toward(x) not in sides][:1]
 
-        # With a split initialisation the combinations (about 20 ms) are left to the second
+        # With a split initialisation the combinations (about 15 ms) are left to the second
         # stage, on this frame's data: the first stage stays within its budget, the finalists
         # are the same.
         later = self.split_initialisation and scored[0][0] < eff.combination_below
