@@ -73,3 +73,6 @@ def test_the_command_writes_its_records_and_compares(tmp_path: Path, capsys: pyt
     )
     assert main(["3005-3001"]) == 2 and "empty range" in capsys.readouterr().err
     assert main(["3000", "--frames", "0"]) == 2
+    with pytest.raises(SystemExit):  # (argparse: exit status 2 and the message)
+        main(["3000", "--resolution", "640"])
+    assert "expected WIDTHxHEIGHT" in capsys.readouterr().err

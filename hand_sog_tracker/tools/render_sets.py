@@ -265,8 +265,15 @@ def compare(old: dict[str, dict[str, Any]], new: dict[str, dict[str, Any]], show
 
 
 def _resolution(text: str) -> tuple[int, int]:
+    """``"640x480"`` as ``(640, 480)``."""
     w, _, h = text.lower().partition("x")
-    return int(w), int(h)
+    try:
+        size = int(w), int(h)
+    except ValueError:
+        size = (0, 0)
+    if min(size) < 16:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 640x480, got {text!r}")
+    return size
 
 
 def main(argv: Sequence[str] | None = None) -> int:
