@@ -36,6 +36,19 @@ def frames() -> list:
     return list(synthetic_sequence("flexex", 4, intrinsics=INTR, seed=3))
 
 
+def _count_evaluations(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Count every objective evaluation from now on (in the list's one element)."""
+    calls = [0]
+    original = Objective.__call__
+
+    def counted(self, theta, gradient=True):
+        calls[0] += 1
+        return original(self, theta, gradient)
+
+    monkeypatch.setattr(Objective, "__call__", counted)
+    return calls
+
+
 def _error(res, frame) -> float:
     return float(np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).max())
 
@@ -84,14 +97,7 @@ def test_each_stage_stays_within_its_budget_of_objective_evaluations(
     """About 0.5 ms an evaluation: each stage must stay near 100 (50 ms), whatever the machine;
     the new track's lateral restarts run after the answer (as in the node), within their own
     budget."""
-    calls = [0]
-    original = Objective.__call__
-
-    def counted(self, theta, gradient=True):
-        calls[0] += 1
-        return original(self, theta, gradient)
-
-    monkeypatch.setattr(Objective, "__call__", counted)
+    calls = _count_evaluations(monkeypatch)
     tracker = Tracker()
     tracker.split_initialisation = tracker.defer_restarts = True
     tracker.process(frames[0].depth_mm, INTR)
@@ -258,14 +264,7 @@ def test_a_hand_found_mid_motion_with_two_fingers_out_is_found_with_the_rest_cur
     # Split (issue 14), the combinations wait for the second stage (on the first stage's data):
     # a first stage within its budget, the same pose.
     whole = Tracker().process(depth, INTR)
-    calls = [0]
-    original = Objective.__call__
-
-    def counted(self, theta, gradient=True):
-        calls[0] += 1
-        return original(self, theta, gradient)
-
-    monkeypatch.setattr(Objective, "__call__", counted)
+    calls = _count_evaluations(monkeypatch)
     split = Tracker()
     split.split_initialisation = True
     assert split.process(depth, INTR).pose is None
@@ -276,7 +275,7 @@ def test_a_hand_found_mid_motion_with_two_fingers_out_is_found_with_the_rest_cur
     done = split.finish_initialisation()
     assert done is not None and calls[0] - first > 34  # (the combinations: up to 17 per palm side to pick them)
     np.testing.assert_array_equal(done.pose, whole.pose)
-    monkeypatch.setattr(Objective, "__call__", original)
+    monkeypatch.undo()
     monkeypatch.setattr(tracker_module, "INIT_SEARCH", replace(INIT_SEARCH, combination_below=-np.inf))
     assert found().mean() > 50.0
 

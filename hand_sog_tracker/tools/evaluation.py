@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory, usable_automatically
 from hand_sog_tracker.core.hand_model import HandModel
-from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import BagError, CalibrationError, InputError
 from hand_sog_tracker.tools.bagio import BagFrame, BagTopics, DepthBagReader
 from hand_sog_tracker.tools.records import (
@@ -45,7 +45,7 @@ from hand_sog_tracker.tools.records import (
     build_evaluation,
 )
 
-__all__ = ["auto_fit", "evaluate_core"]
+__all__ = ["auto_fit", "auto_step", "evaluate_core"]
 
 
 def _status_name(status: TrackerStatus) -> str:
@@ -110,6 +110,28 @@ def auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> dict[s
             tracker.set_model(res.model)  # type: ignore[attr-defined]
         info.update(accepted=True, used=used, shape=res.shape.as_dict())
     info["seconds"] = time.perf_counter() - t0
+    return info
+
+
+def auto_step(
+    tracker: TrackerLike,
+    history: FrameHistory,
+    auto: AutoCalibration,
+    depth_mm: NDArray,
+    intrinsics: Intrinsics,
+    pose: NDArray[np.float64] | None,
+    stamp_ns: int,
+    config: TrackerConfig,
+) -> dict[str, Any] | None:
+    """Remember a frame's tracked ``pose`` (26,) (None: no hand) in ``history`` and run the
+    automatic fit in place when ``auto`` says it is due: what :func:`auto_fit` says, or None."""
+    history.remember(depth_mm, intrinsics, pose, stamp_ns)
+    due = auto.due(history, stamp_ns)
+    if due is None:
+        return None
+    auto.started(stamp_ns)
+    info = auto_fit(tracker, due, config)
+    auto.finished(bool(info["accepted"]))
     return info
 
 
@@ -204,12 +226,8 @@ def evaluate_core(
                 record, pose, problem = _track_one(tracker, f)
                 records.append(record)
                 if auto.enabled and f.depth_mm is not None and f.intrinsics is not None:
-                    history.remember(f.depth_mm, f.intrinsics, pose, f.stamp_ns)
-                    due = auto.due(history, f.stamp_ns)
-                    if due is not None:
-                        auto.started(f.stamp_ns)
-                        info = auto_fit(tracker, due, cfg)
-                        auto.finished(bool(info["accepted"]))
+                    info = auto_step(tracker, history, auto, f.depth_mm, f.intrinsics, pose, f.stamp_ns, cfg)
+                    if info is not None:
                         auto_fits.append({"frame": f.index, **info})
                 if f.depth_mm is not None and f.intrinsics is not None:
                     make = functools.partial(

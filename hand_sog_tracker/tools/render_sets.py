@@ -55,7 +55,7 @@ from hand_sog_tracker.errors import HandSogError, InputError  # noqa: E402
 from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence  # noqa: E402
 from hand_sog_tracker.synth.motions import ALL_MOTIONS, START_TRANSLATION_MM  # noqa: E402
 from hand_sog_tracker.synth.sequence import default_intrinsics  # noqa: E402
-from hand_sog_tracker.tools.evaluation import auto_fit  # noqa: E402
+from hand_sog_tracker.tools.evaluation import auto_step  # noqa: E402
 from hand_sog_tracker.tools.real_frames import number_list  # noqa: E402
 
 __all__ = ["NO_HAND_MM", "SET_MOTIONS", "RenderSpec", "render_spec", "track_render", "compare", "main"]
@@ -152,13 +152,9 @@ def track_render(
         errors.append(
             float(np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).mean()) if ok else NO_HAND_MM
         )
-        stamp = int(k * 1e9 / FPS)
-        history.remember(frame.depth_mm, intr, res.pose if ok else None, stamp)
-        due = auto.due(history, stamp)
-        if due is not None:
-            auto.started(stamp)
-            info = auto_fit(tracker, due, config)
-            auto.finished(bool(info["accepted"]))
+        pose = res.pose if ok else None
+        info = auto_step(tracker, history, auto, frame.depth_mm, intr, pose, int(k * 1e9 / FPS), config)
+        if info is not None:
             fits.append({key: info[key] for key in ("accepted", "used", "shape") if key in info})
     return {
         "errors_mm": errors,
@@ -175,9 +171,8 @@ def _job(args: tuple[RenderSpec, int, tuple[int, int], bool]) -> tuple[int, dict
 
 
 def _record(spec: RenderSpec, result: dict[str, Any]) -> dict[str, Any]:
-    shape = asdict(spec.shape)
     return {
-        "motion": spec.motion, "shape": shape, "length": shape["length"], "right": spec.right,
+        "motion": spec.motion, "shape": asdict(spec.shape), "right": spec.right,
         "sensor": spec.sensor, "wrist_deg": list(spec.wrist_deg), "wall_mm": spec.wall_mm, **result,
     }
 
@@ -204,7 +199,7 @@ def run_set(
         if progress:
             r = out[seed]
             print(
-                f"{seed} {r['motion']:<11} {r['length']:.2f} {'R' if r['right'] else 'L'} {r['sensor']:<10} "
+                f"{seed} {r['motion']:<11} {r['shape']['length']:.2f} {'R' if r['right'] else 'L'} {r['sensor']:<10} "
                 f"{r['mean_mm']:6.2f} mm", file=sys.stderr, flush=True,
             )
 
