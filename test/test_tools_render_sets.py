@@ -15,6 +15,7 @@ from hand_sog_tracker.tools.render_sets import (
     compare,
     main,
     render_spec,
+    settings,
     track_render,
 )
 
@@ -45,6 +46,19 @@ def test_a_render_is_tracked_and_scored_per_frame() -> None:
     assert result["mean_mm"] == pytest.approx(np.mean(result["errors_mm"]))
 
 
+def test_tracker_parameters_are_set_by_the_nodes_names() -> None:
+    assert settings(["iterations=2", "w_sal=0"]) == {"iterations": 2, "w_sal": 0.0}
+    spec = render_spec(3000)
+    plain = track_render(spec, frames=3)
+    assert track_render(spec, frames=3, params={})["errors_mm"] == plain["errors_mm"]
+    fewer = track_render(spec, frames=3, params=settings(["iterations=1"]))
+    assert fewer["errors_mm"][1:] != plain["errors_mm"][1:]  # (the tracked frames' fits differ)
+    for bad, message in (("handedness=left", "each render draws"), ("debug_image=true", "the node's only"),
+                         ("iterations=0", "outside"), ("w_nope=1", "unknown")):
+        with pytest.raises(InputError, match=message):
+            settings([bad])
+
+
 def test_compare_counts_renders_that_moved_and_bad_frames() -> None:
     old = {"1": {"motion": "pinch", "mean_mm": 5.0, "errors_mm": [5.0, 5.0]},
            "2": {"motion": "rotate", "mean_mm": 30.0, "errors_mm": [10.0, 50.0]}}
@@ -73,6 +87,7 @@ def test_the_command_writes_its_records_and_compares(tmp_path: Path, capsys: pyt
     )
     assert main(["3005-3001"]) == 2 and "empty range" in capsys.readouterr().err
     assert main(["3000", "--frames", "0"]) == 2
+    assert main(["3000", "--set", "handedness=left"]) == 2 and "each render draws" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # (argparse: exit status 2 and the message)
         main(["3000", "--resolution", "640"])
     assert "expected WIDTHxHEIGHT" in capsys.readouterr().err

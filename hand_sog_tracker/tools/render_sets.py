@@ -5,6 +5,7 @@ Usage::
     python -m hand_sog_tracker.tools.render_sets 3000-3095 [--jobs 2] [--json OUT]
         [--compare OLD.json] [--frames 60] [--resolution 320x240]
         [--finger-spread 0.08] [--wall-mm 80] [--no-auto-calibration]
+        [--set NAME=VALUE ...]
 
 Each seed draws one render (:func:`render_spec`): the motion (seed modulo 10 over the nine
 motions of :data:`~hand_sog_tracker.synth.motions.ALL_MOTIONS`, fist-and-open twice), the hand
@@ -23,7 +24,8 @@ The README's sets are the seeds 3000-3095 (development: look, tune), 5000-5095 (
 and 7000-7095 (further: score only).  ``--compare`` prints how a set moved against an earlier
 ``--json`` of the same seeds (renders better or worse by more than 0.3 mm, frames over 20 mm).
 A render takes 1-2 s per core; ``--jobs`` runs renders in parallel processes (the results do
-not depend on it).
+not depend on it).  ``--set`` tracks with other tracker parameters (the node's names, as in
+``evaluate_bag``; the render decides the handedness).
 """
 
 from __future__ import annotations
@@ -43,20 +45,22 @@ from collections import defaultdict  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from dataclasses import asdict, dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Any, Sequence  # noqa: E402
+from dataclasses import replace  # noqa: E402
+from typing import Any, Mapping, Sequence  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory  # noqa: E402
 from hand_sog_tracker.core.tracker import Tracker  # noqa: E402
-from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus  # noqa: E402
+from hand_sog_tracker.core.types import TrackerStatus  # noqa: E402
 from hand_sog_tracker.errors import HandSogError, InputError  # noqa: E402
 from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence  # noqa: E402
 from hand_sog_tracker.synth.motions import ALL_MOTIONS, START_TRANSLATION_MM  # noqa: E402
 from hand_sog_tracker.synth.sequence import default_intrinsics  # noqa: E402
 from hand_sog_tracker.tools.evaluation import auto_step  # noqa: E402
 from hand_sog_tracker.tools.real_frames import number_list  # noqa: E402
+from hand_sog_tracker.tools.tracker_params import Value, node_only, parse_set, tracker_config  # noqa: E402
 
 __all__ = ["NO_HAND_MM", "SET_MOTIONS", "RenderSpec", "render_spec", "track_render", "compare", "main"]
 
@@ -131,13 +135,18 @@ def render_spec(seed: int, finger_spread: float = 0.0, wall_mm: float | None = N
 
 
 def track_render(
-    spec: RenderSpec, frames: int = 60, resolution: tuple[int, int] = (320, 240), auto_calibration: bool = True
+    spec: RenderSpec,
+    frames: int = 60,
+    resolution: tuple[int, int] = (320, 240),
+    auto_calibration: bool = True,
+    params: Mapping[str, Value] | None = None,
 ) -> dict[str, Any]:
     """Render ``spec`` and track it with a fresh core tracker: ``errors_mm`` (one per frame, mean
     fingertip distance; :data:`NO_HAND_MM` without a hand), ``mean_mm``, ``seconds`` and the
-    automatic fits (``fits``: what :func:`~hand_sog_tracker.tools.evaluation.auto_fit` says)."""
+    automatic fits (``fits``: what :func:`~hand_sog_tracker.tools.evaluation.auto_fit` says).
+    ``params``: tracker parameters by the node's names (:func:`settings`; default: the defaults)."""
     intr = default_intrinsics(*resolution)
-    config = TrackerConfig(right_hand=spec.right)
+    config = replace(tracker_config(params or {}), right_hand=spec.right)
     tracker = Tracker(config)
     history, auto = FrameHistory(), AutoCalibration(enabled=auto_calibration)
     errors, fits = [], []
@@ -164,7 +173,26 @@ def track_render(
     }
 
 
-def _job(args: tuple[RenderSpec, int, tuple[int, int], bool]) -> tuple[int, dict[str, Any]]:
+def settings(items: Sequence[str]) -> dict[str, Value]:
+    """The tracker parameters of ``--set NAME=VALUE`` items, validated as the node does.
+
+    Raises
+    ------
+    InputError
+        A bad item (see :func:`~hand_sog_tracker.tools.tracker_params.parse_set`), ``handedness``
+        (each render has its own) or a parameter only the node uses.
+    """
+    values = parse_set(items)
+    if "handedness" in values:
+        raise InputError("handedness cannot be set: each render draws its own hand")
+    other = node_only(values)
+    if other:
+        raise InputError(f"not a tracker parameter here (the node's only): {', '.join(other)}")
+    tracker_config(values)
+    return values
+
+
+def _job(args: tuple[RenderSpec, int, tuple[int, int], bool, Mapping[str, Value]]) -> tuple[int, dict[str, Any]]:
     cv2.setNumThreads(1)
     spec = args[0]
     return spec.seed, track_render(*args)
@@ -186,12 +214,13 @@ def run_set(
     auto_calibration: bool = True,
     jobs: int = 1,
     progress: bool = False,
+    params: Mapping[str, Value] | None = None,
 ) -> dict[str, dict[str, Any]]:
-    """Every render of ``seeds`` tracked (:func:`track_render`): ``{str(seed): record}``, in seed
-    order; each record holds the spec (motion, shape, right, sensor, wrist_deg, wall_mm) and the
-    result."""
+    """Every render of ``seeds`` tracked (:func:`track_render`, with ``params``):
+    ``{str(seed): record}``, in seed order; each record holds the spec (motion, shape, right,
+    sensor, wrist_deg, wall_mm) and the result."""
     specs = {s: render_spec(s, finger_spread, wall_mm) for s in seeds}
-    work = [(specs[s], frames, resolution, auto_calibration) for s in seeds]
+    work = [(specs[s], frames, resolution, auto_calibration, dict(params or {})) for s in seeds]
     out: dict[int, dict[str, Any]] = {}
 
     def done(seed: int, result: dict[str, Any]) -> None:
@@ -287,6 +316,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--wall-mm", type=float, default=None,
                         help="a wall this far behind the wrist's start depth of 400 mm (default: none)")
     parser.add_argument("--no-auto-calibration", action="store_true", help="track with the default model only")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="one tracker parameter, by the node's name (repeatable), e.g. --set refine_iterations=2")
     parser.add_argument("--jobs", type=int, default=1, help="renders tracked in parallel processes (default 1)")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="write every render's record here")
     parser.add_argument("--compare", type=Path, default=None, metavar="OLD",
@@ -297,10 +328,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         seeds = number_list(args.seeds)
         if not 1 <= args.frames <= 10000:
             raise InputError("--frames must be in [1, 10000]")
+        params = settings(args.set)
         old = json.loads(args.compare.read_text())["renders"] if args.compare else None
         renders = run_set(
             seeds, args.frames, args.resolution, args.finger_spread, args.wall_mm,
-            not args.no_auto_calibration, max(1, args.jobs), progress=not args.quiet,
+            not args.no_auto_calibration, max(1, args.jobs), progress=not args.quiet, params=params,
         )
     except (OSError, ValueError, KeyError, HandSogError) as exc:
         print(f"render_sets: {exc}", file=sys.stderr)
@@ -311,7 +343,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json is not None:
         options = {
             "frames": args.frames, "resolution": list(args.resolution), "finger_spread": args.finger_spread,
-            "wall_mm": args.wall_mm, "auto_calibration": not args.no_auto_calibration,
+            "wall_mm": args.wall_mm, "auto_calibration": not args.no_auto_calibration, "params": params,
         }
         args.json.write_text(json.dumps({"options": options, "renders": renders}, indent=1))
         print(f"wrote {args.json}")
