@@ -43,9 +43,8 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from collections import defaultdict  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
-from dataclasses import asdict, dataclass  # noqa: E402
+from dataclasses import asdict, dataclass, replace  # noqa: E402
 from pathlib import Path  # noqa: E402
-from dataclasses import replace  # noqa: E402
 from typing import Any, Mapping, Sequence  # noqa: E402
 
 import cv2  # noqa: E402
