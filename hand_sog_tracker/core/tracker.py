@@ -130,18 +130,27 @@ BLOB_BEHIND_MM = 20.0
 SALIENT_END_ON = False
 #: The refinement of a tracked frame's answer (issue 11; chosen here): when a finger's PIP is
 #: flexed over ``REFINE_CURL_RAD`` (rad), the answer is the track's pose refined
-#: ``TrackerConfig.refine_iterations`` (4) iterations on the objective of the model with joint
+#: ``TrackerConfig.refine_iterations`` (2) iterations on the objective of the model with joint
 #: Gaussians (:meth:`HandModel.with_joint_gaussians`); the track goes on from its own pose.
 #: The tracking model covers a bent joint's outer corner only with the tails of its segments'
 #: Gaussians, and its fit opens curled fingers into claws (dev renders: curled MCPs -12.4 deg,
 #: curled fingertips 11.3 mm off against 5.4 for open ones); tracking on the joint model
 #: removes most of that but loses fingers on the labelled real frames (112 runs: 9.45 -> 14.3
 #: mm), where its restarts and initialisation choose worse.  Refining only the answer keeps
-#: the track's choices.  4 iterations gain as much as 6 on the dev renders (curled fingertips
-#: 9.9 mm).  Gated on MCP + PIP over 60 deg instead, real frame 3's ring finger (curled toward
-#: the camera, MCP 58 and PIP 53 deg) was refined 6 mm further off; without a gate open
-#: fingertips lost 0.2 mm.
+#: the track's choices.  From the track's pose, 4 iterations gained as much as 6 on the dev
+#: renders (curled fingertips 9.9 mm); from the frame before's correction 2 do
+#: (``REFINE_WARM_STEPS``).  Gated on MCP + PIP over 60 deg instead, real frame 3's ring
+#: finger (curled toward the camera, MCP 58 and PIP 53 deg) was refined 6 mm further off;
+#: without a gate open fingertips lost 0.2 mm.
 REFINE_CURL_RAD = math.radians(60.0)
+#: When the frame before was refined too and the track went on from its pose (no restart
+#: replaced it), the refinement starts from the track's pose plus that frame's correction
+#: (answer - track pose), clipped to the limits, with its warm step lengths times this factor
+#: (unitless; chosen here, issue 14).  The correction changes little from frame to frame (the
+#: joint Gaussians straighten the same claw), so the refinement starts near its end: 2
+#: iterations from there do as well as 4 from the track's pose (mesh sets, mean error: dev
+#: 5.801 -> 5.788, validation 5.913 -> 5.878, further 5.822 -> 5.804 mm) at half the cost.
+REFINE_WARM_STEPS = 0.5
 #: A tracker on its default model (none given, none set since) starts every track by also
 #: fitting the initialisation's finalists with the default model scaled to this length factor
 #: (unitless; chosen here, issue 11), and tracks with it when its best finalist scores
@@ -360,6 +369,9 @@ class Tracker(RestartStrategies):
     _bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
     #: (tracking model, its :meth:`HandModel.with_joint_gaussians`) of :meth:`_refined`.
     _joint_model: tuple[HandModel, HandModel] | None = None
+    #: (track pose, answer) (26,) each of the frame before, when it was refined to its end
+    #: (:meth:`_refined`).
+    _refine_last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
 
     @property
     def config(self) -> TrackerConfig:
@@ -572,6 +584,7 @@ class Tracker(RestartStrategies):
         )
         if restarts:
             self._last_restarts_s = now
+        fit = res
         if not self.defer_restarts:
             res = run(self._restarts(obj, res, data, det) if restarts else self._scheduled_restarts(obj, res, det))
         centres = gaussian_centres(self._model, res.x)
@@ -590,20 +603,28 @@ class Tracker(RestartStrategies):
         if self.defer_restarts:
             steps = self._restarts(obj, res, data, det) if restarts else self._scheduled_restarts(obj, res, det)
             self._deferred = (steps, res, p1)
-        answer = self._refined(obj, res)
+        answer = self._refined(obj, res, p1)
+        if res is not fit:
+            # A restart won before the answer: the next frame's refinement starts from its fit's
+            # pose, as with deferred restarts, where the restart wins after the answer (the
+            # answers do not depend on the deferral).
+            self._refine_last = None
         if answer is not res.x:
             centres = gaussian_centres(self._model, answer)
         return self._result(answer, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3}, centres)
 
-    def _refined(self, obj: Objective, res: OptimizeResult) -> NDArray[np.float64]:
+    def _refined(self, obj: Objective, res: OptimizeResult, p1: NDArray[np.float64]) -> NDArray[np.float64]:
         """The answer of a tracked frame whose fit is ``res`` on ``obj``: ``res.x`` (26,), or,
         when a finger's PIP is flexed over ``REFINE_CURL_RAD``, ``res.x`` refined
         ``refine_iterations`` iterations on the same frame's objective with the joint model
         (see ``REFINE_CURL_RAD``), from the fit's last step lengths warmed as a tracked
-        frame's are.  ``res.x`` also when :attr:`refine_stop` says stop, before or after any
-        iteration of the refinement."""
+        frame's are; from ``res.x`` plus the frame before's correction when that frame was
+        refined and the track went on from its pose ``p1`` (26,) (``REFINE_WARM_STEPS``).
+        ``res.x`` also when :attr:`refine_stop` says stop, before or after any iteration of
+        the refinement."""
         x = res.x
         iterations = self._config.refine_iterations
+        last, self._refine_last = self._refine_last, None
         if iterations <= 0 or np.max(x[FINGER_PIP]) <= REFINE_CURL_RAD:
             return x
         stop = self.refine_stop
@@ -616,11 +637,17 @@ class Tracker(RestartStrategies):
             joint[1], obj.data, obj.config, obj.previous, obj.targets, obj.silhouette, obj.contact
         )
         steps = np.minimum(np.maximum(res.steps * WARM_GROW, _INITIAL_STEPS * WARM_MIN), _INITIAL_STEPS)
-        fit = self._fit(refine, x, iterations=iterations, initial_steps=steps)
+        x0 = x
+        if last is not None and last[0] is p1:  # (the frame before's refinement, from this frame's start)
+            lo, hi = self._limits()
+            x0 = np.minimum(np.maximum(x + (last[1] - last[0]), lo), hi)
+            steps *= REFINE_WARM_STEPS
+        fit = self._fit(refine, x0, iterations=iterations, initial_steps=steps)
         while True:
             try:
                 next(fit)
             except StopIteration as done:
+                self._refine_last = (x, done.value.x)
                 return done.value.x
             if stop is not None and stop():
                 return x

@@ -98,7 +98,7 @@ class TrackerConfig:
     iterations: int = 7
     #: A frame with a curled finger answers with its fit refined this many iterations on the
     #: model with joint Gaussians (0: off; issue 11, see tracker.REFINE_CURL_RAD)
-    refine_iterations: int = 4
+    refine_iterations: int = 2
     w_col: float = 1.0
     w_dan: float = 0.1
     w_lim: float = 0.2

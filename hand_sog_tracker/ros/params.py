@@ -121,7 +121,7 @@ _TRACKER_META: dict[str, tuple[str, float | None, float | None]] = {
     "iterations": ("Gradient-ascent iterations per frame.", 1, 200),
     "refine_iterations": (
         "Iterations refining the answer of a frame with a curled finger on the model with joint Gaussians "
-        "(0 = off: about 2-2.5 ms less on such frames).", 0, 50),
+        "(0 = off: about 1-1.5 ms less on such frames).", 0, 50),
     "w_col": ("Weight of the self-collision term.", 0.0, 100.0),
     "w_dan": ("Weight of the dangling-Gaussian term (model parts far from any data).", 0.0, 100.0),
     "w_lim": ("Weight of the joint-limit term.", 0.0, 100.0),
