@@ -88,6 +88,9 @@ def test_the_command_writes_its_records_and_compares(tmp_path: Path, capsys: pyt
     assert main(["3005-3001"]) == 2 and "empty range" in capsys.readouterr().err
     assert main(["3000", "--frames", "0"]) == 2
     assert main(["3000", "--set", "handedness=left"]) == 2 and "each render draws" in capsys.readouterr().err
+    other = tmp_path / "other.json"
+    other.write_text('{"3000": {"mean_mm": 5.0}}')  # (not a --json file)
+    assert main(["3000", "--compare", str(other)]) == 2 and "not a render_sets --json file" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # (argparse: exit status 2 and the message)
         main(["3000", "--resolution", "640"])
     assert "expected WIDTHxHEIGHT" in capsys.readouterr().err

@@ -299,6 +299,23 @@ def _resolution(text: str) -> tuple[int, int]:
     return size
 
 
+def _renders_of(path: Path) -> dict[str, dict[str, Any]]:
+    """The records of an earlier ``--json`` file.
+
+    Raises
+    ------
+    InputError
+        Not JSON or not written by ``--json``.
+    """
+    try:
+        renders = json.loads(path.read_text())["renders"]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path} is not a render_sets --json file ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(renders, dict):
+        raise InputError(f"{path} is not a render_sets --json file (its 'renders' is not a mapping)")
+    return renders
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="render_sets",
@@ -328,7 +345,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not 1 <= args.frames <= 10000:
             raise InputError("--frames must be in [1, 10000]")
         params = settings(args.set)
-        old = json.loads(args.compare.read_text())["renders"] if args.compare else None
+        old = _renders_of(args.compare) if args.compare else None
         renders = run_set(
             seeds, args.frames, args.resolution, args.finger_spread, args.wall_mm,
             not args.no_auto_calibration, max(1, args.jobs), progress=not args.quiet, params=params,
