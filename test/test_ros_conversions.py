@@ -89,12 +89,14 @@ def test_32fc1_metres_to_mm_with_invalid_values_zeroed(bigendian) -> None:
     rng = np.random.default_rng(3)
     m = rng.uniform(0.2, 1.5, size=(6, 8)).astype(np.float32)
     m[0, 0], m[1, 1], m[2, 2], m[3, 3], m[4, 4] = np.nan, np.inf, -np.inf, 0.0, -0.5
+    m[5, 5], m[0, 7] = 3e38, -0.0  # (3e38 m is Inf in mm)
     depth = image_to_depth_mm(make_rclpy_image(m, "32FC1", bigendian=bigendian, pad=4))
-    expected = m * 1000.0
-    bad = ~np.isfinite(m) | (m <= 0)
+    with np.errstate(over="ignore"):
+        expected = m * 1000.0
+    bad = ~np.isfinite(expected) | (m <= 0)
     expected[bad] = 0.0
     np.testing.assert_allclose(depth, expected, rtol=1e-6)
-    assert np.count_nonzero(depth == 0) == 5
+    assert np.count_nonzero(depth == 0) == 7 and depth.flags.c_contiguous
 
 
 @pytest.mark.parametrize(
