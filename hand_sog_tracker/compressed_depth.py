@@ -58,6 +58,7 @@ __all__ = [
     "DEFAULT_DEPTH_QUANTIZATION",
     "CompressedDepthFormat",
     "parse_format",
+    "zero_invalid",
     "decode_compressed_depth",
     "encode_compressed_depth",
     "rvl_encode",
@@ -260,6 +261,19 @@ def rvl_decode(payload: bytes, n_pixels: int) -> NDArray[np.uint16]:
 
 
 # -- messages --------------------------------------------------------------------------------
+def zero_invalid(mm: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Set the invalid depths of ``mm`` (float32 mm, any shape) to 0 in place: NaN, +-Inf and
+    values below 0; returns ``mm``.
+
+    Two passes over the image (``fmax`` ignores NaN), where a boolean mask and its assignment
+    took several times longer (1.2 ms against 0.26 ms with the conversion at 640x480, issue 14).
+    """
+    with np.errstate(invalid="ignore"):
+        np.fmax(mm, np.float32(0.0), out=mm)
+    np.copyto(mm, np.float32(0.0), where=mm == np.float32(np.inf))
+    return mm
+
+
 def decode_compressed_depth(fmt: str, data: Any) -> NDArray[np.float32]:
     """Depth in millimetres from a compressedDepth ``CompressedImage`` (``format``, ``data``).
 
@@ -308,10 +322,10 @@ def decode_compressed_depth(fmt: str, data: Any) -> NDArray[np.float32]:
         )
     qf = q.astype(np.float32)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        metres = np.float32(quant_a) / (qf - np.float32(quant_b))
-        mm = metres * np.float32(1000.0)
-        mm[(q == 0) | ~np.isfinite(mm) | (mm <= 0.0)] = 0.0
-    return mm.astype(np.float32, copy=False)
+        mm = np.float32(quant_a) / (qf - np.float32(quant_b))  # metres ...
+        mm *= np.float32(1000.0)  # ... to mm
+    np.copyto(mm, np.float32(0.0), where=q == 0)
+    return zero_invalid(mm)
 
 
 def _png_decode(body: bytes) -> NDArray[np.uint16]:

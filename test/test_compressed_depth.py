@@ -18,10 +18,17 @@ from hand_sog_tracker.compressed_depth import (
     parse_format,
     rvl_decode,
     rvl_encode,
+    zero_invalid,
 )
 from hand_sog_tracker.errors import DepthImageError, InputError
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def test_invalid_depths_become_zero_in_place() -> None:
+    mm = np.array([[np.nan, np.inf, -np.inf], [-1.0, 0.0, 512.5]], np.float32)
+    assert zero_invalid(mm) is mm
+    np.testing.assert_array_equal(mm, [[0, 0, 0], [0, 0, 512.5]])
 
 
 def depth_scene(seed: int = 0, shape=(30, 40)) -> np.ndarray:
