@@ -333,7 +333,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="a wall this far behind the wrist's start depth of 400 mm (default: none)")
     parser.add_argument("--no-auto-calibration", action="store_true", help="track with the default model only")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                        help="one tracker parameter, by the node's name (repeatable), e.g. --set refine_iterations=2")
+                        help="one tracker parameter, by the node's name (repeatable), e.g. --set refine_iterations=4")
     parser.add_argument("--jobs", type=int, default=1, help="renders tracked in parallel processes (default 1)")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="write every render's record here")
     parser.add_argument("--compare", type=Path, default=None, metavar="OLD",
