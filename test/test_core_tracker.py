@@ -16,7 +16,13 @@ from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, chain_slice, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.optimizer import OptimizeResult, run
-from hand_sog_tracker.core.restarts import RESTART_ITERATIONS, SHIFT_CHUNK, SHIFT_EVERY
+from hand_sog_tracker.core.restarts import (
+    EDGE_ON_MARGIN,
+    EDGE_ON_PALM_COS,
+    RESTART_ITERATIONS,
+    SHIFT_CHUNK,
+    SHIFT_EVERY,
+)
 from hand_sog_tracker.core.salient import Detections
 from hand_sog_tracker.core.silhouette import Silhouette
 from hand_sog_tracker.core.tracker import REFINE_CURL_RAD, Tracker
@@ -633,6 +639,29 @@ def test_the_joint_pull_sends_the_other_fingertips_to_their_own_detections() -> 
     targets = tracker._joint_targets(theta, det, 2, 3)
     np.testing.assert_array_equal(targets.points[[0, 2, 3]], points[[0, 3, 2]])
     np.testing.assert_array_equal(targets.weights, [0.9, 0.0, 1.0, 0.7, 0.0])
+
+
+def test_a_detection_restart_of_a_hand_seen_edge_on_wins_only_by_a_margin(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 11: edge-on, the fingers overlap in the image and the score cannot tell them
+    apart; a detection restart's candidate then needs ``EDGE_ON_MARGIN`` more than the pose it
+    would replace.  (The score is stubbed: a candidate scores half the margin higher.)"""
+    tracker = Tracker()
+    truth, data, det, _ = _fist_data(tracker)
+    obj = Objective(tracker.model, data, tracker.config)
+    lonely = fingertips(tracker.model, truth)[2] + np.array([0.0, -60.0, -30.0])
+    det = Detections(lonely[None], np.zeros((1, 2)), np.array([0.95]), np.array([False]))
+    facing = tracker._maximise(obj, truth, iterations=1)
+    side = truth.copy()
+    side[3:6] = [0.0, np.radians(70.0), 0.0]  # (turned about the image's vertical axis)
+    edge = dataclasses.replace(facing, x=side)
+    assert abs(global_rotation(facing.x)[2, 2]) > 0.9 and abs(global_rotation(side)[2, 2]) < EDGE_ON_PALM_COS
+    for res in (facing, edge):
+        monkeypatch.setattr(
+            tracker, "_score", lambda plain, x, det, value=None, r=res: 0.5 if x is r.x else 0.5 + EDGE_ON_MARGIN / 2
+        )
+        assert tracker._lonely(res.x, det).size == 1
+        out = run(tracker._detection_restarts(obj, res, det))
+        assert (out is res) == (res is edge)
 
 
 def test_a_finger_leaning_on_its_curled_neighbours_place_swaps_with_it() -> None:

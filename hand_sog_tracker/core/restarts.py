@@ -183,6 +183,18 @@ CURL_WAIT = 10
 #: After restarts triggered by an unexplained detection all lost, they are not tried again
 #: for this many frames (count; chosen here).
 RESTART_COOLDOWN = 5
+#: Detection restarts of a hand seen nearly edge-on (``|palm normal . view axis|`` under
+#: ``EDGE_ON_PALM_COS``) win only by ``EDGE_ON_MARGIN`` of :meth:`RestartStrategies._score`
+#: (unitless; chosen here, issue 11).  Edge-on, the fingers overlap in the image and the
+#: score cannot tell them apart: on rotating hands a detection restart curled the index finger
+#: and moved the others one place over (validation 5078, frames 43-49 at 20-42 mm, palm
+#: normal at 0.38-0.54; the margin of the swaps, ``SWAP_MARGIN``, kept it right).  Only rotating
+#: hands changed: validation 5.878 -> 5.840 mm (5078 10.3 -> 7.3 mm), further 5.801 -> 5.761
+#: (7008 8.5 -> 6.3, 7088 6.9 -> 5.3), seeds 9000-9095, not looked at before, 5.757 -> 5.721
+#: (9068 9.5 -> 5.7); dev 5.848 -> 5.852 (3018 7.6 -> 8.0); frames over 20 mm 26 -> 14, 30 ->
+#: 17, 18 -> 10 and 30 -> 30.
+EDGE_ON_PALM_COS = 0.6
+EDGE_ON_MARGIN = SWAP_MARGIN
 #: The lateral restarts of a new track (:meth:`RestartStrategies._lateral_restarts`) move the
 #: hand this far (mm) along its own x axis (palm width; chosen here, issue 11: about one
 #: finger's spacing, 18-20 mm in the default hand).  On mesh dev renders whose hand was small
@@ -520,7 +532,8 @@ class RestartStrategies:
         frame 2, started one finger over, stayed there when the one finger was pulled alone
         with the whole pose free, as before); each pull is then released into the objective
         without the salient term (which would favour the assignment the frame started with); a
-        candidate is kept only if its :meth:`_score` is higher than before.  ``lonely``:
+        candidate is kept only if its :meth:`_score` is higher than before (by ``EDGE_ON_MARGIN``
+        for a hand seen nearly edge-on, ``EDGE_ON_PALM_COS``).  ``lonely``:
         :meth:`_lonely` at ``res.x`` when already known.
         """
         if lonely is None:
@@ -531,7 +544,8 @@ class RestartStrategies:
         dist = np.linalg.norm(det.points[s] - fingertips(self._model, res.x), axis=1)
         cfg = self._config
         plain = self._plain(obj)
-        best, best_val = res, self._score(plain, res.x, det)
+        edge_on = abs(global_rotation(res.x)[2, 2]) < EDGE_ON_PALM_COS
+        best, best_val = res, self._score(plain, res.x, det) + (EDGE_ON_MARGIN if edge_on else 0.0)
         strong = replace_config(cfg, w_sal=max(cfg.w_sal, 1.0) * 20.0)  # (the pulls' salient weight)
         for c in np.argsort(dist)[:2]:
             w = np.zeros(5)
