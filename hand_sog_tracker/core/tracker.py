@@ -149,7 +149,9 @@ REFINE_CURL_RAD = math.radians(60.0)
 #: (unitless; chosen here, issue 14).  The correction changes little from frame to frame (the
 #: joint Gaussians straighten the same claw), so the refinement starts near its end: 2
 #: iterations from there do as well as 4 from the track's pose (mesh sets, mean error: dev
-#: 5.801 -> 5.788, validation 5.913 -> 5.878, further 5.822 -> 5.804 mm) at half the cost.
+#: 5.801 -> 5.790 without 3071, whose automatic fit was no longer accepted, 6.4 -> 11.3 mm;
+#: validation 5.913 -> 5.878, further 5.822 -> 5.801 mm) at half the cost.  After a restart won
+#: on the frame before, the refinement starts from the fit's pose.
 REFINE_WARM_STEPS = 0.5
 #: A tracker on its default model (none given, none set since) starts every track by also
 #: fitting the initialisation's finalists with the default model scaled to this length factor

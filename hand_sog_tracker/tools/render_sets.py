@@ -61,7 +61,7 @@ from hand_sog_tracker.tools.evaluation import auto_step  # noqa: E402
 from hand_sog_tracker.tools.real_frames import number_list  # noqa: E402
 from hand_sog_tracker.tools.tracker_params import Value, node_only, parse_set, tracker_config  # noqa: E402
 
-__all__ = ["NO_HAND_MM", "SET_MOTIONS", "RenderSpec", "render_spec", "track_render", "compare", "main"]
+__all__ = ["NO_HAND_MM", "SET_MOTIONS", "RenderSpec", "render_spec", "track_render", "settings", "compare", "main"]
 
 #: The motions a seed picks from (seed modulo 10): fist-and-open, the hardest, twice.
 SET_MOTIONS: tuple[str, ...] = tuple(ALL_MOTIONS) + ("fistopen",)
