@@ -282,6 +282,33 @@ def test_a_small_hand_starts_on_the_small_model_with_every_finger_on_its_own() -
     assert fixed.model.shape == given.shape
 
 
+def test_the_small_model_is_tried_on_the_default_models_best_finalists(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 14: the small model refines only the ``SMALL_HAND_FINALISTS`` finalists that
+    scored best on the default model (its best was never a third one), in the finalists' order."""
+    from hand_sog_tracker.core.tracker import SMALL_HAND_FINALISTS, SMALL_HAND_LENGTH
+
+    frame, intr = _first_mesh_frame("fistopen", (0.8937, 0.9316, 0.9947), seed=3010)
+    tracker = Tracker()
+    calls: list[tuple[float, list[NDArray[np.float64]], list]] = []
+    original = Tracker._finalist_fits
+
+    def spy(self: Tracker, poses: list, *args: object) -> list:
+        fits = original(self, poses, *args)
+        calls.append((self.model.shape.length, [p.copy() for p in poses], fits))
+        return fits
+
+    monkeypatch.setattr(Tracker, "_finalist_fits", spy)
+    tracker.process(frame.depth_mm, intr)
+    assert [c[0] for c in calls] == [1.0, SMALL_HAND_LENGTH]
+    (_, finalists, fits), (_, tried, _) = calls
+    assert len(finalists) > SMALL_HAND_FINALISTS  # (else the test shows nothing)
+    scores = [f[1][0] for f in fits]
+    assert scores == sorted(scores, reverse=True)
+    best = sorted(k for k, _ in fits[:SMALL_HAND_FINALISTS])
+    assert len(tried) == SMALL_HAND_FINALISTS
+    assert all(np.array_equal(t, finalists[k]) for t, k in zip(tried, best))
+
+
 def test_a_small_hands_fist_keeps_the_default_model() -> None:
     """Curled fingers do not show their length: the small model may score higher on a fist
     (its fingers opened onto the knuckles), so the size is chosen only between open fits."""

@@ -176,6 +176,11 @@ REFINE_WARM_STEPS = 0.5
 SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
+#: The small model is tried on this many of the finalists, the default model's best by score
+#: (count; issue 14: the finalists are 2 or 3, each fit about 6 ms).  On 180 starts of mesh dev
+#: renders (frames 0, 20 and 40) where the small model was tried on all, its best was the
+#: default's best finalist 127 times and its second 53 times, never the third.
+SMALL_HAND_FINALISTS = 2
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 
 
@@ -864,8 +869,9 @@ class Tracker(RestartStrategies):
         (forced) finger-shift restarts, then the lateral restarts (:meth:`_lateral_restarts`,
         about 75 objective evaluations: with :attr:`defer_restarts` after the answer, as a
         tracked frame's restarts).  The detection restarts are left to the tracked frames that
-        follow.  On the default model the finalists are also refined on the small model, which
-        the track starts on when it scores ``SMALL_HAND_GAIN`` higher with open fingers.
+        follow.  On the default model its best ``SMALL_HAND_FINALISTS`` finalists are also refined
+        on the small model, which the track starts on when it scores ``SMALL_HAND_GAIN`` higher
+        with open fingers.
         """
         cfg = self._config
         poses = found.final_poses()
@@ -875,11 +881,14 @@ class Tracker(RestartStrategies):
         if data.n == 0:
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, timings)
-        best = self._best_finalist(poses, data, det, sil)
+        fits = self._finalist_fits(poses, data, det, sil)
+        best = fits[0][1] if fits else None
         if best is not None and self._sizes is not None and _open(best[1].x):
             default = self._model
             self._model = self._sizes[1]
-            small = self._best_finalist(poses, data, det, sil)
+            tried = sorted(k for k, _ in fits[:SMALL_HAND_FINALISTS])  # (in the finalists' order)
+            small_fits = self._finalist_fits([poses[k] for k in tried], data, det, sil)
+            small = small_fits[0][1] if small_fits else None
             if small is not None and small[0] > best[0] + SMALL_HAND_GAIN and _open(small[1].x):
                 best = small
             else:
@@ -903,23 +912,23 @@ class Tracker(RestartStrategies):
         self._status = TrackerStatus.TRACKING
         return self._result(res.x, conf, res.fun, data.n, timings)
 
-    def _best_finalist(
+    def _finalist_fits(
         self, poses: list[NDArray[np.float64]], data: ImageSoG, det: Detections, sil: Silhouette | None
-    ) -> tuple[float, OptimizeResult, ImageSoG, Objective] | None:
+    ) -> list[tuple[int, tuple[float, OptimizeResult, ImageSoG, Objective]]]:
         """The initialisation's finalists ``poses`` (26,) each refined ``final_iterations`` on
-        the tracker's model with the full objective: (score, fit, its data, its objective) of
-        the best by :meth:`_score`, or None when no finalist has data on its hand side."""
-        best = None
-        for x in poses:
+        the tracker's model with the full objective, best first by :meth:`_score` (the earlier
+        finalist first on a tie): (index in ``poses``, (score, fit, its data, its objective));
+        the finalists without data on their hand side are left out."""
+        fits = []
+        for k, x in enumerate(poses):
             data_x = self._hand_side(data, x)
             if data_x.n == 0:
                 continue
             obj = Objective(self._model, data_x, self._config, targets=self._targets(x, det), silhouette=sil)
             cand = self._maximise(obj, x, iterations=INIT_SEARCH.final_iterations)
-            score = self._score(self._plain(obj), cand.x, det, hidden_tips=False)
-            if best is None or score > best[0]:
-                best = (score, cand, data_x, obj)
-        return best
+            fits.append((k, (self._score(self._plain(obj), cand.x, det, hidden_tips=False), cand, data_x, obj)))
+        fits.sort(key=lambda f: f[1][0], reverse=True)  # (stable: the earlier first on a tie)
+        return fits
 
     def _on_hand_side(self, points: NDArray[np.float64], theta: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Which ``points`` (n, 3) mm lie on the hand side of the wrist plane at ``theta``."""
