@@ -43,3 +43,35 @@ def test_compare_rejects_a_directory_without_the_package(tmp_path: Path) -> None
     with pytest.raises(SystemExit) as exc:
         benchmark.main(["--compare", str(tmp_path)])
     assert exc.value.code == 2
+
+
+def test_set_times_the_tracker_with_other_parameters(capsys: pytest.CaptureFixture[str]) -> None:
+    r = benchmark.run_benchmark("fingerwave", 3, 320, 240, 1, params={"iterations": 2})
+    assert r["iterations"] == 2 and r["params"] == {"iterations": 2}
+    assert benchmark.run_benchmark("fingerwave", 3, 320, 240, 1)["iterations"] != 2
+    # Handedness (the benchmark renders a right hand), node-only and unknown names are refused.
+    for bad in ("handedness=left", "debug_image=true", "no_such=1", "iterations=zero"):
+        with pytest.raises(SystemExit) as exc:
+            benchmark.main(["--set", bad, "--frames", "3"])
+        assert exc.value.code == 2, bad
+    assert "right hand" in capsys.readouterr().err
+
+
+def test_compare_gives_the_settings_to_this_tree_only(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    calls: list[tuple[Path, list[str]]] = []
+
+    def child(root: Path, args: list[str]) -> list[dict[str, object]]:
+        calls.append((root, list(args)))
+        return [{"resolution": "320x240", "stages_ms": {"total": {"median": 1.0}}}]
+
+    monkeypatch.setattr(benchmark, "_run_child", child)
+    ref = tmp_path / "ref"
+    (ref / "hand_sog_tracker").mkdir(parents=True)
+    (ref / "hand_sog_tracker" / "__init__.py").write_text("")
+    code = benchmark.main(["--compare", str(ref), "--rounds", "2", "--frames", "3", "--set", "iterations=2"])
+    assert code == 0
+    this = [args for root, args in calls if root != ref.resolve()]
+    other = [args for root, args in calls if root == ref.resolve()]
+    assert len(this) == len(other) == 2
+    assert all("--set=iterations=2" in args for args in this)
+    assert not any(a.startswith("--set") for args in other for a in args)

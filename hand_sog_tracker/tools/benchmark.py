@@ -18,6 +18,10 @@ another source tree ``REF`` (e.g. a checkout of the previous commit) as separate
 alternating, ``--rounds`` times each, and prints both per-stage medians and their ratio:
 absolute times on a shared machine drift by tens of percent, the ratio of interleaved runs
 much less.  Both sides run the same harness and the same rendered frames.
+
+``--set NAME=VALUE`` times the tracker with other parameters (the node's names, as in
+``evaluate_bag`` and ``render_sets``), e.g. fewer iterations; with ``--compare`` only this
+tree's runs take them, so that ``--compare .`` measures a setting against the defaults.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Sequence  # noqa: E402
+from typing import Mapping, Sequence  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -113,9 +117,19 @@ def _init_times(config: TrackerConfig, depth_frames: list, intr) -> tuple[list[f
 
 
 def run_benchmark(
-    motion: str, frames: int, width: int, height: int, repeat: int, seed: int = 0, renderer: str = "capsule"
+    motion: str,
+    frames: int,
+    width: int,
+    height: int,
+    repeat: int,
+    seed: int = 0,
+    renderer: str = "capsule",
+    params: Mapping[str, bool | int | float | str] | None = None,
 ) -> dict[str, object]:
     """Track ``frames`` rendered frames ``repeat`` times; return the timing table.
+
+    ``params``: tracker parameters by the node's names (validated with
+    :func:`~hand_sog_tracker.tools.tracker_params.core_settings`; default: the defaults).
 
     Returns
     -------
@@ -127,11 +141,16 @@ def run_benchmark(
         frames of fresh trackers' initialisations, initialise_after = the restarts of the new
         track after its first answer), ``iterations``,
         ``fps``, ``peak_rss_mb``,
-        ``rss_growth_mb`` (peak RSS after the last pass minus after the first).
+        ``rss_growth_mb`` (peak RSS after the last pass minus after the first), ``params``.
     """
     intr = default_intrinsics(width, height)
     depth_frames = _frames(motion, frames, intr, renderer, seed)
     config = TrackerConfig()
+    if params:
+        # (Imported here: a tree benchmarked by --compare may not have it, and gets no --set.)
+        from hand_sog_tracker.tools.tracker_params import tracker_config
+
+        config = tracker_config(params)
     tracker = Tracker(config)
     # As the node: a frame is answered before its restarts, which run after it (the same track
     # and the same work as without; "answer" times the first part, "total" both).  A tracker
@@ -218,6 +237,7 @@ def run_benchmark(
         "frames_timed": len(stage["total"]),
         "frames_tracking": n_tracked,
         "iterations": config.iterations,
+        "params": dict(params or {}),
         "stages_ms": {k: _stats(v) for k, v in stage.items()},
         "fps": n / wall if wall > 0 else float("nan"),
         "peak_rss_mb": _rss_mb(),
@@ -247,6 +267,8 @@ def _print_table(r: dict[str, object]) -> None:
     print(f"\n{r['motion']} ({r.get('renderer', 'capsule')} hand) at {r['resolution']}: "
           f"{r['frames_timed']} frames timed, "
           f"{r['frames_tracking']} tracking, {r['iterations']} iterations/frame, 1 thread")
+    if r.get("params"):
+        print("  with " + ", ".join(f"{k}={v}" for k, v in r["params"].items()))  # type: ignore[union-attr]
     print(f"  {'stage':<30}{'median ms':>10}{'p95 ms':>10}{'max ms':>10}")
     for key, label in STAGE_LABELS.items():
         if key in st and not np.isnan(st[key]["median"]):
@@ -280,9 +302,10 @@ def _run_child(root: Path, args: list[str]) -> list[dict[str, object]]:
 
 
 def run_compare(
-    ref: Path, args: list[str], rounds: int, this: Path | None = None
+    ref: Path, args: list[str], rounds: int, this: Path | None = None, this_args: Sequence[str] = ()
 ) -> dict[str, dict[str, dict[str, list[float]]]]:
-    """Benchmark ``this`` tree (default: the running one) and ``ref``, alternating.
+    """Benchmark ``this`` tree (default: the running one) and ``ref``, alternating; both with
+    the benchmark's arguments ``args``, ``this`` also with ``this_args`` (e.g. ``--set``).
 
     Returns ``{resolution: {"this"|"ref": {stage: [median ms of each round]}}}``.
     """
@@ -292,7 +315,7 @@ def run_compare(
         order = (("this", this), ("ref", ref)) if k % 2 == 0 else (("ref", ref), ("this", this))
         for name, root in order:
             print(f"round {k + 1}/{rounds}: {name} ({root})", file=sys.stderr, flush=True)
-            for r in _run_child(root, args):
+            for r in _run_child(root, args + list(this_args) if name == "this" else args):
                 per = runs.setdefault(str(r["resolution"]), {"this": {}, "ref": {}})[name]
                 stages = r["stages_ms"]
                 assert isinstance(stages, dict)
@@ -301,9 +324,13 @@ def run_compare(
     return runs
 
 
-def _print_compare(runs: dict[str, dict[str, dict[str, list[float]]]], ref: Path, rounds: int) -> None:
+def _print_compare(
+    runs: dict[str, dict[str, dict[str, list[float]]]], ref: Path, rounds: int, sets: Sequence[str] = ()
+) -> None:
     print(f"\nthis tree {_tree_root()} against {ref}: median over {rounds} interleaved runs "
           "of each run's median ms")
+    if sets:
+        print(f"this tree with {', '.join(sets)}; {ref} with its defaults")
     for res, both in runs.items():
         print(f"\n{res}")
         print(f"  {'stage':<30}{'this ms':>10}{'ref ms':>10}{'this/ref':>10}")
@@ -342,9 +369,21 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "tree, and print both and the ratio")
     parser.add_argument("--rounds", type=int, default=3,
                         help="with --compare: runs of each tree (default 3)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="one tracker parameter, by the node's name (repeatable), e.g. --set iterations=6; "
+                        "with --compare for this tree only (the reference runs its defaults)")
     args = parser.parse_args(argv)
     if args.frames < 2 or args.repeat < 1:
         parser.error("--frames must be >= 2 and --repeat >= 1")
+    params = {}
+    if args.set:
+        from hand_sog_tracker.errors import InputError
+        from hand_sog_tracker.tools.tracker_params import core_settings
+
+        try:
+            params = core_settings(args.set, "the benchmark renders a right hand")
+        except InputError as exc:
+            parser.error(f"--set: {exc}")
     if args.compare is not None:
         ref = Path(args.compare).resolve()
         if not (ref / "hand_sog_tracker" / "__init__.py").is_file():
@@ -357,11 +396,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name in args.resolution or []:
             child += ["--resolution", name]
         try:
-            runs = run_compare(ref, child, args.rounds)
+            runs = run_compare(ref, child, args.rounds, this_args=[f"--set={item}" for item in args.set])
         except RuntimeError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
-        _print_compare(runs, ref, args.rounds)
+        _print_compare(runs, ref, args.rounds, args.set)
         if args.json:
             with open(args.json, "w", encoding="utf-8") as fh:
                 json.dump({"this": str(_tree_root()), "ref": str(ref), "runs": runs}, fh, indent=2)
@@ -370,7 +409,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     results = []
     for name in args.resolution or list(RESOLUTIONS):
         w, h = RESOLUTIONS[name]
-        r = run_benchmark(args.motion, args.frames, w, h, args.repeat, renderer=args.renderer)
+        r = run_benchmark(args.motion, args.frames, w, h, args.repeat, renderer=args.renderer, params=params)
         _print_table(r)
         results.append(r)
     if args.json:

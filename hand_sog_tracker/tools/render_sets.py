@@ -59,7 +59,7 @@ from hand_sog_tracker.synth.motions import ALL_MOTIONS, START_TRANSLATION_MM  # 
 from hand_sog_tracker.synth.sequence import default_intrinsics  # noqa: E402
 from hand_sog_tracker.tools.evaluation import auto_step  # noqa: E402
 from hand_sog_tracker.tools.real_frames import number_list  # noqa: E402
-from hand_sog_tracker.tools.tracker_params import Value, node_only, parse_set, tracker_config  # noqa: E402
+from hand_sog_tracker.tools.tracker_params import Value, core_settings, tracker_config  # noqa: E402
 
 __all__ = ["NO_HAND_MM", "SET_MOTIONS", "RenderSpec", "render_spec", "track_render", "settings", "compare", "main"]
 
@@ -173,22 +173,16 @@ def track_render(
 
 
 def settings(items: Sequence[str]) -> dict[str, Value]:
-    """The tracker parameters of ``--set NAME=VALUE`` items, validated as the node does.
+    """The tracker parameters of ``--set NAME=VALUE`` items, validated as the node does
+    (:func:`~hand_sog_tracker.tools.tracker_params.core_settings`: no ``handedness``, each
+    render has its own; no parameter only the node uses).
 
     Raises
     ------
     InputError
-        A bad item (see :func:`~hand_sog_tracker.tools.tracker_params.parse_set`), ``handedness``
-        (each render has its own) or a parameter only the node uses.
+        A bad item, ``handedness`` or a node-only parameter.
     """
-    values = parse_set(items)
-    if "handedness" in values:
-        raise InputError("handedness cannot be set: each render draws its own hand")
-    other = node_only(values)
-    if other:
-        raise InputError(f"not a tracker parameter here (the node's only): {', '.join(other)}")
-    tracker_config(values)
-    return values
+    return core_settings(items, "each render draws its own hand")
 
 
 def _job(args: tuple[RenderSpec, int, tuple[int, int], bool, Mapping[str, Value]]) -> tuple[int, dict[str, Any]]:

@@ -9,7 +9,9 @@ The tools take the same parameters as ``tracker_node`` (see
   name).  ``use_sim_time`` and ``qos_overrides`` are ignored;
 * :func:`parse_set` parses ``name=value`` items, typed like the parameter;
 * :func:`tracker_config` validates everything as the node does and returns the
-  core :class:`~hand_sog_tracker.core.types.TrackerConfig`.
+  core :class:`~hand_sog_tracker.core.types.TrackerConfig`;
+* :func:`core_settings`: ``--set`` items of a tool that renders its own hands (no
+  handedness, no node-only parameter), validated.
 
 YAML is read with ``ruamel.yaml`` (installed with ``rosbags``).
 """
@@ -22,7 +24,9 @@ from typing import Any, Mapping, Sequence, Union
 from hand_sog_tracker.core.types import TrackerConfig
 from hand_sog_tracker.errors import InputError
 
-__all__ = ["node_only", "read_params_file", "parse_params_yaml", "parse_set", "parse_value", "tracker_config"]
+__all__ = [
+    "core_settings", "node_only", "read_params_file", "parse_params_yaml", "parse_set", "parse_value", "tracker_config",
+]
 
 Value = Union[bool, int, float, str]
 
@@ -167,3 +171,24 @@ def tracker_config(values: Mapping[str, Value]) -> TrackerConfig:
     from hand_sog_tracker.ros.params import settings_from_values
 
     return settings_from_values(dict(values)).tracker
+
+
+def core_settings(items: Sequence[str], hand: str) -> dict[str, Value]:
+    """The tracker parameters of ``--set NAME=VALUE`` items for a tool that renders its own
+    hands (``render_sets``, ``benchmark``), validated as the node does.
+
+    ``hand`` says why ``handedness`` cannot be set (e.g. "each render draws its own hand").
+
+    Raises
+    ------
+    InputError
+        A bad item (see :func:`parse_set`), ``handedness``, or a parameter only the node uses.
+    """
+    values = parse_set(items)
+    if "handedness" in values:
+        raise InputError(f"handedness cannot be set: {hand}")
+    other = node_only(values)
+    if other:
+        raise InputError(f"not a tracker parameter here (the node's only): {', '.join(other)}")
+    tracker_config(values)
+    return values
