@@ -128,8 +128,9 @@ def run_benchmark(
 ) -> dict[str, object]:
     """Track ``frames`` rendered frames ``repeat`` times; return the timing table.
 
-    ``params``: tracker parameters by the node's names (validated with
-    :func:`~hand_sog_tracker.tools.tracker_params.core_settings`; default: the defaults).
+    ``params``: tracker parameters by the node's names, as
+    :func:`~hand_sog_tracker.tools.tracker_params.core_settings` returns them (no
+    ``handedness``: the frames show a right hand); default: the defaults.
 
     Returns
     -------
