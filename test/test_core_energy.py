@@ -16,8 +16,16 @@ from hand_sog_tracker.core.energy import (
     Objective,
     TipTargets,
     gaussian_support,
+    visibility_weights,
 )
-from hand_sog_tracker.core.hand_model import N_PARAMS, default_hand_model, rest_pose
+from hand_sog_tracker.core.hand_model import (
+    FINGER_DIP,
+    FINGER_MCP,
+    FINGER_PIP,
+    N_PARAMS,
+    default_hand_model,
+    rest_pose,
+)
 from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres
 from hand_sog_tracker.core.optimizer import maximise
 from hand_sog_tracker.core.silhouette import Silhouette
@@ -67,6 +75,13 @@ def silhouette_of(model, theta: np.ndarray, skip_chain: int | None = None) -> Si
     return Silhouette(distance=dist, origin=(0, 0), intrinsics=INTR)
 
 
+def fist_of(theta: np.ndarray) -> np.ndarray:
+    """``theta`` (26,) with index .. little curled into a fist (MCP 85, PIP 100, DIP 70 deg)."""
+    fist = theta.copy()
+    fist[FINGER_MCP], fist[FINGER_PIP], fist[FINGER_DIP] = np.radians([85.0, 100.0, 70.0])
+    return fist
+
+
 def numeric_gradient(obj: Objective, theta: np.ndarray) -> np.ndarray:
     g = np.zeros(N_PARAMS)
     for j in range(N_PARAMS):
@@ -105,7 +120,14 @@ def test_gradient_matches_central_differences(seed: int) -> None:
     contact = np.array([0.0, 1.0, 0.6, 1.0, 0.3])
     if seed == 3:  # (the model of the tracker's answer refinement, on the same data)
         model = model.with_joint_gaussians()
-    obj = Objective(model, data, cfg, previous=prev, targets=targets, silhouette=sil, contact=contact)
+    # Seeds 2 and 3 weight the overlaps by their visibility in a fist (as the refinement does).
+    visible_from = fist_of(truth) if seed >= 2 else None
+    if visible_from is not None:
+        assert visibility_weights(model, visible_from, INTR).min() < 0.1
+    obj = Objective(
+        model, data, cfg, previous=prev, targets=targets, silhouette=sil, contact=contact,
+        visible_from=visible_from,
+    )
     terms, grad = obj.evaluate(theta)
     # Every term is active in this configuration, so each one's gradient is checked.
     assert terms.sim > 0 and terms.col > 0 and terms.dan > 0 and terms.lim > 0 and terms.smo > 0
@@ -257,8 +279,11 @@ def _saturated(data: ImageSoG, overlap: np.ndarray) -> float:
     return float((SIM_GAIN * k * (1.0 - np.exp(-overlap / k))).sum() / data.norm)
 
 
-def _dense_data_terms(obj: Objective, theta: np.ndarray) -> tuple[float, float]:
-    """``E_sim`` and ``E_dan`` over all model x data pairs, straight from the module docstring."""
+def _dense_data_terms(
+    obj: Objective, theta: np.ndarray, visibility: np.ndarray | None = None
+) -> tuple[float, float]:
+    """``E_sim`` and ``E_dan`` over all model x data pairs, straight from the module docstring
+    (``visibility`` (m,): each model Gaussian's weight of its overlaps)."""
     model, data = obj.model, obj.data
     intr = data.intrinsics
     f = np.sqrt(intr.fx * intr.fy)
@@ -271,6 +296,8 @@ def _dense_data_terms(obj: Objective, theta: np.ndarray) -> tuple[float, float]:
     r2 = (u[:, None] - data.mu[None, :, 0]) ** 2 + (v[:, None] - data.mu[None, :, 1]) ** 2
     s2 = sp2 + sq2
     D = 2 * np.pi * sp2 * sq2 / s2 * np.exp(-0.5 * r2 / s2)
+    if visibility is not None:
+        D = D * visibility[:, None]
     dd = (z - model.g_sigmas)[:, None] - data.depth[None, :]
     delta = np.maximum(1.0 - np.abs(dd) / (2.0 * model.g_sigmas[:, None]), 0.0)
     sim = _saturated(data, (delta * D).sum(axis=0))
@@ -294,17 +321,61 @@ def test_sparse_data_terms_equal_the_dense_definition(seed: int) -> None:
     front = data.depth.copy()
     front[: data.n // 5] -= 40.0  # a fifth of the data 40 mm nearer: occluders
     data = ImageSoG(data.mu, data.sigma, front, INTR.backproject(data.mu, front), INTR, data.norm)
-    obj = Objective(model, data, TrackerConfig())
+    # Seed 2: the overlaps weighted by their visibility in a fist.
+    visible_from = fist_of(truth) if seed == 2 else None
+    obj = Objective(model, data, TrackerConfig(), visible_from=visible_from)
+    vis = None if visible_from is None else visibility_weights(model, visible_from, INTR)
     for shift in (0.0, 8.0, 30.0):
         theta = truth.copy()
         theta[0] += shift
         theta[6:] += rng.normal(0.0, 0.1, theta.size - 6)
         terms, _ = obj.evaluate(theta)
-        sim, dan = _dense_data_terms(obj, theta)
+        sim, dan = _dense_data_terms(obj, theta, vis)
         assert terms.sim == pytest.approx(sim, rel=1e-6)
         assert terms.dan == pytest.approx(dan, rel=1e-9, abs=1e-12)
         if shift == 30.0:
             assert terms.dan > 0
+
+
+def test_visibility_weights_hide_what_curled_fingers_cover() -> None:
+    # The palm faces the camera in the rest pose.  Open, nothing is hidden; in a fist the palm
+    # behind the curled fingers and the fingertips behind their middle segments are; seen from
+    # the back, the palm is in front of the fingers and stays visible.  Only the palm's and
+    # the distal segments' Gaussians are ever weighted.
+    model = default_hand_model()
+    open_hand = rest_pose((0.0, 60.0, 400.0))
+    fist = fist_of(open_hand)
+    back = fist.copy()
+    back[4] += np.pi  # (turned about the camera's y axis: the back of the hand toward it)
+    palm = model.g_chain < 0
+    weighted = palm | ((model.g_chain >= 1) & (model.g_segment == 2))
+    w_open, w_fist, w_back = (visibility_weights(model, t, INTR) for t in (open_hand, fist, back))
+    for w in (w_open, w_fist, w_back):
+        assert np.all((w >= 0.0) & (w <= 1.0))
+        assert np.all(w[~weighted] == 1.0)
+    assert w_open.min() > 0.9
+    assert np.sum(w_fist[palm] < 0.1) >= 6  # the palm's distal rows, under the fingers
+    assert w_fist[palm].max() > 0.95  # the rows near the wrist stay in view
+    assert np.median(w_fist[weighted & ~palm]) < 0.35
+    assert w_back[palm].min() > 0.99
+
+
+def test_objective_with_visibility_weights_the_overlaps() -> None:
+    # A fist's hidden palm earns less overlap; the weights are the objective's for every
+    # variant of it, and its support is not taken from the weighted overlaps.
+    model = default_hand_model()
+    rng = np.random.default_rng(7)
+    fist = fist_of(rest_pose((0.0, 60.0, 400.0)))
+    data = data_near(model, fist, rng)
+    plain = Objective(model, data, TrackerConfig())
+    weighted = Objective(model, data, TrackerConfig(), visible_from=fist)
+    sim_plain = plain.evaluate(fist, gradient=False)[0].sim
+    sim_weighted = weighted.evaluate(fist, gradient=False)[0].sim
+    assert 0.0 < sim_weighted < 0.95 * sim_plain
+    other = weighted.variant(TrackerConfig(w_sal=0.0), None)
+    assert other.evaluate(fist, gradient=False)[0].sim == sim_weighted
+    assert weighted.support(fist) is None
+    assert plain.support(fist) is not None
 
 
 def test_call_and_evaluate_agree_with_and_without_gradient() -> None:

@@ -817,12 +817,17 @@ def _fist_frame(tracker: Tracker) -> tuple[NDArray[np.float64], Objective]:
     return truth, obj
 
 
-def test_the_answer_of_a_curled_hand_is_refined_on_the_joint_model() -> None:
+def test_the_answer_of_a_curled_hand_is_refined_on_the_joint_model(monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 11: a capsule fist fitted as a tracked frame is (7 iterations from its true pose)
     opens its curled fingers (measured 6.1 mm mean fingertip error); the answer's refinement
     on the model with joint Gaussians brings them back (3.7 mm in its 2 iterations from the fit's
-    pose; 3.3 from the correction of a frame before, see the next tests).  An open hand's answer is
-    the fit itself, and so is every answer with ``refine_iterations`` 0."""
+    pose; 3.3 from the correction of a frame before, see the next tests).  With the overlaps
+    weighted by their visibility (``REFINE_VISIBILITY``, the default) 4.5 mm: this fist is
+    rendered from the model's own capsules, where the hidden palm holds the ring and little
+    fingers in place (the mesh renders gain, see the README).  An open hand's answer is the fit
+    itself, and so is every answer with ``refine_iterations`` 0."""
+    import hand_sog_tracker.core.tracker as tracker_module
+
     tracker = Tracker(TrackerConfig())
     truth, obj = _fist_frame(tracker)
     res = tracker._maximise(obj, truth, iterations=7)
@@ -831,7 +836,11 @@ def test_the_answer_of_a_curled_hand_is_refined_on_the_joint_model() -> None:
     def err(x: NDArray[np.float64]) -> float:
         return float(np.linalg.norm(fingertips(tracker.model, x) - fingertips(tracker.model, truth), axis=1).mean())
 
-    assert err(res.x) > 4.5 and err(refined) < 0.6 * err(res.x), (err(res.x), err(refined))
+    assert err(res.x) > 4.5 and err(refined) < 0.8 * err(res.x), (err(res.x), err(refined))
+    monkeypatch.setattr(tracker_module, "REFINE_VISIBILITY", False)
+    unweighted = tracker._refined(obj, res, truth)
+    assert err(unweighted) < 0.6 * err(res.x), (err(res.x), err(unweighted))
+    monkeypatch.undo()
     open_hand = res.x.copy()
     open_hand[6:] = 0.1
     assert tracker._refined(obj, dataclasses.replace(res, x=open_hand), truth) is open_hand
@@ -840,6 +849,40 @@ def test_the_answer_of_a_curled_hand_is_refined_on_the_joint_model() -> None:
     assert tracker._refined(obj, res, truth) is res.x
     with pytest.raises(InputError, match="refine_iterations"):
         TrackerConfig(refine_iterations=-1)
+
+
+def test_only_the_answers_refinement_weights_the_overlaps_by_visibility(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 11: the refinement's objective weights each Gaussian's overlaps by its visibility
+    at the fit's pose (``REFINE_VISIBILITY``); the track's own objective (its fit and
+    restarts) does not."""
+    import hand_sog_tracker.core.tracker as tracker_module
+
+    made: list[tuple[int, object]] = []
+    original = tracker_module.Objective
+
+    def spy(model: object, *args: object, **kwargs: object) -> object:
+        made.append((model.n_gaussians, kwargs.get("visible_from")))  # type: ignore[attr-defined]
+        return original(model, *args, **kwargs)
+
+    tracker = Tracker(TrackerConfig())
+    truth, obj = _fist_frame(tracker)
+    res = tracker._maximise(obj, truth, iterations=7)
+    monkeypatch.setattr(tracker_module, "Objective", spy)
+    tracker._refined(obj, res, truth)
+    assert len(made) == 1
+    n, visible_from = made[0]
+    assert n == tracker.model.n_gaussians + 10  # (the joint model)
+    assert visible_from is res.x
+    made.clear()
+    frames = list(synthetic_sequence("fingercount", 4, intrinsics=default_intrinsics(), seed=3))
+    for frame in frames:
+        tracker.process(frame.depth_mm, default_intrinsics())
+    tracked = [v for n, v in made if n == tracker.model.n_gaussians]
+    assert tracked and all(v is None for v in tracked)
+    monkeypatch.setattr(tracker_module, "REFINE_VISIBILITY", False)
+    made.clear()
+    tracker._refined(obj, res, truth)
+    assert made[0][1] is None
 
 
 def test_a_tracked_curled_hand_publishes_the_refined_pose_and_tracks_on_from_its_own() -> None:

@@ -55,6 +55,14 @@ Choices the paper leaves open (documented here, used everywhere):
   ``TAU2_MM`` (the paper's ramp drops back to 0 beyond ``TAU2_MM``, a jump); the
   sum over data Gaussians is divided by their number so the term does not grow
   with image resolution;
+* ``E_sim`` can weight each model Gaussian's overlaps by its visibility at a given pose
+  (:func:`visibility_weights`; the ``visible_from`` pose of :class:`Objective`, kept fixed
+  while the objective is maximised: the gradient is that of a fixed weighting).  Without
+  it, a model Gaussian hidden behind others still earns overlap with the surface in front
+  of it (``Delta`` ramps over ``2 sigma_h`` either side); in a fist facing the camera the
+  palm behind the curled fingers and the fingertips tucked behind their middle segments
+  pull the model forward onto the fingers' surface.  The tracker uses it only to refine the
+  answer of a frame with a curled finger (:class:`~hand_sog_tracker.core.tracker.Tracker`);
 * ``E_smo`` (eq. 9) measures translations in units of ``SMOOTH_TRANSLATION_MM``
   so that millimetres and radians are weighed alike;
 * ``E_ord = sum_c max(ORDER_MIN_GAP_RAD - (a_{c+1} - a_c), 0)^2`` over the neighbouring
@@ -104,7 +112,7 @@ from hand_sog_tracker.core.hand_model import (
 )
 from hand_sog_tracker.core.kinematics import CentresPullback, centres_with_pullback, gaussian_centres
 from hand_sog_tracker.core.silhouette import Silhouette, run_or_defer, silhouette_term
-from hand_sog_tracker.core.types import TrackerConfig
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 
 __all__ = [
     "EnergyTerms",
@@ -125,6 +133,7 @@ __all__ = [
     "COLLISION_CONTACT_FREE",
     "CONTACT_CURL_RAD",
     "contact_shares",
+    "visibility_weights",
 ]
 
 #: Near threshold ``tau_1`` of the dangling term (mm): a model Gaussian this close to data is
@@ -455,6 +464,39 @@ def gaussian_support(
     return np.minimum(support, 1.0, out=support)
 
 
+def visibility_weights(model: HandModel, theta: NDArray[np.float64], intr: Intrinsics) -> NDArray[np.float64]:
+    """How visible each model Gaussian is at ``theta`` (26,) to the camera ``intr``, as a
+    weight of its overlaps in ``E_sim``, shape (m,) in [0, 1].
+
+    Only the Gaussians whose overlaps the fingers can steal are weighted: the palm's and the
+    distal segments' of index .. little (``g_segment`` 2, a joint model's DIP Gaussians
+    included); the others keep 1.  Such a Gaussian ``i`` is hidden by each Gaussian ``j`` of
+    index .. little (``j != i``) by ``cover_ij front_ij``: ``cover_ij = exp(-r_ij^2 / (2
+    s_j^2))`` with ``r_ij`` the image distance (px) of their projected centres and ``s_j`` the
+    projected sigma of ``j`` (px); ``front_ij`` ramps from 0 to 1 as the front of ``j``
+    (``z_j - sigma_j``, mm) lies 0 to ``sigma_i`` in front of the front of ``i``.  The weight
+    is ``prod_j (1 - cover_ij front_ij)``: 1 for a Gaussian in plain view, near 0 for the
+    palm behind a curled finger or a fingertip tucked behind its own middle segment.
+    """
+    P = gaussian_centres(model, theta)
+    z = np.maximum(P[:, 2], 1.0)
+    u = intr.fx * P[:, 0] / z
+    v = intr.fy * P[:, 1] / z
+    sigma = model.g_sigmas
+    s = sigma * float(np.sqrt(intr.fx * intr.fy)) / z  # projected sigmas (px)
+    chain = model.g_chain
+    hidden = np.flatnonzero((chain < 0) | ((chain >= 1) & (model.g_segment == 2)))
+    occluders = np.flatnonzero(chain >= 1)
+    r2 = np.square(u[hidden, None] - u[None, occluders]) + np.square(v[hidden, None] - v[None, occluders])
+    cover = np.exp(-0.5 * r2 / np.square(s[occluders])[None, :])
+    front = z - sigma
+    ahead = np.clip((front[hidden, None] - front[None, occluders]) / sigma[hidden, None], 0.0, 1.0)
+    ahead[hidden[:, None] == occluders[None, :]] = 0.0  # (a Gaussian does not hide itself)
+    weights = np.ones(model.n_gaussians)
+    weights[hidden] = np.prod(1.0 - cover * ahead, axis=1)
+    return weights
+
+
 def contact_shares(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     """How curled each chain is at ``theta`` (26,), for :class:`Objective`'s ``contact``,
     shape (5,) in [0, 1]: 0 for the thumb; for index .. little their MCP + PIP flexion mapped
@@ -495,6 +537,9 @@ class Objective:
         their touching overlap (see the module docstring).  None: every pair pays its whole
         overlap (initialisation and calibration, where no track tells the fingers apart and
         their spacing does).
+    visible_from : array, shape (26,), or None
+        A pose whose :func:`visibility_weights` weight each model Gaussian's overlaps in
+        ``E_sim`` (fixed for this objective); None: every Gaussian counts in full.
     """
 
     def __init__(
@@ -506,6 +551,7 @@ class Objective:
         targets: TipTargets | None = None,
         silhouette: Silhouette | None = None,
         contact: NDArray[np.float64] | None = None,
+        visible_from: NDArray[np.float64] | None = None,
     ) -> None:
         self.model = model
         self.data = data
@@ -514,6 +560,10 @@ class Objective:
         self.targets = targets
         self.silhouette = silhouette
         self.contact = contact
+        self.visible_from = visible_from
+        self._visibility = (
+            None if visible_from is None else visibility_weights(model, visible_from, data.intrinsics)
+        )
         self._const = model_constants(model)
         # The overlap each collision pair has free, (pairs,) or 0; a pair's share is its less
         # curled finger's (the palm's entry, chain -1, is 1).
@@ -597,10 +647,11 @@ class Objective:
 
     def variant(self, config: TrackerConfig, targets: TipTargets | None) -> Objective:
         """This frame's objective with other term weights ``config`` and ``targets`` (the same
-        model, data, previous poses, silhouette and ``contact``; the collision pairs' free
-        overlap is shared, not computed again)."""
+        model, data, previous poses, silhouette, ``contact`` and visibility; the collision
+        pairs' free overlap and the visibility weights are shared, not computed again)."""
         other = Objective(self.model, self.data, config, self.previous, targets, self.silhouette)
         other.contact, other._col_free = self.contact, self._col_free
+        other.visible_from, other._visibility = self.visible_from, self._visibility
         return other
 
     def support(self, theta: NDArray[np.float64]) -> NDArray[np.float64] | None:
@@ -608,10 +659,11 @@ class Objective:
         ``theta`` (the same sums up to rounding: the same pairs and values); else None.
 
         A tracked frame's fit usually ends at its best pose: its confidence then costs no
-        second pass over the pairs.
+        second pass over the pairs.  None too for an objective with visibility weights (its
+        overlaps are weighted).
         """
         src = self._support_src
-        if src is None or theta.tobytes() != self._support_key:
+        if src is None or self._visibility is not None or theta.tobytes() != self._support_key:
             return None
         delta_D, bounds, z = src
         m = z.size
@@ -769,7 +821,8 @@ class Objective:
             proj = np.multiply(self._fxy, P[:, :2].T)
             proj /= z
         # Per model Gaussian (rows): 0 and 1 the tests' own terms, 2 ones, 3-5 u, v, dp (rows
-        # 0-5 enter the candidate product), 6-9 sp^2, 2 pi sp^2, 2 sigma_h, (mm per px)^2
+        # 0-5 enter the candidate product), 6-9 sp^2, 2 pi sp^2 (times the visibility weight, if
+        # any), 2 sigma_h, (mm per px)^2
         # (rows 3-9 are read per pair: contiguous rows, strided columns would slow down exp),
         # 10 sp.  Rows 2 and 8 are constant.  u, v as one (2, m) array: NumPy's per-call cost
         # dominates at this size.
@@ -781,6 +834,8 @@ class Objective:
         np.divide(self._shf, z, out=sp)
         np.multiply(sp, sp, out=sp_sq)
         np.multiply(_TWO_PI, sp_sq, out=rows[7])
+        if self._visibility is not None:  # (a factor of every overlap of the Gaussian: D)
+            rows[7] *= self._visibility
         scale = z / self._f  # mm per px at the model's depth
         np.multiply(scale, scale, out=rows[9])
         # rows 0-1: u^2 + v^2 - 36 sp^2, dp^2 - (2 sigma_h)^2
