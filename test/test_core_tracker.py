@@ -822,7 +822,7 @@ def test_the_answer_of_a_curled_hand_is_refined_on_the_joint_model(monkeypatch: 
     opens its curled fingers (measured 6.1 mm mean fingertip error); the answer's refinement
     on the model with joint Gaussians brings them back (3.7 mm in its 2 iterations from the fit's
     pose; 3.3 from the correction of a frame before, see the next tests).  With the overlaps
-    weighted by their visibility (``REFINE_VISIBILITY``, the default) 4.5 mm, and 2.6 from the
+    weighted by their visibility (``REFINE_VISIBILITY``, the default) 4.5 mm, and 2.8 from the
     correction: this fist is rendered from the model's own capsules, where the hidden palm
     holds the ring and little fingers in place in the first refinement (the mesh renders
     gain, see the README).  An open hand's answer is the fit

@@ -470,13 +470,15 @@ def visibility_weights(model: HandModel, theta: NDArray[np.float64], intr: Intri
 
     Only the Gaussians whose overlaps the fingers can steal are weighted: the palm's and the
     distal segments' of index .. little (``g_segment`` 2, a joint model's DIP Gaussians
-    included); the others keep 1.  Such a Gaussian ``i`` is hidden by each Gaussian ``j`` of
-    index .. little (``j != i``) by ``cover_ij front_ij``: ``cover_ij = exp(-r_ij^2 / (2
+    included); the others keep 1.  Such a Gaussian ``i`` is hidden by each finger Gaussian ``j``
+    (the thumb's included; ``j != i``) by ``cover_ij front_ij``: ``cover_ij = exp(-r_ij^2 / (2
     s_j^2))`` with ``r_ij`` the image distance (px) of their projected centres and ``s_j`` the
     projected sigma of ``j`` (px); ``front_ij`` ramps from 0 to 1 as the front of ``j``
     (``z_j - sigma_j``, mm) lies 0 to ``sigma_i`` in front of the front of ``i``.  The weight
     is ``prod_j (1 - cover_ij front_ij)``: 1 for a Gaussian in plain view, near 0 for the
-    palm behind a curled finger or a fingertip tucked behind its own middle segment.
+    palm behind a curled finger or a fingertip tucked behind its own middle segment or the
+    thumb.  (Without the thumb's Gaussians as occluders the mesh sets scored 0.08-0.10 mm
+    worse: dev 5.70, validation 5.83, further 5.66 mm.)
     """
     P = gaussian_centres(model, theta)
     z = np.maximum(P[:, 2], 1.0)
@@ -486,7 +488,7 @@ def visibility_weights(model: HandModel, theta: NDArray[np.float64], intr: Intri
     s = sigma * float(np.sqrt(intr.fx * intr.fy)) / z  # projected sigmas (px)
     chain = model.g_chain
     hidden = np.flatnonzero((chain < 0) | ((chain >= 1) & (model.g_segment == 2)))
-    occluders = np.flatnonzero(chain >= 1)
+    occluders = np.flatnonzero(chain >= 0)
     r2 = np.square(u[hidden, None] - u[None, occluders]) + np.square(v[hidden, None] - v[None, occluders])
     cover = np.exp(-0.5 * r2 / np.square(s[occluders])[None, :])
     front = z - sigma

@@ -155,14 +155,15 @@ REFINE_CURL_RAD = math.radians(60.0)
 REFINE_WARM_STEPS = 0.5
 #: Whether the refinement weights each joint-model Gaussian's overlaps by its visibility at the
 #: fit's pose (:func:`~hand_sog_tracker.core.energy.visibility_weights`: the palm behind the
-#: fingers and the fingertips tucked behind their middle segments count less; issue 11, chosen
-#: here).  In a fist facing the camera the hidden palm and fingertips otherwise earn overlap
-#: with the fingers' surface in front of them, and the fit settles with the MCPs half flexed
-#: and the fingertips 15-20 mm in front of where they are.  Only the answer: with the
-#: visibility in the track's own fits (weighted at the start pose), and in its restarts, the
-#: mesh sets scored better still (dev 5.56 mm) but the labelled real frames lost 4 runs more
-#: (112 runs: 8.30 -> 9.40 mm), where a wrong finger curled over the palm hides the palm's
-#: data from it and holds its place.
+#: fingers and the fingertips tucked behind their middle segments or the thumb count less;
+#: issue 11, chosen here).  In a fist facing the camera the hidden palm and fingertips
+#: otherwise earn overlap with the fingers' surface in front of them, and the fit settles with
+#: the MCPs half flexed and the fingertips 15-20 mm in front of where they are.  Only the
+#: answer: with the visibility in the track's own fits (weighted at the start pose, the
+#: thumb not an occluder) and in its restarts, the mesh sets scored about as well (dev 5.56,
+#: validation 5.65, further 5.71 mm) but the labelled real frames lost 4 runs more (112 runs:
+#: 8.30 -> 9.40 mm), where a wrong finger curled over the palm hides the palm's data from it
+#: and holds its place.
 REFINE_VISIBILITY = True
 #: A tracker on its default model (none given, none set since) starts every track by also
 #: fitting the initialisation's finalists with the default model scaled to this length factor
