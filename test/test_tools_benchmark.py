@@ -17,7 +17,7 @@ def test_stages_include_detector_quadtree_and_assignment() -> None:
     st = r["stages_ms"]
     assert r["frames_timed"] == 3
     for key in ("preprocess", "quadtree", "detector", "quadtree_only", "assignment",
-                "model_update", "energy_gradient", "answer", "total"):
+                "model_update", "energy_gradient", "energy_gradient_tenth", "answer", "total"):
         assert np.isfinite(st[key]["median"]) and st[key]["median"] > 0, key
     # The parts timed alone are each below the frame's total; the answer is a part of it.
     assert st["detector"]["median"] < st["total"]["median"]

@@ -11,7 +11,9 @@ detection-to-fingertip assignment are then timed alone on the same frames, at th
 pose the tracker used (the silhouette is its cell mask: its distance map is made inside the
 objective's evaluations, on the frames where a model Gaussian falls off the hand)
 (the last two tracked poses extrapolated), and the model update and the objective alone
-on the last frame, at poses around the last tracked one.
+on the last frame, at poses around the last tracked one.  The objective is also timed on a
+tenth of that frame's data Gaussians: an evaluation costs about as much there, because its
+cost is the fixed cost of its NumPy calls, not their arithmetic on the data.
 
 ``--compare REF`` runs this benchmark (this file) on this tree's tracker and on the tracker of
 another source tree ``REF`` (e.g. a checkout of the previous commit) as separate processes,
@@ -137,7 +139,8 @@ def run_benchmark(
     dict
         ``stages_ms`` (each median/p95: preprocess; quadtree = the tracker's data stage:
         quadtree, detector and silhouette together; detector, quadtree_only, silhouette and
-        assignment timed alone; model_update, energy_gradient; answer = a frame until its
+        assignment timed alone; model_update, energy_gradient, energy_gradient_tenth (the
+        objective on a tenth of the data Gaussians); answer = a frame until its
         result, its restarts deferred as in the node, and total = with them; initialise = the
         frames of fresh trackers' initialisations, initialise_after = the restarts of the new
         track after its first answer), ``iterations``,
@@ -160,7 +163,8 @@ def run_benchmark(
     finish_frame = getattr(tracker, "finish_frame", lambda: False)
     stages = (
         "preprocess", "quadtree", "detector", "quadtree_only", "silhouette", "assignment",
-        "model_update", "energy_gradient", "answer", "total", "initialise", "initialise_after",
+        "model_update", "energy_gradient", "energy_gradient_tenth", "answer", "total", "initialise",
+        "initialise_after",
     )
     stage: dict[str, list[float]] = {k: [] for k in stages}
     rss_first = None
@@ -220,6 +224,11 @@ def run_benchmark(
         roi, window = hand_roi(tracker.model, pose, pre.intrinsics, config.roi_radius_mm)
         data = quadtree_sog(pre, config.quadtree_threshold_mm, roi, window, config.min_quad_px)
         obj = Objective(tracker.model, data, config, previous=(pose, pose))
+        # The same objective on a tenth of the frame's data Gaussians: what an evaluation costs
+        # whatever the data (the per-call cost of its NumPy operations, not their arithmetic).
+        tenth = Objective(
+            tracker.model, data.subset(np.arange(data.n) < max(data.n // 10, 1)), config, previous=(pose, pose)
+        )
         nearby = pose + np.random.default_rng(0).normal(0.0, 1e-3, (200, pose.size))
         for theta in nearby:
             t0 = time.perf_counter()
@@ -227,8 +236,11 @@ def run_benchmark(
             t1 = time.perf_counter()
             obj(theta)
             t2 = time.perf_counter()
+            tenth(theta)
+            t3 = time.perf_counter()
             stage["model_update"].append((t1 - t0) * 1e3)
             stage["energy_gradient"].append((t2 - t1) * 1e3)
+            stage["energy_gradient_tenth"].append((t3 - t2) * 1e3)
     stage["initialise"], stage["initialise_after"] = _init_times(config, depth_frames, intr)
     n = max(len(stage["total"]), 1)
     return {
@@ -255,6 +267,7 @@ STAGE_LABELS = {
     "assignment": "assignment (one call)",
     "model_update": "model update (FK + J)",
     "energy_gradient": "energy+gradient / iteration",
+    "energy_gradient_tenth": "  on a tenth of the data",
     "answer": "answer (restarts after it)",
     "total": "total per frame",
     "initialise": "initialisation, per frame",
