@@ -368,3 +368,26 @@ def test_the_blob_ends_at_the_hands_surface_not_at_flying_pixels() -> None:
     assert z.max() > hand_far + 40.0  # (the flying pixels in the blob)
     # (Its farthest surface pixels lie a little inside the outline, where the skin turns away.)
     assert hand_far - 15.0 < blob.far_mm < hand_far + 5.0, (blob.far_mm, hand_far)
+
+
+def test_a_wall_at_the_end_of_the_120_mm_band_is_not_taken_for_the_hand() -> None:
+    """Validation render 5042 (finger wave, ToF, a left hand) with a wall 80 mm behind the wrist:
+    the wall lies 120 mm behind the hand's nearest point (the thumb's tip), so the 120 mm band
+    holds the hand and the wall's near fringe (13% of its pixels in its last 15 mm).  The 90 mm
+    band holds the hand alone and is taken.  (With the 120 mm band, the search window reached
+    the wall and the track started with every finger one place over: 37 mm for 7 frames.)"""
+    from hand_sog_tracker.synth.mesh import mesh_sequence
+    from hand_sog_tracker.tools.render_sets import render_spec
+
+    spec = render_spec(5042, wall_mm=80.0)
+    frame = next(iter(mesh_sequence(
+        spec.motion, 1, INTR, shape=spec.shape, right=spec.right, seed=5042, options=spec.options()
+    )))
+    config = TrackerConfig(right_hand=spec.right)
+    pre = preprocess(frame.depth_mm, INTR, config)
+    assert pre.depth_mm.max() > 475.0  # (the wall)
+    z = pre.depth_mm[_nearest_blob(pre)]
+    assert z.max() < frame.fingertips_mm[:, 2].max() + 60.0, z.max()
+    res = Tracker(config).process(frame.depth_mm, INTR)
+    errors = np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1)
+    assert errors.max() < 15.0, errors.round(1)
