@@ -6,7 +6,25 @@ modules import it by its bare name, like ``test_ros_calibration`` imports ``test
 
 from __future__ import annotations
 
+import os
+
 from hand_sog_tracker.core.types import Intrinsics
+
+#: The suite's base DDS domain: ``TEST_DOMAIN_ID`` (``make test`` passes it as ``ROS_DOMAIN_ID``;
+#: conftest defaults it to 73). Tests that need a domain of their own take :func:`test_domain`.
+BASE_DOMAIN_ID = int(os.environ.get("ROS_DOMAIN_ID", "73"))
+
+
+def test_domain(offset: int) -> int:
+    """A DDS domain for one test module: the suite's base domain plus ``offset`` (1-9).
+
+    Deriving every domain from the base keeps two suites run side by side with different
+    ``TEST_DOMAIN_ID`` values apart (Fast DDS accepts domains 0-232).
+    """
+    return (BASE_DOMAIN_ID + offset) % 233
+
+
+test_domain.__test__ = False  # type: ignore[attr-defined]  # not a pytest test
 
 #: RealSense-like 320x240 depth intrinsics (px) with the principal point at (160, 120).
 #: ``test_ros_node`` keeps its own with ``cx, cy = 159.5, 119.5`` (the exact image centre, as

@@ -5,6 +5,7 @@ from __future__ import annotations
 import configparser
 import importlib
 import os
+import re
 import runpy
 import subprocess
 import sys
@@ -192,3 +193,16 @@ def test_package_xml_lists_every_ros_package_imported() -> None:
     deps = {e.text for e in ET.parse(REPO / "package.xml").getroot().iter() if e.tag.endswith("depend")}
     assert {"rclpy", "sensor_msgs", "std_msgs", "builtin_interfaces", "rcl_interfaces"} <= imported
     assert imported <= deps, sorted(imported - deps)
+
+
+def test_every_test_domain_derives_from_the_suite_domain() -> None:
+    """Two suites run side by side with different TEST_DOMAIN_ID values must never share a DDS
+    domain: no test module may fix a domain of its own (helpers.test_domain derives them)."""
+    fixed = re.compile(r"(DOMAIN(_ID)?\s*=\s*\"?\d+|ROS_DOMAIN_ID\",\s*\"[1-9]\d*\"|domain_id=\d+)")
+    offenders = [
+        f"{path.name}:{n}"
+        for path in sorted((REPO / "test").glob("*.py"))
+        for n, line in enumerate(path.read_text().splitlines(), 1)
+        if fixed.search(line) and path.name not in {"conftest.py", "helpers.py", "test_package.py"}
+    ]
+    assert not offenders, f"fixed DDS domains in tests: {offenders}"

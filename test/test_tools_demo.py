@@ -13,8 +13,9 @@ import pytest
 from hand_sog_tracker.errors import InputError
 from hand_sog_tracker.tools import demo
 from hand_sog_tracker.tools.make_sample_bags import write_sample_bag
+from helpers import test_domain
 
-DOMAIN_ID = 86  # this test's own ROS domain (loopback DDS)
+DOMAIN_ID = test_domain(3)  # this test's own ROS domain (loopback DDS)
 FRAMES = 10
 
 

@@ -15,10 +15,12 @@ from hand_sog_tracker.core.types import Intrinsics
 from hand_sog_tracker.tools.bagio import DepthSample, write_depth_bag
 from hand_sog_tracker.tools.evaluate_bag import evaluate_through_node, loopback_dds, main
 from hand_sog_tracker.tools.make_sample_bags import write_sample_bag
+from helpers import BASE_DOMAIN_ID, test_domain
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "hand_sog_tracker" / "data" / "fastdds_loopback.xml"
-DOMAIN = 75
+DOMAIN = test_domain(2)
+BASE = str(BASE_DOMAIN_ID)
 
 pytest.importorskip("hand_sog_tracker.ros.node", reason="the tracker node (hand_sog_tracker.ros.node) is not there")
 
@@ -26,7 +28,7 @@ pytest.importorskip("hand_sog_tracker.ros.node", reason="the tracker node (hand_
 @pytest.fixture(autouse=True)
 def _loopback_env(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("FASTRTPS_DEFAULT_PROFILES_FILE", str(PROFILE))
-    monkeypatch.setenv("ROS_DOMAIN_ID", "73")
+    monkeypatch.setenv("ROS_DOMAIN_ID", BASE)
 
 
 def test_loopback_dds_forces_and_restores_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -39,7 +41,7 @@ def test_loopback_dds_forces_and_restores_the_environment(monkeypatch: pytest.Mo
         assert os.environ["RMW_IMPLEMENTATION"] == "rmw_fastrtps_cpp"
         assert "ROS_AUTOMATIC_DISCOVERY_RANGE" not in os.environ
     assert os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/somewhere/else.xml"
-    assert os.environ["ROS_DOMAIN_ID"] == "73"
+    assert os.environ["ROS_DOMAIN_ID"] == BASE
     assert os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
 
 
@@ -64,7 +66,7 @@ def test_through_node_without_a_hand_accounts_for_every_frame(tmp_path: Path) ->
     assert ev.errors.pct_below_mm["30"] == 0.0
     assert x["frames_dropped"] == 5 - st["processed"] - st["rejected"]
     assert x["warmup"]["answered"] is True and x["warmup"]["tracking"] is False
-    assert os.environ["ROS_DOMAIN_ID"] == "73"  # restored
+    assert os.environ["ROS_DOMAIN_ID"] == BASE  # restored
 
 
 def test_through_node_cli_on_a_synthetic_hand(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

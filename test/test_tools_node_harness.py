@@ -11,8 +11,9 @@ import pytest
 
 from hand_sog_tracker.errors import HandSogError, InputError
 from hand_sog_tracker.tools.node_harness import NodeHarness, ros_param_args
+from helpers import test_domain
 
-DOMAIN = 76
+DOMAIN = test_domain(4)
 T0 = 1_700_000_000_000_000_000
 DT = 33_333_333
 

@@ -18,10 +18,11 @@ from hand_sog_tracker.errors import BagError, InputError
 from hand_sog_tracker.tools import bagio
 from hand_sog_tracker.tools.bagio import DepthSample, write_depth_bag
 from hand_sog_tracker.tools.replay_bag import main, replay, ros_message_class, to_rclpy
+from helpers import test_domain
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "hand_sog_tracker" / "data" / "fastdds_loopback.xml"
-DOMAIN = "74"
+DOMAIN = str(test_domain(1))
 T0 = 1_700_000_000_000_000_000
 DT = 20_000_000  # 50 Hz
 INTR = Intrinsics(fx=60.0, fy=60.0, cx=15.5, cy=11.5, width=32, height=24)
