@@ -84,7 +84,7 @@ from hand_sog_tracker.core.model_io import load_hand_shape
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerStatus, TrackResult
-from hand_sog_tracker.core.urdf import hand_urdf
+from hand_sog_tracker.core.urdf import UrdfJoint, hand_urdf, urdf_joints
 from hand_sog_tracker.errors import (
     DepthImageError,
     HandSogError,
@@ -116,11 +116,11 @@ from hand_sog_tracker.ros.conversions import (
     delete_all_markers,
     diagnostic_array,
     fingertip_markers,
-    hand_transforms,
     joint_state_msg,
     keypoints_msg,
     pose_msg,
 )
+from hand_sog_tracker.ros.frames import description_transforms
 from hand_sog_tracker.ros.params import (
     NodeSettings,
     declare_node_parameters,
@@ -159,6 +159,8 @@ DIRECT_FRAMES = 4
 #: (shifted by a pixel or 3 mm in depth, 96 runs: 16.7 -> 15.6 mm); a finger-shift candidate
 #: needs 4 passes to be judged.  (Chosen here, issue 11.)
 IDLE_REFINE_PASSES = 9
+#: Seconds a fingertip marker stays in RViz without a newer one (so a stopped node's hand goes).
+MARKER_LIFETIME_S = 1.0
 _NUMBERS = re.compile(r"\d+(\.\d+)?")
 
 
@@ -302,6 +304,7 @@ class TrackerNode(CalibrationService, Node):
         )
         self._description_pub = self.create_publisher(String, DESCRIPTION_TOPIC, latched)
         self._described: tuple[HandModel, str | None] | None = None
+        self._description_joints: tuple[UrdfJoint, ...] = ()
         self._tf_pub: Any = None  # created on first use (tf2_msgs is optional)
         self._debug_pub = self.create_publisher(
             Image, DEBUG_IMAGE_TOPIC, QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
@@ -487,7 +490,7 @@ class TrackerNode(CalibrationService, Node):
             diagnostic_array(
                 self.get_clock().now().to_msg(),
                 f"{NODE_NAME}: {self.get_fully_qualified_name()}",
-                self._frame_id,
+                self._frame_id or self._image_sub.topic_name,  # hardware_id: the camera
                 level,
                 message,
                 values,
@@ -677,11 +680,12 @@ class TrackerNode(CalibrationService, Node):
             # outputs at 30-100 Hz; a pose and keypoints nobody reads cost 0.45 ms per frame).
             # The fingertips first: what most listeners (and the evaluations) wait for.
             if self._marker_pub.get_subscription_count():
-                self._marker_pub.publish(
-                    fingertip_markers(
-                        header, result.fingertips_mm, result.skeleton_mm, self._tracker.model.tip_radii
-                    )
+                markers = fingertip_markers(
+                    header, result.fingertips_mm, result.skeleton_mm, self._tracker.model.tip_radii
                 )
+                for m in markers.markers:
+                    m.lifetime.sec, m.lifetime.nanosec = int(MARKER_LIFETIME_S), int(MARKER_LIFETIME_S % 1 * 1e9)
+                self._marker_pub.publish(markers)
                 self._markers_shown = True
             if self._joint_pub.get_subscription_count():
                 self._joint_pub.publish(joint_state_msg(header, result.pose, wrist_joints))
@@ -690,7 +694,7 @@ class TrackerNode(CalibrationService, Node):
             if result.skeleton_mm is not None and self._keypoints_pub.get_subscription_count():
                 self._keypoints_pub.publish(keypoints_msg(header, result.skeleton_mm, result.fingertips_mm))
             if self._settings.publish_tf:
-                self._publish_tf(header, result.pose, result.fingertips_mm)
+                self._publish_tf(header, result.pose, result.fingertips_mm, wrist_joints)
         elif self._markers_shown:
             self._marker_pub.publish(delete_all_markers(header))
             self._markers_shown = False
@@ -717,10 +721,14 @@ class TrackerNode(CalibrationService, Node):
             # (a calibration, or a new track of a small hand on the default model's small size)
             self.get_logger().info(f"hand model in use: {model.shape}")
         self._described = (model, camera_frame)
-        self._description_pub.publish(String(data=hand_urdf(model, camera_frame=camera_frame or None)))
+        text = hand_urdf(model, camera_frame=camera_frame or None, prefix=self._settings.frame_prefix)
+        self._description_joints = urdf_joints(text)
+        self._description_pub.publish(String(data=text))
 
-    def _publish_tf(self, header: Header, pose: NDArray[np.float64], tips_mm: NDArray[np.float64]) -> None:
-        """Broadcast the wrist and fingertip frames on /tf (publish_tf is validated: tf2_msgs exists)."""
+    def _publish_tf(
+        self, header: Header, pose: NDArray[np.float64], tips_mm: NDArray[np.float64], wrist_joints: bool
+    ) -> None:
+        """Broadcast the hand's frames on /tf (publish_tf is validated: tf2_msgs exists)."""
         if self._tf_pub is None:
             from tf2_msgs.msg import TFMessage  # optional dependency, checked by the parameter
 
@@ -728,7 +736,10 @@ class TrackerNode(CalibrationService, Node):
             self._tf_pub = self.create_publisher(
                 TFMessage, TF_TOPIC, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
             )
-        self._tf_pub.publish(self._tf_msg_type(transforms=hand_transforms(header, pose, tips_mm)))
+        transforms = description_transforms(
+            header, self._description_joints, pose, tips_mm, wrist_joints, self._settings.frame_prefix
+        )
+        self._tf_pub.publish(self._tf_msg_type(transforms=transforms))
 
 def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
     """The executor :func:`main` uses: single-threaded.

@@ -4,7 +4,8 @@ Every tunable of :class:`~hand_sog_tracker.core.types.TrackerConfig` becomes a
 parameter of the same name (units in the name), except ``right_hand`` which is
 the string parameter ``handedness`` (``right`` / ``left``).  Node-only
 parameters: ``user_model_path``, ``debug_image``, ``calibration_frames``,
-``auto_calibrate``, ``input_transport``, ``publish_wrist_joints`` and ``publish_tf``.
+``auto_calibrate``, ``input_transport``, ``publish_wrist_joints``, ``publish_tf`` and
+``frame_prefix``.
 
 The values are validated as a whole by building a :class:`NodeSettings` (which
 builds a ``TrackerConfig``), both at start-up and in the on-set callback, so a
@@ -206,8 +207,15 @@ PARAM_SPECS: tuple[ParamSpec, ...] = _tracker_specs() + (
     ParamSpec(
         "publish_tf",
         False,
-        "Broadcast hand_wrist (in the image frame) and <finger>_fingertip frames on /tf "
-        "(needs the tf2_msgs package).",
+        "Broadcast the hand on /tf: hand_wrist in the image frame, every link of hand/robot_description "
+        "and the <finger>_fingertip frames (needs the tf2_msgs package).",
+    ),
+    ParamSpec(
+        "frame_prefix",
+        "",
+        "Put in front of every frame the node names: the TF frames and the links of hand/robot_description "
+        "(e.g. left_ for a second tracker); the image frame and the joint names keep theirs.",
+        read_only=True,
     ),
 )
 PARAM_NAMES: tuple[str, ...] = tuple(s.name for s in PARAM_SPECS)
@@ -230,6 +238,7 @@ class NodeSettings:
     input_transport : {"raw", "compressedDepth"}
     publish_wrist_joints : bool
     publish_tf : bool
+    frame_prefix : str
     """
 
     tracker: TrackerConfig
@@ -240,6 +249,11 @@ class NodeSettings:
     input_transport: str = "raw"
     publish_wrist_joints: bool = False
     publish_tf: bool = False
+    frame_prefix: str = ""
+
+
+#: Characters a frame prefix may hold (those of ROS names and TF frame ids).
+_FRAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_/")
 
 
 def tf_available() -> bool:
@@ -289,6 +303,9 @@ def settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
             "parameter publish_tf=true needs the tf2_msgs Python package, which is not installed here "
             "(install ros-jazzy-tf2-msgs / source a ROS installation); use hand/pose instead"
         )
+    bad = sorted(set(v["frame_prefix"]) - _FRAME_CHARS)
+    if bad:
+        raise InputError(f"parameter frame_prefix may hold letters, digits, _ and / only, got {v['frame_prefix']!r}")
     path = Path(v["user_model_path"]).expanduser() if v["user_model_path"] else default_model_path()
     return NodeSettings(
         tracker=tracker,
@@ -299,6 +316,7 @@ def settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
         input_transport=str(v["input_transport"]),
         publish_wrist_joints=bool(v["publish_wrist_joints"]),
         publish_tf=bool(v["publish_tf"]),
+        frame_prefix=str(v["frame_prefix"]),
     )
 
 
@@ -349,8 +367,11 @@ def _yaml_value(value: Value) -> str:
     return f'"{value}"'
 
 
-def params_yaml(node_name: str = "hand_sog_tracker") -> str:
+def params_yaml(node_name: str = "/**") -> str:
     """A ROS 2 params file with every parameter at its default.
+
+    Keyed ``/**`` (any node name, any namespace) by default: a file keyed by the node's name
+    is ignored once the node runs in a namespace (``-r __ns:=/robot``).
 
     ``config/hand_sog_tracker.yaml`` is this text (a test checks it); regenerate it with
     ``python -m hand_sog_tracker.ros.params > config/hand_sog_tracker.yaml``.
