@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 from std_msgs.msg import Header, String
+from test_ros_node_ecosystem import LATCHED
 
 from hand_sog_tracker.core.hand_model import HandShape, default_hand_model
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
@@ -20,7 +21,6 @@ from hand_sog_tracker.ros.frames import description_transforms
 from hand_sog_tracker.ros.node import MARKER_LIFETIME_S, TrackerNode
 from hand_sog_tracker.ros.params import settings_from_values
 from test_ros_node import FRAME, T0_NS, Rig, hand_depth, hand_poses, image_msg
-from test_ros_node_ecosystem import LATCHED
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config" / "hand_sog_tracker.yaml"
@@ -107,7 +107,7 @@ def test_two_trackers_side_by_side_describe_their_own_frames(ros_context, tmp_pa
         for rig in rigs:
             got: list[String] = []
             rig.io.create_subscription(String, "hand/robot_description", got.append, LATCHED)
-            assert rig.spin_until(lambda: len(got) >= 1, 10.0)
+            assert rig.spin_until(lambda got=got: len(got) >= 1, 10.0)
             prefix = rig.node.settings.frame_prefix
             root = ET.fromstring(got[-1].data)
             links = [link.get("name") for link in root.findall("link")]
