@@ -84,6 +84,9 @@ _raise_malloc_thresholds()
 class Preprocessed:
     """A range-filtered, median-filtered depth image at processing resolution.
 
+    The data stages share windowed boxes of ``depth_mm`` through a cache on the object
+    (:func:`hand_window`): do not modify ``depth_mm`` in place after the first stage ran.
+
     Attributes
     ----------
     depth_mm : array, shape (h, w), float32
@@ -92,9 +95,6 @@ class Preprocessed:
         Intrinsics of ``depth_mm`` (decimation applied).
     decimation : int
         Input pixels per processing pixel along each axis.
-
-    The data stages share windowed boxes of ``depth_mm`` through a cache on the object
-    (:func:`hand_window`): do not modify ``depth_mm`` in place after the first stage ran.
     """
 
     depth_mm: NDArray[np.float32]

@@ -752,7 +752,8 @@ def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
     return SingleThreadedExecutor(context=context)
 
 
-def _parse_cli(argv: Sequence[str]) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``tracker_node``: only ``--help``; the node is configured by ROS parameters."""
     parser = argparse.ArgumentParser(
         prog="tracker_node",
         description="Sum-of-Gaussians hand tracker (ROS 2 node). Configure it with ROS "
@@ -766,7 +767,11 @@ def _parse_cli(argv: Sequence[str]) -> None:
         "service ~/calibrate (see calibrate_hand). Without a saved hand model it fits the model "
         "by itself once, half a second into tracking (-p auto_calibrate:=false turns that off).",
     )
-    parser.parse_args(list(argv))
+    return parser
+
+
+def _parse_cli(argv: Sequence[str]) -> None:
+    build_parser().parse_args(list(argv))
 
 
 def main(args: list[str] | None = None) -> None:

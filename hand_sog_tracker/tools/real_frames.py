@@ -204,7 +204,8 @@ def number_list(spec: str) -> list[int]:
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``real_frames`` (also read by the documentation)."""
     parser = argparse.ArgumentParser(
         prog="real_frames",
         description="Fingertip error of the core tracker on labelled single depth frames, each fed "
@@ -228,6 +229,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="16 larger shifts instead (u +-3 px, v +-2 px, depth +-1/+-3 mm; with --no-mirror the README's 128 runs)",
     )
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every run to this JSON file")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     try:
         labels = json.loads(args.labels.read_text())

@@ -310,7 +310,8 @@ def _renders_of(path: Path) -> dict[str, dict[str, Any]]:
     return renders
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``render_sets`` (also read by the documentation)."""
     parser = argparse.ArgumentParser(
         prog="render_sets",
         description="Track sets of random mesh renders (motion, hand, sensor and wrist bend drawn per "
@@ -333,6 +334,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--compare", type=Path, default=None, metavar="OLD",
                         help="an earlier --json of these seeds to compare with")
     parser.add_argument("--quiet", action="store_true", help="no line per render (on stderr)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     try:
         seeds = number_list(args.seeds)
