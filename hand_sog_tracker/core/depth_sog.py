@@ -42,23 +42,15 @@ MAX_QUAD_PX = 16  #: largest quad side (px) at the processing resolution (chosen
 MIN_QUAD_PX = 4  #: default smallest quad side (px; chosen here)
 #: A hand farther than this many focal lengths (f in processing pixels, so mm per px) gets
 #: leaves half as wide (:func:`leaf_px`), again beyond twice that: 2 f is 575 mm for a 58 deg
-#: camera (chosen here: hands at 0.65-0.8 m in 640x480 Kinect-like renders went from 8.8 to
-#: 6.4 mm with 2 px leaves instead of 4; at 0.4 m nothing changes).
+#: camera (a far hand has few pixels per finger; measurement: design notes, "Constants").
 FAR_LEAF_DEPTH_F = 2.0
 #: A pixel more than this (mm) behind the nearest valid pixel of its median filter window lies
 #: behind a depth edge (a wall, a table or the body behind the hand): the tracker's median
 #: counts it as no data there, so that a hand pixel's median does not depend on what lies
-#: behind the hand (:func:`_median_blind_behind_edges`).  With a wall, the median of a hand edge
-#: pixel took values from farther back on the hand than with nothing behind it (3 of its 9
-#: values from the wall instead of 0): on capsule renders of the tracker's own true shape the
-#: fit turned 2.2 deg about the palm normal on average, against 0.3 deg without the wall.
-#: (Chosen here, issue 11.  150 mm leaves a finger in front of the palm alone: with 50 mm, such
-#: self-occlusion edges changed too and finger counting lost 0.2-0.3 mm on the mesh dev and
-#: validation sets; with 150 both sets score bit for bit as before (no wall there).  With
-#: walls: 12 capsule hands of their true shape 2.51 -> 2.25 mm (palm-normal turn -2.2 -> -1.1
-#: deg); 84 capsule renders (the renderer's wall at 900 mm) 4.27 -> 4.14 mm, 59 better and 7
-#: worse by more than 0.1 mm; 36 mesh dev renders with a wall at 700 mm 7.69 -> 7.29 mm, 98.8
-#: -> 99.9% of frames within 20 mm, 20 better and 7 worse (7.52 mm without the wall).)
+#: behind the hand (:func:`_median_blind_behind_edges`): with a wall, a hand edge pixel's median
+#: took values from the wall and the fit turned about the palm normal.  150 mm leaves the
+#: self-occlusion edge of a finger in front of the palm alone (measurements: design notes,
+#: "Constants").
 EDGE_BEHIND_MM = 150.0
 
 
@@ -70,7 +62,7 @@ def _raise_malloc_thresholds(nbytes: int = 16 << 20) -> None:
     Freeing an mmapped block raises both thresholds (to its size and twice that), so that
     the tracker's per-frame working set (a few depth-sized arrays, about 0.3 MiB each at
     320x240) then stays in the heap instead of being returned and page-faulted back every
-    frame (measured: up to 280 page faults and 0.3-0.5 ms per frame).  Harmless elsewhere.
+    frame (page faults cost 0.3-0.5 ms per frame).  Harmless elsewhere.
     """
     block = np.empty(nbytes, dtype=np.uint8)
     block[:: 1 << 12] = 0  # touch it so that the allocation is real

@@ -147,17 +147,14 @@ FAST_CAMERA_HZ = 45.0
 FAST_CAMERA_RESTART_INTERVAL_S = 0.2
 #: Images tracked in a row in one executor callback: an image that arrived while the last one
 #: was tracked (its restarts pause for it) is tracked at once, without the executor's round
-#: trip (0.5-1 ms added to one frame in five at 100 Hz, issue 14); after this many the
-#: executor runs its other callbacks first.
+#: trip (which added 0.5-1 ms to one frame in five at 100 Hz); after this many the executor
+#: runs its other callbacks first.
 DIRECT_FRAMES = 4
 #: When the hand was found on an image and no newer image has arrived (a single image, a
 #: slow stream), the new track is refined on the same image this many more times before the
 #: answer is published, as the tracker would be on a static scene; a newer image stops it.
-#: Each pass costs one tracked frame (4-25 ms on the labelled real frames, 40-180 ms for all
-#: nine; the first passes are dearer while restarts still fire).  With 3 passes the labelled
-#: real frames scored 7.6 mm mean and 33 of 40 fingertips within 15 mm, with 9: 6.7 mm and 35
-#: (shifted by a pixel or 3 mm in depth, 96 runs: 16.7 -> 15.6 mm); a finger-shift candidate
-#: needs 4 passes to be judged.  (Chosen here, issue 11.)
+#: Each pass costs one tracked frame; a finger-shift candidate needs 4 passes to be judged
+#: (the choice of 9, measured on the labelled real frames: design notes, "Constants").
 IDLE_REFINE_PASSES = 9
 #: Seconds a fingertip marker stays in RViz without a newer one (so a stopped node's hand goes).
 MARKER_LIFETIME_S = 1.0
@@ -745,8 +742,8 @@ def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
     """The executor :func:`main` uses: single-threaded.
 
     rclpy 7.1's ``MultiThreadedExecutor`` re-wakes itself thousands of times a second while
-    callbacks run in its pool (measured with this node: ~3000 wake-ups/s, end-to-end latency
-    up to seconds instead of ~17 ms), so the node runs single-threaded.  A ``~/calibrate`` call
+    callbacks run in its pool (end-to-end latency of seconds with this node), so the node runs
+    single-threaded.  A ``~/calibrate`` call
     does not pause tracking: its callback is a coroutine awaiting a worker thread.
     """
     return SingleThreadedExecutor(context=context)
