@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from hand_sog_tracker.errors import InputError
-from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, load_mesh_hand, render_mesh_depth
+from hand_sog_tracker.synth.mesh import (
+    MeshRenderOptions,
+    MeshShape,
+    load_mesh_hand,
+    mesh_fingertips,
+    render_mesh_depth,
+)
 from hand_sog_tracker.synth.sequence import default_intrinsics
 from hand_sog_tracker.synth.twohands import SCENES, TwoHandScene, render_two_hands, scene_poses, two_hand_sequence
 
@@ -87,14 +93,14 @@ def test_sensor_noise_is_applied_to_the_composite() -> None:
         assert np.count_nonzero(noisy == 0) > np.count_nonzero(clean == 0)  # holes, dropout
 
 
-def test_touching_middle_fingertips_and_clapping_palms_keep_contact_distances() -> None:
+def test_touching_middle_fingertips_end_in_contact() -> None:
     sc = TwoHandScene("touch", SHAPES)
     left, right, _ = scene_poses(sc, 40, seed=2)
-    from hand_sog_tracker.synth.mesh import mesh_fingertips
 
     d = [np.linalg.norm(mesh_fingertips(left[k], SHAPES[0], False)[2] - mesh_fingertips(right[k], SHAPES[1], True)[2])
          for k in (0, 39)]
-    r = load_mesh_hand(True).tip_radius[2] * SHAPES[1].thickness + load_mesh_hand(False).tip_radius[2] * SHAPES[0].thickness
+    r = (load_mesh_hand(True).tip_radius[2] * SHAPES[1].thickness
+         + load_mesh_hand(False).tip_radius[2] * SHAPES[0].thickness)
     assert d[0] > r + 40.0 and d[1] == pytest.approx(r, abs=1e-6)
 
 

@@ -24,10 +24,10 @@ Ground truth per hand (:class:`HandTruth`): handedness, the 5 fingertips of
 :func:`~hand_sog_tracker.synth.mesh.pose_mesh` (mm), 21 keypoints (wrist, then per chain
 thumb .. little its three joints and the ground-truth fingertip, MediaPipe's order), the visible
 fraction (of the pixels the hand, without its forearm, covers rendered alone, the share not
-hidden by the other hand or the ball) and per fingertip whether the pixel it projects to shows that same hand (not hidden by the
-other hand or the ball, inside the image).  Every scene is a smooth function of time, so the
-first frames of a short and a long sequence agree; the motions are periodic, so longer sequences
-keep moving.
+hidden by the other hand or the ball) and per fingertip whether the pixel it projects to shows
+that same hand (not hidden by the other hand or the ball, inside the image).  Every scene is a
+smooth function of time, so the first frames of a short and a long sequence agree; the motions
+are periodic, so longer sequences keep moving.
 """
 
 from __future__ import annotations

@@ -36,6 +36,8 @@ __all__ = [
     "depth_image_msg",
     "compressed_depth_msg",
     "camera_info_msg",
+    "points_msg",
+    "points_from_msg",
     "fingertips_msg",
     "fingertips_from_msg",
     "describe_error",
@@ -173,6 +175,26 @@ def camera_info_msg(intrinsics: Intrinsics, stamp_ns: int, frame_id: str = OPTIC
     )
 
 
+def points_msg(points_mm: ArrayLike, stamp_ns: int, frame_id: str = OPTICAL_FRAME) -> Any:
+    """Points as a rosbags ``geometry_msgs/msg/PoseArray`` (identity orientations).
+
+    Parameters
+    ----------
+    points_mm : array, shape (n, 3)
+        Positions, millimetres (written as metres).
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+        raise BagError(f"points must be a finite (n, 3) array, got shape {pts.shape}")
+    t = typestore().types
+    Pose, Point, Quat = t["geometry_msgs/msg/Pose"], t["geometry_msgs/msg/Point"], t["geometry_msgs/msg/Quaternion"]
+    poses = [
+        Pose(position=Point(x=float(x), y=float(y), z=float(z)), orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0))
+        for x, y, z in pts / 1000.0
+    ]
+    return t[GT_TYPE](header=_header(stamp_ns, frame_id), poses=poses)
+
+
 def fingertips_msg(fingertips_mm: ArrayLike, stamp_ns: int, frame_id: str = OPTICAL_FRAME) -> Any:
     """Ground truth as a rosbags ``geometry_msgs/msg/PoseArray``.
 
@@ -184,13 +206,27 @@ def fingertips_msg(fingertips_mm: ArrayLike, stamp_ns: int, frame_id: str = OPTI
     tips = np.asarray(fingertips_mm, dtype=np.float64)
     if tips.shape != (5, 3) or not np.all(np.isfinite(tips)):
         raise BagError(f"fingertips must be a finite (5, 3) array, got shape {tips.shape}")
-    t = typestore().types
-    Pose, Point, Quat = t["geometry_msgs/msg/Pose"], t["geometry_msgs/msg/Point"], t["geometry_msgs/msg/Quaternion"]
-    poses = [
-        Pose(position=Point(x=float(x), y=float(y), z=float(z)), orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0))
-        for x, y, z in tips / 1000.0
-    ]
-    return t[GT_TYPE](header=_header(stamp_ns, frame_id), poses=poses)
+    return points_msg(tips, stamp_ns, frame_id)
+
+
+def points_from_msg(msg: Any, n: int) -> NDArray[np.float64]:
+    """Positions (n, 3) in millimetres from a PoseArray (metres) of exactly ``n`` finite poses.
+
+    Raises
+    ------
+    BagError
+        If the array does not hold exactly ``n`` finite poses.
+    """
+    poses = list(msg.poses)
+    if len(poses) != n:
+        raise BagError(
+            f"PoseArray at stamp {stamp_to_ns(msg.header.stamp)} ns has {len(poses)} poses, expected {n}"
+            + (" (thumb, index, middle, ring, little)" if n == 5 else "")
+        )
+    pts = np.array([[p.position.x, p.position.y, p.position.z] for p in poses], dtype=np.float64) * 1000.0
+    if not np.all(np.isfinite(pts)):
+        raise BagError(f"PoseArray at stamp {stamp_to_ns(msg.header.stamp)} ns is not finite")
+    return pts.reshape(n, 3)
 
 
 def fingertips_from_msg(msg: Any) -> NDArray[np.float64]:
@@ -207,7 +243,4 @@ def fingertips_from_msg(msg: Any) -> NDArray[np.float64]:
             f"ground-truth PoseArray at stamp {stamp_to_ns(msg.header.stamp)} ns has "
             f"{len(poses)} poses, expected 5 (thumb, index, middle, ring, little)"
         )
-    tips = np.array([[p.position.x, p.position.y, p.position.z] for p in poses], dtype=np.float64) * 1000.0
-    if not np.all(np.isfinite(tips)):
-        raise BagError(f"ground-truth PoseArray at stamp {stamp_to_ns(msg.header.stamp)} ns is not finite")
-    return tips
+    return points_from_msg(msg, 5)

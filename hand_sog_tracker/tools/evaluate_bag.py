@@ -9,7 +9,9 @@ Usage::
                  [--depth-topic T] [--info-topic T] [--gt-topic T]
                  [--through-node [--domain-id N] [--rate R] [--node-timeout S] [--no-warmup]]
 
-A path that is a bag is one bag; a folder of bags stands for every bag directly
+A two-hand bag (sidecar ``hands: 2``, per-hand ground truth) is scored per hand, matched by
+handedness, with identity swaps and handedness accuracy (:mod:`~hand_sog_tracker.tools.twohand_eval`,
+core mode).  A path that is a bag is one bag; a folder of bags stands for every bag directly
 inside it (:mod:`hand_sog_tracker.tools.bagset`).  Bags follow contract 5 (see
 :mod:`hand_sog_tracker.tools.bagio`).  One bag: its detailed table; several:
 one row per bag in the form of the paper's Table 1 plus a total per split and
@@ -31,8 +33,10 @@ several bags the others are still evaluated), 130 when interrupted.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
+from pathlib import Path
 from typing import Any, Sequence
 
 from hand_sog_tracker.errors import HandSogError
@@ -45,6 +49,12 @@ from hand_sog_tracker.tools.node_process import loopback_dds
 from hand_sog_tracker.tools.records import Evaluation, FrameRecord, Progress, TrackerLike, build_evaluation
 from hand_sog_tracker.tools.report import format_table, format_table1, write_json
 from hand_sog_tracker.tools.tracker_params import node_only, parse_set, read_params_file, tracker_config
+from hand_sog_tracker.tools.twohand_eval import (
+    TwoHandSummary,
+    evaluate_two_hands_core,
+    format_two_hand_table,
+    summary_as_dict,
+)
 
 __all__ = [
     "FrameRecord",
@@ -153,6 +163,19 @@ def _bag_values(entry: BagEntry, values: dict[str, Any]) -> dict[str, Any]:
     return values
 
 
+def _is_two_hand(entry: BagEntry) -> bool:
+    return entry.sample.get("hands") == 2
+
+
+def _evaluate_two_hands(entry: BagEntry, args: argparse.Namespace, values: dict[str, Any]) -> TwoHandSummary:
+    """A two-hand bag (sidecar ``hands: 2``): each hand scored, matched by handedness; core mode."""
+    if args.through_node:
+        raise HandSogError(f"{entry.name}: two-hand bags are scored in core mode only (no --through-node yet)")
+    return evaluate_two_hands_core(
+        entry.path, config=tracker_config(values), max_frames=args.max_frames, split=entry.split,
+    )
+
+
 def _evaluate(entry: BagEntry, args: argparse.Namespace, topics: BagTopics, values: dict[str, Any]) -> Evaluation:
     if args.through_node:
         return evaluate_through_node(
@@ -164,6 +187,14 @@ def _evaluate(entry: BagEntry, args: argparse.Namespace, topics: BagTopics, valu
         keep_worst=args.overlay_worst if args.overlay else 0, split=entry.split,
         auto_calibrate=bool(values.get("auto_calibrate", True)),
     )
+
+
+def _write_two_hand_json(path: str, summaries: list[TwoHandSummary], inspect_test: bool, replace: bool) -> None:
+    """Put the two-hand results under ``two_hands`` of the JSON file (a new file with ``replace``);
+    test bags without their swap frames unless ``inspect_test``."""
+    data: dict[str, Any] = {} if replace else json.loads(Path(path).read_text(encoding="utf-8"))
+    data["two_hands"] = [summary_as_dict(s, per_frame=s.split != "test" or inspect_test) for s in summaries]
+    Path(path).write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -197,11 +228,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     evaluations: list[Evaluation] = []
+    two_hands: list[TwoHandSummary] = []
     failed = 0
     try:
         for i, entry in enumerate(entries):
             if len(entries) > 1:
                 print(f"[{i + 1}/{len(entries)}] {entry.name} (split {entry.split})", file=sys.stderr)
+            if _is_two_hand(entry):
+                try:
+                    two_hands.append(_evaluate_two_hands(entry, args, values))
+                except HandSogError as err:
+                    print(f"error: {err}", file=sys.stderr)
+                    failed += 1
+                continue
             try:
                 ev = _evaluate(entry, args, topics, _bag_values(entry, values))
                 if args.overlay and not args.through_node:
@@ -218,8 +257,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(format_table(ev))
                 if len(entries) > 1:
                     print()
+        if two_hands and not args.quiet:
+            print(format_two_hand_table(two_hands))
         if not evaluations:
-            return 2
+            if two_hands and args.json:
+                _write_two_hand_json(args.json, two_hands, inspect_test, replace=True)
+            return 2 if failed or not two_hands else 0
         if not args.quiet and len(entries) > 1:
             print(format_table1(evaluations, markdown=args.markdown))
         elif not args.quiet and args.markdown:
@@ -229,6 +272,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not all(shown):
                 _note("per-frame records of test-split bags are left out of the JSON (" + PROTOCOL + ")")
             write_json(evaluations, args.json, per_frame=shown, withheld_note=PROTOCOL)
+            if two_hands:
+                _write_two_hand_json(args.json, two_hands, inspect_test, replace=False)
         if args.plot:
             if not all(shown):
                 _note("the error-over-time plot leaves out test-split bags (--allow-test-inspection shows them)")

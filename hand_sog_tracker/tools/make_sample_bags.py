@@ -9,6 +9,7 @@ Usage::
                      [--storage mcap|sqlite3] [--no-hires] [--no-force] [--background-mm MM]
                      [--renderer capsule|mesh] [--sensor tof|structured|clean]
     make_sample_bags --set mesh_dev|mesh_test [--out bags/<set>]
+    make_sample_bags --set twohands_dev|twohands_test [--frames N] [--out bags/<set>]
 
 One rosbag2 per motion family of :mod:`hand_sog_tracker.synth.motions`,
 rendered by :func:`hand_sog_tracker.synth.sequence.synthetic_sequence` with
@@ -45,6 +46,10 @@ so the messages (and :func:`bag_digest`) do not change.
 :func:`protocol_set` (9 motions each, mesh renderer, fixed seeds, shapes and
 sensors that differ between the sets) into ``bags/mesh_dev`` / ``bags/mesh_test``:
 tune and look at ``mesh_dev``; only score ``mesh_test``.
+
+``--set twohands_dev`` / ``--set twohands_test`` write the two-hand sets of
+:mod:`hand_sog_tracker.tools.twohand_bags` (one bag per scene of
+:mod:`hand_sog_tracker.synth.twohands`, per-hand ground-truth topics); ``--frames`` makes bigger sets.
 """
 
 from __future__ import annotations
@@ -73,6 +78,7 @@ from hand_sog_tracker.tools.bagio import (
     open_bag,
     write_depth_bag,
 )
+from hand_sog_tracker.tools.twohand_bags import TWOHAND_SETS, write_twohand_set
 
 __all__ = [
     "BASE_STAMP_NS",
@@ -516,8 +522,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--renderer", choices=("capsule", "mesh"), default="capsule",
                    help="capsule hand (default) or the skinned WebXR mesh hand")
     p.add_argument("--sensor", choices=SENSORS, default=None, help="mesh renderer's sensor model (default tof)")
-    p.add_argument("--set", choices=PROTOCOL_SETS, default=None, dest="protocol_set",
+    p.add_argument("--set", choices=PROTOCOL_SETS + TWOHAND_SETS, default=None, dest="protocol_set",
                    help="write a mesh protocol set (mesh_dev: look and tune; mesh_test: score only) "
+                   "or a two-hand set (twohands_dev, twohands_test: 45 frames per scene unless --frames) "
                    "instead of one bag per motion")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (default mcap)")
     p.add_argument("--no-hires", action="store_true", help="skip the 640x480 32FC1 bag")
@@ -547,6 +554,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.background_mm is not None and not args.background_mm > 0:
         p.error("--background-mm must be > 0")
     try:
+        if args.protocol_set in TWOHAND_SETS:
+            n = max(int(round(45 * args.fps / FPS)), 1) if args.frames is None else args.frames
+            paths = write_twohand_set(
+                args.protocol_set, args.out, frames=n, force=not args.no_force, fps=args.fps,
+                on_written=lambda path, spec, size, secs: print(
+                    f"{path}: {spec.frames} frames {spec.width}x{spec.height} 16UC1, two hands, "
+                    f"{size / 1e6:.2f} MB, {secs:.1f} s"
+                ),
+            )
+            total = sum(f.stat().st_size for p in paths for f in p.rglob("*") if f.is_file())
+            print(f"wrote {len(paths)} bags, {total / 1e6:.2f} MB in total")
+            return 0
         if args.protocol_set is not None:
             n = max(int(round(60 * args.fps / FPS)), 1) if args.frames is None else args.frames
             bags = write_protocol_set(
