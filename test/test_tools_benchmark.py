@@ -75,3 +75,14 @@ def test_compare_gives_the_settings_to_this_tree_only(monkeypatch: pytest.Monkey
     assert len(this) == len(other) == 2
     assert all("--set=iterations=2" in args for args in this)
     assert not any(a.startswith("--set") for args in other for a in args)
+
+
+def test_two_hand_scene_renders_both_hands_and_needs_its_renderer() -> None:
+    from hand_sog_tracker.synth.sequence import default_intrinsics
+
+    depth = benchmark._frames("apart", 2, default_intrinsics(160, 120), "twohands", 0)
+    assert len(depth) == 2
+    cols = np.nonzero((depth[0] > 0).any(axis=0))[0]
+    assert cols.size and np.diff(cols).max() > 10  # two blobs with a gap between them
+    with pytest.raises(SystemExit):
+        benchmark.main(["--scene", "clap"])

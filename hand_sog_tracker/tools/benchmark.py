@@ -60,6 +60,11 @@ except ImportError:  # pragma: no cover
 from hand_sog_tracker.synth.motions import ALL_MOTIONS  # noqa: E402
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence  # noqa: E402
 
+try:  # the two-hand scenes (absent from older trees that --compare may run this file on)
+    from hand_sog_tracker.synth.twohands import SCENES as TWO_HAND_SCENES
+except ImportError:  # pragma: no cover
+    TWO_HAND_SCENES = ()
+
 __all__ = ["main", "run_benchmark", "run_compare"]
 
 RESOLUTIONS = {"320x240": (320, 240), "640x480": (640, 480)}
@@ -90,6 +95,10 @@ def _frames(motion: str, frames: int, intr, renderer: str, seed: int) -> list:
 
         options = MeshRenderOptions("structured")
         seq = mesh_sequence(motion, frames, intrinsics=intr, seed=MESH_SEED + seed, options=options)
+    elif renderer == "twohands":  # ``motion`` is a scene of synth.twohands: both mesh hands in view
+        from hand_sog_tracker.synth.twohands import TwoHandScene, two_hand_sequence
+
+        seq = two_hand_sequence(TwoHandScene(motion), frames, intr, seed=MESH_SEED + seed, sensor="structured")
     else:
         seq = synthetic_sequence(motion, frames, intrinsics=intr, seed=seed)
     return [f.depth_mm for f in seq]
@@ -367,10 +376,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--motion", default="fingerwave", choices=ALL_MOTIONS,
                         help="synthetic motion (default fingerwave; fistopen is a hard case)")
-    parser.add_argument("--renderer", default="capsule", choices=("capsule", "mesh"),
+    parser.add_argument("--renderer", default="capsule", choices=("capsule", "mesh", "twohands"),
                         help="capsule: the tracker's own model shapes (default); mesh: the skinned "
                         "mesh hand of the evaluation bags, e.g. --renderer mesh --motion fistopen "
-                        "for the hard case")
+                        "for the hard case; twohands: two mesh hands, see --scene")
+    parser.add_argument("--scene", default=None, choices=TWO_HAND_SCENES,
+                        help="with --renderer twohands: the two-hand scene (default apart: both hands in "
+                        "view, each with its own motion)")
     parser.add_argument("--frames", type=int, default=120, help="frames in the sequence (default 120)")
     parser.add_argument("--repeat", type=int, default=1,
                         help="passes over the sequence; e.g. --frames 200 --repeat 50 for a 10,000-frame memory check")
@@ -389,6 +401,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.frames < 2 or args.repeat < 1:
         parser.error("--frames must be >= 2 and --repeat >= 1")
+    if args.scene is not None and args.renderer != "twohands":
+        parser.error("--scene needs --renderer twohands")
+    motion = (args.scene or "apart") if args.renderer == "twohands" else args.motion
     params = {}
     if args.set:
         from hand_sog_tracker.errors import InputError
@@ -407,6 +422,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         child = ["--motion", args.motion, "--frames", str(args.frames), "--repeat", str(args.repeat)]
         if args.renderer != "capsule":
             child += ["--renderer", args.renderer]
+        if args.scene is not None:
+            child += ["--scene", args.scene]
         for name in args.resolution or []:
             child += ["--resolution", name]
         try:
@@ -423,7 +440,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     results = []
     for name in args.resolution or list(RESOLUTIONS):
         w, h = RESOLUTIONS[name]
-        r = run_benchmark(args.motion, args.frames, w, h, args.repeat, renderer=args.renderer, params=params)
+        r = run_benchmark(motion, args.frames, w, h, args.repeat, renderer=args.renderer, params=params)
         _print_table(r)
         results.append(r)
     if args.json:
