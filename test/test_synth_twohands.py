@@ -113,3 +113,15 @@ def test_scene_arguments_are_checked() -> None:
         scene_poses(TwoHandScene("cross"), 0)
     with pytest.raises(InputError):
         render_two_hands(*scene_poses(TwoHandScene("cross"), 1)[:2], default_intrinsics(), sensor="lidar")
+
+
+def test_a_hand_can_be_rendered_alone_in_its_scene() -> None:
+    intr = default_intrinsics(160, 120)
+    _, left, right, _ = _frame("occlude", 40)
+    depth, truths, owner = render_two_hands(left, right, intr, SHAPES, "clean", shown=("left",))
+    alone = render_mesh_depth(left, intr, SHAPES[0], False, MeshRenderOptions(sensor="clean"))
+    np.testing.assert_allclose(depth, alone, atol=1e-3)
+    assert 1 not in owner and truths[0].visible_fraction == pytest.approx(1.0)
+    assert truths[1].visible_fraction == 0.0 and not truths[1].tips_visible.any()
+    with pytest.raises(InputError):
+        render_two_hands(left, right, intr, SHAPES, "clean", shown=())

@@ -365,6 +365,7 @@ def render_two_hands(
     rng: np.random.Generator | None = None,
     ball_mm: NDArray[np.float64] | None = None,
     forearm: bool = True,
+    shown: tuple[str, ...] = HANDS,
 ) -> tuple[NDArray[np.float32], tuple[HandTruth, HandTruth], NDArray[np.int64]]:
     """Render both hands (and a ball) into one depth image, nearest surface first.
 
@@ -382,6 +383,10 @@ def render_two_hands(
     ball_mm : array, shape (3,), optional
         Centre (mm) of a ball of radius 30 mm; None or NaN = no ball.
     forearm : bool
+    shown : tuple of str
+        The hands drawn (default both): ``("right",)`` renders the right hand of the same scene
+        alone (the reference "the same motion tracked alone"); a hand not drawn still gets its
+        ground truth, with visible fraction 0.
 
     Returns
     -------
@@ -394,12 +399,16 @@ def render_two_hands(
     """
     if sensor not in SENSORS:
         raise InputError(f"unknown sensor {sensor!r}; choose one of {', '.join(SENSORS)}")
+    if not shown or any(h not in HANDS for h in shown):
+        raise InputError(f"shown must name 'left' and/or 'right', got {shown!r}")
     if rng is None:
         rng = np.random.default_rng(0)
     posed = [pose_mesh(left, shapes[0], False, forearm), pose_mesh(right, shapes[1], True, forearm)]
     verts, tris, label = [], [], []
     base = 0
     for i, pm in enumerate(posed):
+        if HANDS[i] not in shown:
+            continue
         verts.append(pm.vertices)
         tris.append(pm.triangles + base)
         label.append(np.full(pm.triangles.shape[0], i))
@@ -450,8 +459,10 @@ def two_hand_sequence(
     seed: int = 0,
     sensor: str = "tof",
     fps: float = 30.0,
+    shown: tuple[str, ...] = HANDS,
 ) -> Iterator[TwoHandFrame]:
-    """Render a two-hand scene frame by frame (motion from ``seed``; an independent noise stream).
+    """Render a two-hand scene frame by frame (motion from ``seed``; an independent noise stream);
+    ``shown`` as in :func:`render_two_hands`.
 
     Yields
     ------
@@ -463,5 +474,7 @@ def two_hand_sequence(
     left, right, ball = scene_poses(scene, n_frames, fps=fps, seed=seed)
     rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(4)[3])
     for k in range(left.shape[0]):
-        depth, truths, owner = render_two_hands(left[k], right[k], intr, scene.shapes, sensor, rng, ball[k, :3])
+        depth, truths, owner = render_two_hands(
+            left[k], right[k], intr, scene.shapes, sensor, rng, ball[k, :3], shown=shown
+        )
         yield TwoHandFrame(index=k, stamp_s=k / float(fps), depth_mm=depth, hands=truths, owner=owner)

@@ -11,7 +11,7 @@ Usage::
 
 A two-hand bag (sidecar ``hands: 2``, per-hand ground truth) is scored per hand, matched by
 handedness, with identity swaps and handedness accuracy (:mod:`~hand_sog_tracker.tools.twohand_eval`,
-core mode).  A path that is a bag is one bag; a folder of bags stands for every bag directly
+core mode or ``--through-node``).  A path that is a bag is one bag; a folder of bags stands for every bag directly
 inside it (:mod:`hand_sog_tracker.tools.bagset`).  Bags follow contract 5 (see
 :mod:`hand_sog_tracker.tools.bagio`).  One bag: its detailed table; several:
 one row per bag in the form of the paper's Table 1 plus a total per split and
@@ -52,6 +52,7 @@ from hand_sog_tracker.tools.tracker_params import node_only, parse_set, read_par
 from hand_sog_tracker.tools.twohand_eval import (
     TwoHandSummary,
     evaluate_two_hands_core,
+    evaluate_two_hands_node,
     format_two_hand_table,
     summary_as_dict,
 )
@@ -168,9 +169,12 @@ def _is_two_hand(entry: BagEntry) -> bool:
 
 
 def _evaluate_two_hands(entry: BagEntry, args: argparse.Namespace, values: dict[str, Any]) -> TwoHandSummary:
-    """A two-hand bag (sidecar ``hands: 2``): each hand scored, matched by handedness; core mode."""
+    """A two-hand bag (sidecar ``hands: 2``): each hand scored, matched by handedness."""
     if args.through_node:
-        raise HandSogError(f"{entry.name}: two-hand bags are scored in core mode only (no --through-node yet)")
+        return evaluate_two_hands_node(
+            entry.path, args.domain_id, params=values, max_frames=args.max_frames, split=entry.split,
+            rate=args.rate, connect_timeout_s=args.node_timeout, warmup=not args.no_warmup,
+        )
     return evaluate_two_hands_core(
         entry.path, config=tracker_config(values), max_frames=args.max_frames, split=entry.split,
     )

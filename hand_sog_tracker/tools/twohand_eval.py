@@ -43,7 +43,7 @@ from hand_sog_tracker.synth.twohands import HANDS
 from hand_sog_tracker.tools.bagio import BagTopics, DepthBagReader
 from hand_sog_tracker.tools.metrics import ErrorSummary, TimingSummary, summarize_errors, summarize_timings
 from hand_sog_tracker.tools.records import json_clean
-from hand_sog_tracker.tools.twohand_bags import HandTruthRecord, read_hand_truth
+from hand_sog_tracker.tools.twohand_bags import HandTruthRecord, hand_topic, read_hand_truth
 
 __all__ = [
     "MATCH_GATE_MM",
@@ -55,6 +55,7 @@ __all__ = [
     "score_two_hands",
     "one_hand_predictor",
     "evaluate_two_hands_core",
+    "evaluate_two_hands_node",
     "format_two_hand_table",
     "summary_as_dict",
 ]
@@ -295,6 +296,44 @@ def evaluate_two_hands_core(
         raise BagError(f"bag {bag}: no depth image")
     side = None if config is None else ("right" if config.right_hand else "left")
     return score_two_hands(records, str(bag), split, "core", {"tracker_handedness": side} if side else None)
+
+
+def evaluate_two_hands_node(
+    bag: str | Path,
+    domain_id: int,
+    params: dict[str, Any] | None = None,
+    max_frames: int | None = None,
+    split: str = "-",
+    rate: float = 1.0,
+    connect_timeout_s: float = 30.0,
+    warmup: bool = True,
+) -> TwoHandSummary:
+    """Today's node on a two-hand bag: replayed over loopback DDS (:func:`.node_eval.evaluate_through_node`,
+    which reads the right hand's truth topic as its one-hand truth), its fingertips taken as one
+    prediction labelled with its ``handedness`` parameter (confidence 1), scored per hand as
+    :func:`score_two_hands`; ``ms`` is the node's end-to-end latency."""
+    from hand_sog_tracker.tools.node_eval import evaluate_through_node
+
+    truth = read_hand_truth(bag)
+    side = str((params or {}).get("handedness", "right"))
+    ev = evaluate_through_node(
+        bag, BagTopics(truth=hand_topic("right")), domain_id=domain_id, rate=rate, max_frames=max_frames,
+        connect_timeout_s=connect_timeout_s, warmup=warmup, params=params, split=split,
+    )
+    records = []
+    for r in ev.records:
+        gt = {s: truth[s].get(r.stamp_ns) for s in HANDS}
+        preds = () if r.estimate_mm is None else (HandPrediction(side, r.estimate_mm, 1.0),)
+        records.append(
+            TwoHandRecord(
+                index=r.index, stamp_ns=r.stamp_ns,
+                truth={s: None if g is None else g.fingertips_mm for s, g in gt.items()},
+                visible_fraction={s: math.nan if g is None else g.visible_fraction for s, g in gt.items()},
+                predictions=preds, ms=r.ms,
+            )
+        )
+    extra = {"tracker_handedness": side, "frames_dropped": ev.extra.get("frames_dropped"), "fps": ev.extra.get("fps")}
+    return score_two_hands(records, str(bag), split, "through_node", extra)
 
 
 def _f(v: float, fmt: str = "5.1f") -> str:
