@@ -132,3 +132,18 @@ def test_a_node_that_dies_is_a_clear_error(
     assert "error: the tracker node exited with code 3 before connecting" in err
     assert "simulated failure" in err and "Traceback" not in err
     assert time.monotonic() - t0 < 15.0  # noticed at once, not after the timeout
+
+
+def test_through_node_scores_a_two_hand_bag_per_hand(tmp_path: Path) -> None:
+    """Today's node tracks one hand: the right hand of the ``apart`` scene, the left one missing."""
+    from hand_sog_tracker.tools.twohand_bags import twohand_set, write_twohand_bag
+    from hand_sog_tracker.tools.twohand_eval import evaluate_two_hands_node
+
+    spec = next(s for s in twohand_set("twohands_dev", frames=6) if s.name == "apart")
+    bag, _, _ = write_twohand_bag(tmp_path / "apart", spec)
+    s = evaluate_two_hands_node(bag, DOMAIN, split="dev")
+    assert s.mode == "through_node" and s.frames == 6
+    assert s.per_hand["left"].frames_scored == 6 and s.per_hand["left"].frames_with_estimate == 0
+    right = s.per_hand["right"]
+    assert right.frames_with_estimate >= 1 and right.mean_mm < 20.0
+    assert s.followed["right"]["left"] == 0 and s.swaps == 0 and s.handedness_accuracy_pct == 100.0
