@@ -153,3 +153,5 @@ def test_core_evaluation_with_a_plugged_in_predictor_and_the_cli(tmp_path: Path,
     assert "swaps" in capsys.readouterr().out
     doc = json.loads(out.read_text())
     assert doc["two_hands"][0]["frames"] == 2 and set(doc["two_hands"][0]["per_hand"]) == {"left", "right"}
+    (bag / "hand_sog_sample.json").unlink()  # without its sidecar: known by its per-hand topics
+    assert evaluate_bag.main([str(bag), "--max-frames", "1", "--quiet"]) == 0

@@ -9,7 +9,7 @@ Usage::
                  [--depth-topic T] [--info-topic T] [--gt-topic T]
                  [--through-node [--domain-id N] [--rate R] [--node-timeout S] [--no-warmup]]
 
-A two-hand bag (sidecar ``hands: 2``, per-hand ground truth) is scored per hand, matched by
+A two-hand bag (sidecar ``hands: 2``, or per-hand ground-truth topics) is scored per hand, matched by
 handedness, with identity swaps and handedness accuracy (:mod:`~hand_sog_tracker.tools.twohand_eval`,
 core mode or ``--through-node``).  A path that is a bag is one bag; a folder of bags stands for every bag directly
 inside it (:mod:`hand_sog_tracker.tools.bagset`).  Bags follow contract 5 (see
@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from hand_sog_tracker.errors import HandSogError
-from hand_sog_tracker.tools.bagio import BagTopics
+from hand_sog_tracker.tools.bagio import BagTopics, open_bag, topic_table
 from hand_sog_tracker.tools.bagset import PROTOCOL, BagEntry, discover_bags
 from hand_sog_tracker.tools.evaluation import evaluate_core
 from hand_sog_tracker.tools.figures import write_overlays, write_plot
@@ -49,6 +49,7 @@ from hand_sog_tracker.tools.node_process import loopback_dds
 from hand_sog_tracker.tools.records import Evaluation, FrameRecord, Progress, TrackerLike, build_evaluation
 from hand_sog_tracker.tools.report import format_table, format_table1, write_json
 from hand_sog_tracker.tools.tracker_params import node_only, parse_set, read_params_file, tracker_config
+from hand_sog_tracker.tools.twohand_bags import is_two_hand_bag
 from hand_sog_tracker.tools.twohand_eval import (
     TwoHandSummary,
     evaluate_two_hands_core,
@@ -165,7 +166,14 @@ def _bag_values(entry: BagEntry, values: dict[str, Any]) -> dict[str, Any]:
 
 
 def _is_two_hand(entry: BagEntry) -> bool:
-    return entry.sample.get("hands") == 2
+    """A sidecar with ``hands: 2``, or (a bag without a sidecar) per-hand ground-truth topics."""
+    if "hands" in entry.sample:
+        return entry.sample.get("hands") == 2
+    try:
+        with open_bag(entry.path) as reader:
+            return is_two_hand_bag(set(topic_table(reader)))
+    except HandSogError:  # an unreadable bag: the one-hand path reports why
+        return False
 
 
 def _evaluate_two_hands(entry: BagEntry, args: argparse.Namespace, values: dict[str, Any]) -> TwoHandSummary:
