@@ -8,7 +8,7 @@ import pytest
 from test_core_energy import data_near, fist_of, numeric_gradient, silhouette_of
 
 from hand_sog_tracker.core.energy import Objective, TipTargets
-from hand_sog_tracker.core.hand_model import N_PARAMS, default_hand_model, rest_pose
+from hand_sog_tracker.core.hand_model import FINGER_ABD, N_PARAMS, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips
 from hand_sog_tracker.core.optimizer import StepSizes, maximise, maximise_batch
 from hand_sog_tracker.core.types import TrackerConfig
@@ -25,6 +25,7 @@ def _objective(seed: int, options: tuple[str, ...]) -> tuple[Objective, np.ndarr
     model = default_hand_model(right=bool(seed % 2))
     truth = rest_pose((0.0, 60.0, 400.0))
     truth[6:] = rng.uniform(0.0, 0.8, 20)
+    truth[FINGER_ABD] = 0.0  # (the fingers in their order)
     data = data_near(model, truth, rng, skip_chain=4)
     if "joint_gaussians" in options:
         model = model.with_joint_gaussians()
@@ -52,6 +53,7 @@ def _poses(rng: np.random.Generator, truth: np.ndarray, B: int) -> np.ndarray:
     thetas[:, 3:6] += rng.normal(0, 0.15, (B, 3))
     thetas[:, 6:] += rng.normal(0, 0.4, (B, 20))
     thetas[::2, 6 + 4 * 2 + 1] = -0.3  # middle over the index finger: E_ord
+    thetas[1::2, FINGER_ABD] = truth[FINGER_ABD]  # the fingers in order: no E_ord
     thetas[::3, 6 + 4 * 4 + 2 : 6 + 4 * 4 + 4] = (1.9, 1.1)  # little finger: E_curl, E_cpl
     return thetas
 
@@ -64,6 +66,11 @@ def test_batch_equals_one_pose_at_a_time(B: int, options: tuple[str, ...]) -> No
     values, grads = obj.batch(thetas)
     only, none = obj.batch(thetas, gradient=False)
     assert values.shape == (B,) and grads is not None and grads.shape == (B, N_PARAMS) and none is None
+    if options == OPTIONS and B == 16:  # every term is active at some pose of the batch
+        terms = [obj.evaluate(t, gradient=False)[0] for t in thetas]
+        for name in ("sim", "col", "dan", "lim", "smo", "ord", "sal", "sil", "cpl", "curl"):
+            assert max(getattr(t, name) for t in terms) > 0, name
+        assert min(t.ord for t in terms) == 0  # ... and inactive at another
     for b in range(B):
         v, g = obj(thetas[b])
         np.testing.assert_allclose(values[b], v, rtol=1e-12, atol=1e-12)

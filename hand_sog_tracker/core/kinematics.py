@@ -24,8 +24,10 @@ from hand_sog_tracker.errors import InputError
 __all__ = [
     "ChainFrames",
     "CentresPullback",
+    "centres_batch",
     "centres_with_pullback",
     "check_pose",
+    "check_poses",
     "global_rotation",
     "chain_frames",
     "attached_points",
@@ -46,6 +48,16 @@ def check_pose(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     # A finite sum proves every entry finite (one reduction instead of two).
     if not math.isfinite(np.add.reduce(arr)) and not np.all(np.isfinite(arr)):
         raise InputError("pose contains NaN or Inf")
+    return arr
+
+
+def check_poses(thetas: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Validate a batch of pose vectors and return it as float64, shape (B, 26)."""
+    arr = np.asarray(thetas, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != N_PARAMS:
+        raise InputError(f"poses must have shape (B, {N_PARAMS}), got {arr.shape}")
+    if not math.isfinite(np.add.reduce(arr, axis=None)) and not np.all(np.isfinite(arr)):
+        raise InputError("poses contain NaN or Inf")
     return arr
 
 
@@ -115,6 +127,39 @@ def global_rotation(theta: NDArray[np.float64], derivatives: bool = False):
     return R, dR
 
 
+def _rotation_coefficients() -> NDArray[np.float64]:
+    """``R`` and ``dR`` of :func:`global_rotation` (9 + 27 entries) as linear combinations of
+    the 27 products ``f_x f_y f_z`` with ``f_a`` one of ``(1, cos a, sin a)`` of the three
+    angles (independent functions: the combination is unique), shape (27, 36), entries 0 and
+    +-1; read off the one-pose form by least squares on a few random poses, then rounded."""
+    rng = np.random.default_rng(0)
+    angles = rng.uniform(-np.pi, np.pi, (64, 3))
+    theta = np.zeros((64, N_PARAMS))
+    theta[:, 3:6] = angles
+    values = np.array([np.concatenate([m.ravel() for m in global_rotation(t, derivatives=True)]) for t in theta])
+    coef = np.rint(np.linalg.lstsq(_rotation_monomials(angles), values, rcond=None)[0])
+    assert np.allclose(_rotation_monomials(angles) @ coef, values, atol=1e-12)
+    coef.setflags(write=False)
+    return coef
+
+
+def _rotation_monomials(angles: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The products ``f_x f_y f_z`` of :func:`_rotation_coefficients` of angles (B, 3), shape (B, 27)."""
+    f = np.empty((3, angles.shape[0], 3))
+    f[:, :, 0] = 1.0
+    np.cos(angles.T, out=f[:, :, 1])
+    np.sin(angles.T, out=f[:, :, 2])
+    return (f[0, :, :, None, None] * f[1, :, None, :, None] * f[2, :, None, None, :]).reshape(-1, 27)
+
+
+def global_rotations(thetas: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`global_rotation` with derivatives of poses (B, 26): ``R`` (B, 3, 3) and ``dR``
+    (B, 3, 3, 3) (equal to the one-pose form up to rounding: one matrix product with the
+    constant coefficients of its closed form)."""
+    both = _rotation_monomials(thetas[:, 3:6]) @ _ROTATION_COEF
+    return both[:, :9].reshape(-1, 3, 3), both[:, 9:].reshape(-1, 3, 3, 3)
+
+
 @dataclass(frozen=True)
 class ChainFrames:
     """Joint frames of the five chains in the hand frame (mm).
@@ -149,9 +194,9 @@ def chain_frames(model: HandModel, theta: NDArray[np.float64]) -> ChainFrames:
 def _frames(
     mk: _ModelKinematics, theta: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """The segments' axes (5, 3, 3, 3) (chain, segment, axis x / y / z, coordinate: the
-    rotations of :class:`ChainFrames` transposed), the origins (5, 4, 3) and the first
-    segments' x axes (5, 3) of all chains.
+    """The segments' axes (..., 5, 3, 3, 3) (chain, segment, axis x / y / z, coordinate: the
+    rotations of :class:`ChainFrames` transposed), the origins (..., 5, 4, 3) and the first
+    segments' x axes (..., 5, 3) of all chains, for a pose (26,) or poses (..., 26).
 
     In a chain of base ``B = (bx, by, bz)``, segment ``s`` has the axes ``bx``,
     ``y_s = c_s by + s_s bz`` and ``z_s = c_s bz - s_s by`` (``c_s, s_s``: cosine and sine
@@ -160,32 +205,36 @@ def _frames(
     differences are computed as sums with a negated factor (``a - b`` and ``a + (-b)`` are the
     same IEEE operation, and ``x (-y) = -(x y)`` exactly): every product and sum of a kind is
     then one NumPy call over all chains (a few dozen calls on tiny arrays cost more than their
-    arithmetic).
+    arithmetic), and over all poses of a batch (the leading axes: elementwise, the same bits
+    pose by pose).
     """
+    lead = theta.shape[:-1]
     # Each chain's abduction, then its flexions summed along the chain (phi): one cos and
-    # one sin for all 20 angles, as trig[0] and trig[1].
-    ang = theta.take(mk.angle_idx)  # (5, 4)
-    np.add.accumulate(ang[:, 1:], axis=1, out=ang[:, 1:])  # (= np.cumsum, without its wrapper)
-    trig = np.empty((2, 5, 4))
-    np.cos(ang, out=trig[0])
-    np.sin(ang, out=trig[1])
-    # base[k] = ca r0_mix[0, k] + sa r0_mix[1, k]: bx, -by, (unused), by; then base[2] = bz.
-    prod = trig[:, None, :, :1] * mk.r0_mix  # (2, 4, 5, 3)
-    base = np.add(prod[0], prod[1], out=prod[0])
-    base[2] = mk.r0z
-    # pairs[a, c, 0, b] (a: cos / sin of phi, b: y / z): (by, bz) and (bz, -by) of chain c.
-    pairs = base.take(_PAIR_ROWS, axis=0).transpose(0, 2, 1, 3)[:, :, None]  # (2, 5, 1, 2, 3)
-    prod2 = trig[:, :, 1:, None, None] * pairs  # (2, 5, 3, 2, 3)
-    axes = np.empty((5, 3, 3, 3))
-    np.add(prod2[0], prod2[1], out=axes[:, :, 1:])  # y_s, z_s
-    bx = base[0]
-    axes[:, :, 0] = bx[:, None, :]
-    o = np.empty((5, 4, 3))
-    o[:, 0] = mk.bases
-    tail = np.add.accumulate(axes[:, :, 1] * mk.lengths3, axis=1, out=o[:, 1:])  # (= cumsum, cheaper)
+    # one sin for all 20 angles, as trig[..., 0, :, :] and trig[..., 1, :, :].
+    ang = theta.take(mk.angle_idx, axis=-1)  # (..., 5, 4)
+    np.add.accumulate(ang[..., 1:], axis=-1, out=ang[..., 1:])  # (= np.cumsum, without its wrapper)
+    trig = np.empty(lead + (2, 5, 4))
+    np.cos(ang, out=trig[..., 0, :, :])
+    np.sin(ang, out=trig[..., 1, :, :])
+    # base[..., k, :, :] = ca r0_mix[0, k] + sa r0_mix[1, k]: bx, -by, (unused), by; then bz.
+    prod = trig[..., None, :, :1] * mk.r0_mix  # (..., 2, 4, 5, 3)
+    base = np.add(prod[..., 0, :, :, :], prod[..., 1, :, :, :], out=prod[..., 0, :, :, :])
+    base[..., 2, :, :] = mk.r0z
+    # pairs[.., a, c, 0, b] (a: cos / sin of phi, b: y / z): (by, bz) and (bz, -by) of chain c.
+    pairs = np.swapaxes(base.take(_PAIR_ROWS, axis=-3), -3, -2)[..., None, :, :]  # (..., 2, 5, 1, 2, 3)
+    prod2 = trig[..., 1:, None, None] * pairs  # (..., 2, 5, 3, 2, 3)
+    axes = np.empty(lead + (5, 3, 3, 3))
+    np.add(prod2[..., 0, :, :, :, :], prod2[..., 1, :, :, :, :], out=axes[..., 1:, :])  # y_s, z_s
+    bx = base[..., 0, :, :]
+    axes[..., 0, :] = bx[..., None, :]
+    o = np.empty(lead + (5, 4, 3))
+    o[..., 0, :] = mk.bases
+    tail = np.add.accumulate(axes[..., 1, :] * mk.lengths3, axis=-2, out=o[..., 1:, :])  # (= cumsum, cheaper)
     tail += mk.bases3
     return axes, o, bx
 
+
+_ROTATION_COEF = _rotation_coefficients()
 
 #: Rows of ``base`` in :func:`_frames` that make the pairs (by, bz) and (bz, -by).
 _PAIR_ROWS = np.array([[3, 2], [2, 1]])
@@ -480,7 +529,8 @@ class CentresPullback:
 
     def __call__(self, g3: NDArray[np.float64]) -> NDArray[np.float64]:
         """``g3 (m, 3) -> J^T g3`` summed per parameter, shape (26,): the gradient of a
-        function of the centres, from its gradient ``g3`` with respect to the centres.
+        function of the centres, from its gradient ``g3`` with respect to the centres (for a
+        batch of poses, :func:`centres_batch`: ``g3 (B, m, 3) -> (B, 26)``).
 
         Equals ``np.einsum("mk,mkj->j", g3, J)`` with ``J`` of :func:`gaussian_centres` (up to
         float rounding) without building ``J``: for a joint with axis ``a`` and pivot ``o``,
@@ -489,25 +539,54 @@ class CentresPullback:
         """
         mk = self.mk
         p = self.p_hand
-        grad = np.empty(N_PARAMS)
-        grad[:3] = np.add.reduce(g3, axis=0)  # (= g3.sum(axis=0) without the method's Python layer)
+        lead = g3.shape[:-2]
+        grad = np.empty(lead + (N_PARAMS,))
+        grad[..., :3] = np.add.reduce(g3, axis=-2)  # (= g3.sum(axis=-2) without the method's Python layer)
         # Rotation columns: sum_i g3_i . dR_a M p_i = <dR_a, g3^T (p M^T)>.
-        grad[3:6] = self.dR.reshape(3, 9) @ (g3.T @ self.pm).reshape(9)
-        m = p.shape[0]
-        Q = np.empty((m, 12))
-        h = np.matmul(g3, self.G, out=Q[:, 9:])  # (m, 3), h_i = G^T g3_i (hand frame)
-        np.multiply(p[:, :, None], h[:, None, :], out=Q[:, :9].reshape(m, 3, 3))
-        T = mk.groups @ Q  # (20, 12): sum p h^T (9) and sum h (3) per joint
-        outer = T[:, :9].reshape(20, 3, 3) - self.org20.take(mk.pivot, axis=0)[:, :, None] * T[:, None, 9:]
-        outer = outer.reshape(20, 9)  # sum (p - o) h^T per joint
-        X = outer.take(_CROSS_A, axis=1) - outer.take(_CROSS_B, axis=1)  # sum (p - o) x h per joint
-        grad[FIRST_JOINT:] = np.einsum("ij,ij->i", self.axes, X)
+        gp = np.matmul(np.swapaxes(g3, -1, -2), self.pm)
+        if lead:
+            grad[..., 3:6] = np.matmul(self.dR.reshape(lead + (3, 9)), gp.reshape(lead + (9, 1)))[..., 0]
+        else:
+            grad[3:6] = self.dR.reshape(3, 9) @ gp.reshape(9)
+        m = p.shape[-2]
+        Q = np.empty(lead + (m, 12))
+        h = np.matmul(g3, self.G, out=Q[..., 9:])  # (..., m, 3), h_i = G^T g3_i (hand frame)
+        np.multiply(p[..., None], h[..., None, :], out=Q[..., :9].reshape(lead + (m, 3, 3)))
+        T = mk.groups @ Q  # (..., 20, 12): sum p h^T (9) and sum h (3) per joint
+        pivots = self.org20.take(mk.pivot, axis=-2)[..., None]
+        outer = T[..., :9].reshape(lead + (20, 3, 3)) - pivots * T[..., None, 9:]
+        outer = outer.reshape(lead + (20, 9))  # sum (p - o) h^T per joint
+        X = outer.take(_CROSS_A, axis=-1) - outer.take(_CROSS_B, axis=-1)  # sum (p - o) x h per joint
+        grad[..., FIRST_JOINT:] = np.einsum("...ij,...ij->...i", self.axes, X)
         return grad
 
 
 #: ``(p x h)_k = O[a_k] - O[b_k]`` for ``O = p h^T`` flattened (9,).
 _CROSS_A = np.array([5, 6, 1])
 _CROSS_B = np.array([7, 2, 3])
+
+
+def centres_batch(
+    model: HandModel, thetas: NDArray[np.float64], pullback: bool = True
+) -> tuple[NDArray[np.float64], CentresPullback | None]:
+    """Centres of the model Gaussians at every pose of ``thetas`` (B, 26), shape (B, m, 3) mm,
+    and (with ``pullback``) the :class:`CentresPullback` that maps ``dE/dP`` (B, m, 3) to
+    ``dE/dtheta`` (B, 26).
+
+    :func:`centres_with_pullback` with a leading batch axis through every step (the same
+    values up to rounding; nothing cached: a batch's poses are new poses).
+    """
+    mk = _model_kinematics(model)
+    p_hand, org20, bx = _centres_hand(mk, thetas)
+    R, dR = global_rotations(thetas)
+    G = R if mk.right else R * mk.M
+    P = np.matmul(p_hand, np.swapaxes(G, -1, -2))
+    P += thetas[:, None, :3]
+    if not pullback:
+        return P, None
+    pm = p_hand if mk.right else p_hand * mk.M
+    axes = np.concatenate((bx, np.broadcast_to(mk.r0z, bx.shape)), axis=-2).take(mk.axis_row, axis=-2)
+    return P, CentresPullback(mk, p_hand, pm, G, dR, org20, axes)
 
 
 def centres_with_pullback(
@@ -610,16 +689,19 @@ def _hand_frame(
 def _centres_hand(
     mk: _ModelKinematics, theta: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Model Gaussian centres in the hand frame (m, 3), joint origins (20, 3), flexion axes (5, 3).
+    """Model Gaussian centres in the hand frame (..., m, 3), joint origins (..., 20, 3),
+    flexion axes (..., 5, 3) of a pose (26,) or poses (..., 26).
 
     The same arithmetic as :func:`attached_points` (bit-identical), with the model's index
     arrays cached.
     """
     axes, o, bx = _frames(mk, theta)
-    org20 = o.reshape(20, 3)
+    lead = theta.shape[:-1]
+    org20 = o.reshape(lead + (20, 3))
     # (The rotation of each Gaussian's segment, transposed: its axes as rows.)
-    local = np.einsum("kji,kj->ki", axes.reshape(15, 3, 3).take(mk.g_rot, axis=0), mk.g_offsets)
-    local += org20.take(mk.g_org, axis=0)
+    rot = axes.reshape(lead + (15, 3, 3)).take(mk.g_rot, axis=-3)
+    local = np.einsum("...kji,kj->...ki", rot, mk.g_offsets)
+    local += org20.take(mk.g_org, axis=-2)
     return np.where(mk.g_finger, local, mk.g_offsets), org20, bx
 
 
