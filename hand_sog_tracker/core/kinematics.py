@@ -71,93 +71,75 @@ def _cross(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64
 
 
 def global_rotation(theta: NDArray[np.float64], derivatives: bool = False):
-    """Global rotation ``R = Rz(rz) @ Rx(rx) @ Ry(ry)`` of a pose.
+    """Global rotation ``R = Rz(rz) @ Rx(rx) @ Ry(ry)`` of a pose (or of poses).
 
     The per-frame form of :func:`hand_sog_tracker.core.rotations.matrices_from_euler`
-    (scalar ``math`` calls, one array build: it runs for every objective evaluation).
+    (for one pose scalar ``math`` calls and one array build: it runs for every objective
+    evaluation; for poses (..., 26) the same expressions on arrays, the same bits pose by pose).
 
     Parameters
     ----------
-    theta : array, shape (26,)
+    theta : array, shape (26,) or (..., 26)
     derivatives : bool
         Also return ``dR/d(rx, ry, rz)``.
 
     Returns
     -------
-    R : array, shape (3, 3)
-    dR : array, shape (3, 3, 3), only with ``derivatives``; ``dR[k]`` is the
-        derivative with respect to ``theta[3 + k]``.
+    R : array, shape (3, 3) or (..., 3, 3)
+    dR : array, shape (3, 3, 3) or (..., 3, 3, 3), only with ``derivatives``; ``dR[..., k, :, :]``
+        is the derivative with respect to ``theta[..., 3 + k]``.
     """
-    cx, sx = math.cos(theta[3]), math.sin(theta[3])
-    cy, sy = math.cos(theta[4]), math.sin(theta[4])
-    cz, sz = math.cos(theta[5]), math.sin(theta[5])
+    lead = theta.shape[:-1]
+    if lead:  # (the constant entries as arrays too: one array build of equal shapes)
+        c, s = np.cos(theta[..., 3:6]), np.sin(theta[..., 3:6])
+        cx, cy, cz = c[..., 0], c[..., 1], c[..., 2]
+        sx, sy, sz = s[..., 0], s[..., 1], s[..., 2]
+        one, zero = np.ones(lead), np.zeros(lead)
+    else:
+        cx, sx = math.cos(theta[3]), math.sin(theta[3])
+        cy, sy = math.cos(theta[4]), math.sin(theta[4])
+        cz, sz = math.cos(theta[5]), math.sin(theta[5])
+        one, zero = 1.0, 0.0
+    # (Building small arrays dominates the cost; a flat tuple converts several times faster
+    # than a nested one.)
+    Rxyz = _entries(
+        (one, zero, zero, zero, cx, -sx, zero, sx, cx,
+         cy, zero, sy, zero, one, zero, -sy, zero, cy,
+         cz, -sz, zero, sz, cz, zero, zero, zero, one),
+        lead,
+    )
+    R = (Rxyz[..., 2, :, :] @ Rxyz[..., 0, :, :]) @ Rxyz[..., 1, :, :]  # Rz Rx Ry
     if not derivatives:
-        Rx, Ry, Rz = np.array(
-            (1.0, 0.0, 0.0, 0.0, cx, -sx, 0.0, sx, cx,
-             cy, 0.0, sy, 0.0, 1.0, 0.0, -sy, 0.0, cy,
-             cz, -sz, 0.0, sz, cz, 0.0, 0.0, 0.0, 1.0)
-        ).reshape(3, 3, 3)
-        return (Rz @ Rx) @ Ry
-    # R from the same matrix products as without derivatives (bit-identical); dR in closed
-    # form, one array build (building small arrays dominates the cost; a flat tuple converts
-    # several times faster than a nested one).
-    Rx, Ry, Rz = np.array(
-        (1.0, 0.0, 0.0, 0.0, cx, -sx, 0.0, sx, cx,
-         cy, 0.0, sy, 0.0, 1.0, 0.0, -sy, 0.0, cy,
-         cz, -sz, 0.0, sz, cz, 0.0, 0.0, 0.0, 1.0)
-    ).reshape(3, 3, 3)
-    R = (Rz @ Rx) @ Ry
+        return R
+    # dR in closed form, one array build.
     sxsy, sxcy = sx * sy, sx * cy
-    dR = np.array(
+    dR = _entries(
         (
             # d/drx = Rz dRx Ry
             -sz * cx * sy, sz * sx, sz * cx * cy,
             cz * cx * sy, -cz * sx, -cz * cx * cy,
             sxsy, cx, -sxcy,
             # d/dry = Rz Rx dRy
-            -cz * sy - sz * sxcy, 0.0, cz * cy - sz * sxsy,
-            -sz * sy + cz * sxcy, 0.0, sz * cy + cz * sxsy,
-            -cx * cy, 0.0, -cx * sy,
+            -cz * sy - sz * sxcy, zero, cz * cy - sz * sxsy,
+            -sz * sy + cz * sxcy, zero, sz * cy + cz * sxsy,
+            -cx * cy, zero, -cx * sy,
             # d/drz = dRz Rx Ry
             -sz * cy - cz * sxsy, -cz * cx, -sz * sy + cz * sxcy,
             cz * cy - sz * sxsy, -sz * cx, cz * sy + sz * sxcy,
-            0.0, 0.0, 0.0,
-        )
-    ).reshape(3, 3, 3)
+            zero, zero, zero,
+        ),
+        lead,
+    )
     return R, dR
 
 
-def _rotation_coefficients() -> NDArray[np.float64]:
-    """``R`` and ``dR`` of :func:`global_rotation` (9 + 27 entries) as linear combinations of
-    the 27 products ``f_x f_y f_z`` with ``f_a`` one of ``(1, cos a, sin a)`` of the three
-    angles (independent functions: the combination is unique), shape (27, 36), entries 0 and
-    +-1; read off the one-pose form by least squares on a few random poses, then rounded."""
-    rng = np.random.default_rng(0)
-    angles = rng.uniform(-np.pi, np.pi, (64, 3))
-    theta = np.zeros((64, N_PARAMS))
-    theta[:, 3:6] = angles
-    values = np.array([np.concatenate([m.ravel() for m in global_rotation(t, derivatives=True)]) for t in theta])
-    coef = np.rint(np.linalg.lstsq(_rotation_monomials(angles), values, rcond=None)[0])
-    assert np.allclose(_rotation_monomials(angles) @ coef, values, atol=1e-12)
-    coef.setflags(write=False)
-    return coef
-
-
-def _rotation_monomials(angles: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The products ``f_x f_y f_z`` of :func:`_rotation_coefficients` of angles (B, 3), shape (B, 27)."""
-    f = np.empty((3, angles.shape[0], 3))
-    f[:, :, 0] = 1.0
-    np.cos(angles.T, out=f[:, :, 1])
-    np.sin(angles.T, out=f[:, :, 2])
-    return (f[0, :, :, None, None] * f[1, :, None, :, None] * f[2, :, None, None, :]).reshape(-1, 27)
-
-
-def global_rotations(thetas: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`global_rotation` with derivatives of poses (B, 26): ``R`` (B, 3, 3) and ``dR``
-    (B, 3, 3, 3) (equal to the one-pose form up to rounding: one matrix product with the
-    constant coefficients of its closed form)."""
-    both = _rotation_monomials(thetas[:, 3:6]) @ _ROTATION_COEF
-    return both[:, :9].reshape(-1, 3, 3), both[:, 9:].reshape(-1, 3, 3, 3)
+def _entries(values: tuple, lead: tuple[int, ...]) -> NDArray[np.float64]:
+    """27 entries (floats, or arrays of shape ``lead``) as matrices (*lead, 3, 3, 3)."""
+    if not lead:
+        return np.array(values).reshape(3, 3, 3)
+    # (C-contiguous whatever the batch's size: a matrix product's rounding may depend on the
+    # memory layout of its operands, and a pose's result must not depend on its batch)
+    return np.ascontiguousarray(np.moveaxis(np.array(values), 0, -1)).reshape(lead + (3, 3, 3))
 
 
 @dataclass(frozen=True)
@@ -233,8 +215,6 @@ def _frames(
     tail += mk.bases3
     return axes, o, bx
 
-
-_ROTATION_COEF = _rotation_coefficients()
 
 #: Rows of ``base`` in :func:`_frames` that make the pairs (by, bz) and (bz, -by).
 _PAIR_ROWS = np.array([[3, 2], [2, 1]])
@@ -578,7 +558,7 @@ def centres_batch(
     """
     mk = _model_kinematics(model)
     p_hand, org20, bx = _centres_hand(mk, thetas)
-    R, dR = global_rotations(thetas)
+    R, dR = global_rotation(thetas, derivatives=True)
     G = R if mk.right else R * mk.M
     P = np.matmul(p_hand, np.swapaxes(G, -1, -2))
     P += thetas[:, None, :3]
