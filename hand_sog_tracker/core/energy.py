@@ -744,41 +744,42 @@ class Objective:
     def _layout(self, B: int) -> _Rows:
         """The :class:`_Rows` of a batch of ``B`` poses (cached per ``B``).
 
-        The large buffers (the tests of all B m n pairs, the image Gaussian of every pair)
-        are made once for the largest batch so far; a smaller batch uses their first B m n
-        entries (its pairs' flat indices are the first of the larger batch's).
+        Made once for the largest batch so far; a smaller batch's layout is the first B m rows
+        (B m n pairs, B n image Gaussians) of it, as views: a batch that shrinks from call to
+        call (:func:`~hand_sog_tracker.core.optimizer.maximise_batch` leaves settled
+        candidates out) makes no new arrays.
         """
         hit = self._batches.get(B)
         if hit is not None:
             return hit
         m, n = self.model.n_gaussians, self.data.n
-        cap, shared = self._batch_buffers
+        cap, full = self._batch_buffers
         if B > cap:
             self._batches.clear()
             cap = B
             col_of = np.empty((cap, m, n), dtype=np.int64)
             col_of[:] = (n * np.arange(cap))[:, None, None] + np.arange(n)
-            shared = (
-                np.empty(2 * cap * m * n), np.empty(cap * m * n, dtype=bool), col_of.reshape(-1),
-                np.arange(cap * m + 1) * n, np.tile(self._per_q, (1, cap)), np.tile(self._sat, cap),
+            rows = np.empty((11, cap * m))
+            rows[2] = 1.0
+            rows[8] = np.tile(self._two_sh, cap)
+            c = self._const
+            # The collision gradient's scatter, pose after pose (each pose's i's, then its j's).
+            offsets = 3 * m * np.arange(cap)[:, None, None, None]
+            scatter = (np.stack([c.gather_i, c.gather_j]) + offsets).reshape(-1)
+            vis = None if self._visibility is None else np.tile(self._visibility, cap)
+            full = (
+                rows, np.empty(2 * cap * m * n), np.empty(cap * m * n, dtype=bool), np.arange(cap * m + 1) * n,
+                col_of.reshape(-1), np.tile(self._per_q, (1, cap)), np.tile(self._sat, cap),
+                np.tile(self.model.g_sigmas, cap), np.tile(self._shf, cap), np.tile(self._two_sh, cap),
+                np.tile(self._four_sh2, cap), vis, scatter,
             )
-            self._batch_buffers = (cap, shared)
-        tests, neg, col_of, row_starts, per_q, sat_k = shared
-
-        def tile(a: NDArray | None) -> NDArray | None:
-            return None if a is None else np.tile(a, B)
-
-        rows = np.empty((11, B * m))
-        rows[2] = 1.0
-        rows[8] = tile(self._two_sh)
-        pose_offsets = 3 * m * np.arange(B)[:, None, None]
-        c = self._const
-        scatter = np.concatenate([(c.gather_i + pose_offsets).ravel(), (c.gather_j + pose_offsets).ravel()])
+            self._batch_buffers = (cap, full)
+        rows, tests, neg, row_starts, col_of, per_q, sat_k, sigmas, shf, two_sh, four_sh2, vis, scatter = full
+        k = B * m
         lay = self._batches[B] = _Rows(
-            B, True, rows, tests[: 2 * B * m * n].reshape(2, B * m, n), neg[: B * m * n].reshape(B * m, n),
-            row_starts[: B * m + 1], col_of[: B * m * n], per_q[:, : B * n], sat_k[: B * n],
-            tile(self.model.g_sigmas), tile(self._shf), tile(self._two_sh), tile(self._four_sh2),
-            tile(self._visibility), scatter,
+            B, True, rows[:, :k], tests[: 2 * k * n].reshape(2, k, n), neg[: k * n].reshape(k, n),
+            row_starts[: k + 1], col_of[: k * n], per_q[:, : B * n], sat_k[: B * n], sigmas[:k], shf[:k],
+            two_sh[:k], four_sh2[:k], None if vis is None else vis[:k], scatter[: scatter.size // cap * B],
         )
         return lay
 
@@ -1202,9 +1203,10 @@ class Objective:
             # product (+ g at each pair's i, - g at its j) as one bincount.  (Every centre
             # coordinate sums its pairs in the same order as with the pairs' rows (pairs, 3):
             # the i's in pair order, then the j's.)
-            weights = np.empty((2,) + diff.shape)
-            np.multiply(D2[..., None, :], diff, out=weights[0])
-            np.negative(weights[0], out=weights[1])
+            # (In a batch, pose after pose: each pose's i's, then its j's.)
+            weights = np.empty(diff.shape[:-2] + (2,) + diff.shape[-2:])
+            np.multiply(D2[..., None, :], diff, out=weights[..., 0, :, :])
+            np.negative(weights[..., 0, :, :], out=weights[..., 1, :, :])
             g3 += np.bincount(scatter, weights=weights.reshape(-1), minlength=g3.size).reshape(g3.shape)
 
         run_or_defer(backward, g3, later)
