@@ -177,8 +177,5 @@ def test_maximise_batch_with_the_objective_runs_what_maximise_runs_for_each_cand
     for b, (res, start) in enumerate(zip(results, x0)):
         (alone,) = maximise_batch(obj.batch, x0[b : b + 1], iterations=8, bounds=bounds)
         _same(res, alone)  # (the batch's values and gradients do not depend on its other poses)
-        one = maximise(obj, start, iterations=8, bounds=bounds)
-        # The same iterates (the gradients are the one-pose gradients), the values up to rounding.
-        assert np.array_equal(res.x, one.x) and res.nit == one.nit
-        np.testing.assert_allclose(res.history, one.history, rtol=1e-13)
-        assert res.success and res.fun > one.history[0]
+        _same(alone, maximise(obj, start, iterations=8, bounds=bounds))  # (one pose: the one-pose path)
+        assert res.success and res.fun > res.history[0]

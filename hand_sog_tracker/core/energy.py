@@ -548,8 +548,23 @@ def _per_pose(value: NDArray[np.float64]) -> float | NDArray[np.float64]:
 
 
 def _squares(x: NDArray[np.float64]) -> float | NDArray[np.float64]:
-    """Sum of squares of ``x`` (k,) as a float, or along the last axis of ``x`` (B, k)."""
-    return float(x @ x) if x.ndim == 1 else _sum(x * x, axis=-1)
+    """Sum of squares of ``x`` (k,) >= 0 as a float, or of each row of ``x`` (B, k) (the same
+    bits as the row alone: its own product; the rows of zeros are 0)."""
+    if x.ndim == 1:
+        return float(x @ x)
+    out = np.zeros(x.shape[0])
+    for b in np.flatnonzero(np.logical_or.reduce(x > 0.0, axis=1)).tolist():
+        out[b] = x[b] @ x[b]
+    return out
+
+
+def _segment_sums(values: NDArray[np.float64], bounds: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Sums of ``values[bounds[b]:bounds[b + 1]]`` (B,), each as the sum of that segment
+    alone (np.add.reduceat adds in another order: other bits)."""
+    out = np.zeros(bounds.size - 1)
+    for b in np.flatnonzero(bounds[1:] > bounds[:-1]).tolist():
+        out[b] = _sum(values[bounds[b] : bounds[b + 1]])
+    return out
 
 
 @lru_cache(maxsize=1)
@@ -681,6 +696,9 @@ class Objective:
         one evaluation plus B times its arithmetic.
         """
         thetas = check_poses(thetas)
+        if thetas.shape[0] == 1:  # (one pose: the one-pose path, faster, the same bits)
+            value, grad = self(thetas[0], gradient)
+            return np.array([value]), None if grad is None else grad[None]
         values, grads = self._evaluate(thetas, gradient, False)
         return values[0], grads
 
@@ -1079,8 +1097,8 @@ class Objective:
             r2_r = r2_U[sel]
             er = np.exp(-0.5 * r2_r / s2r)
             per_row_dan = _sum(phi * (1.0 - er), axis=1) / n
-            if L.batch:
-                dan = _accumulate(drows // self.model.n_gaussians, wdang_r * per_row_dan, L.B)
+            if L.batch:  # (each pose's rows summed as one pose's: the same bits)
+                dan = _segment_sums(wdang_r * per_row_dan, drows.searchsorted(m // L.B * np.arange(L.B + 1)))
             else:
                 dan = float(_sum(wdang_r * per_row_dan))
         if g3 is None and later is None:
