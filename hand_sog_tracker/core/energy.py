@@ -94,7 +94,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -119,6 +119,7 @@ from hand_sog_tracker.core.kinematics import (
 )
 from hand_sog_tracker.core.silhouette import Silhouette, run_or_defer, silhouette_term
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
+from hand_sog_tracker.errors import InputError
 
 __all__ = [
     "EnergyTerms",
@@ -542,6 +543,20 @@ def contact_shares(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     return share
 
 
+def _stacked_targets(targets: Sequence[TipTargets | None], tips: slice | NDArray[np.int64]) -> tuple | None:
+    """The salient term's constants of one :class:`TipTargets` (or None) per pose: the
+    fingertips ``tips``, points (B, 5, 3) mm and weights (B, 5) per :data:`SALIENT_SCALE_MM`
+    (0 without targets); None when no pose has a weight."""
+    points = np.zeros((len(targets), 5, 3))
+    weights = np.zeros((len(targets), 5))
+    for b, t in enumerate(targets):
+        if t is not None:
+            points[b], weights[b] = t.points, t.weights
+    if not np.any(weights > 0):
+        return None
+    return tips, points, weights / SALIENT_SCALE_MM
+
+
 def _per_pose(value: NDArray[np.float64]) -> float | NDArray[np.float64]:
     """A term's value as a float for one pose (a 0-d result), else the (B,) values."""
     return float(value) if value.ndim == 0 else value
@@ -684,11 +699,18 @@ class Objective:
         return values[0], grad
 
     def batch(
-        self, thetas: NDArray[np.float64], gradient: bool = True
+        self,
+        thetas: NDArray[np.float64],
+        gradient: bool = True,
+        targets: Sequence[TipTargets | None] | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """``E`` at every pose of ``thetas`` (B, 26) and, with ``gradient``, ``dE/dtheta``
-        (B, 26): pose by pose what :meth:`__call__` returns, up to rounding (the gradient None
+        (B, 26): pose by pose what :meth:`__call__` returns (the same bits; the gradient None
         without ``gradient``).
+
+        ``targets``: one :class:`TipTargets` (or None: no ``E_sal``) per pose, in place of the
+        objective's ``targets`` (e.g. each candidate's own fingertip assignment): pose ``b``
+        then gets what ``self.variant(self.config, targets[b])(thetas[b])`` returns.
 
         One evaluation with a leading batch axis through every term: the kinematics, the data
         terms (the B m model Gaussians against the data as the m of one pose), collision,
@@ -696,10 +718,16 @@ class Objective:
         one evaluation plus B times its arithmetic.
         """
         thetas = check_poses(thetas)
-        if thetas.shape[0] == 1:  # (one pose: the one-pose path, faster, the same bits)
+        B = thetas.shape[0]
+        if targets is not None and len(targets) != B:
+            raise InputError(f"targets: one per pose ({B}), got {len(targets)}")
+        if B == 0:
+            return np.zeros(0), np.zeros((0, N_PARAMS)) if gradient else None
+        if B == 1 and targets is None:  # (one pose: the one-pose path, faster, the same bits)
             value, grad = self(thetas[0], gradient)
             return np.array([value]), None if grad is None else grad[None]
-        values, grads = self._evaluate(thetas, gradient, False)
+        each = _UNSET if targets is None else _stacked_targets(targets, _as_slice(self.model.tip_index))
+        values, grads = self._evaluate(thetas, gradient, False, targets_each=each)
         return values[0], grads
 
     def value_then_gradient(
@@ -807,6 +835,7 @@ class Objective:
         gradient: bool,
         terms: bool = True,
         later: list[Backward] | None = None,
+        targets_each: tuple | None | object = _UNSET,
     ) -> tuple[tuple[float, ...], NDArray[np.float64] | Callable[[], NDArray[np.float64]] | None]:
         """``(total, sim, col, dan, lim, smo, ord, sal, sil, cpl, curl)`` and the gradient (or None).
 
@@ -819,7 +848,8 @@ class Objective:
         and the gradient are read) a term whose weight is 0 is not evaluated (reported as 0):
         the total and the gradient are the same bits (it would add ``0 * value``).  With
         ``later`` (an empty list) the terms append their gradients' functions there and the
-        function that finishes the gradient is returned in its place.
+        function that finishes the gradient is returned in its place.  ``targets_each``: the
+        salient term's constants for poses (B, 26) with their own targets (see :meth:`_salient`).
         """
         batch = theta.ndim == 2
         self._support_key = b"" if batch else theta.tobytes()
@@ -866,7 +896,7 @@ class Objective:
         for w, g in ((cfg.w_cpl, g_cpl), (cfg.w_curl, g_curl)):
             if g is not None:
                 g_pose = w * g if g_pose is None else g_pose + w * g
-        sal = self._salient(P, g3, cfg.w_sal, later)
+        sal = self._salient(P, g3, cfg.w_sal, later, targets_each)
         sil = 0.0
         if self.silhouette is not None and cfg.w_sil > 0:
             sil = silhouette_term(
@@ -1303,17 +1333,22 @@ class Objective:
         g3: NDArray[np.float64] | None,
         w_sal: float,
         later: list[Backward] | None = None,
+        each: object = _UNSET,
     ) -> float | NDArray[np.float64]:
         """``E_sal``; adds ``-w_sal dE_sal/dP`` into ``g3`` at the fingertip Gaussians (or
         appends the function that does to ``later``).  ``P``, ``g3``: (m, 3) or (B, m, 3)
-        (then ``E_sal`` is (B,))."""
-        t = self.targets
-        key, const = self._sal
-        if t is not key:  # the targets' constants, once per targets object
-            const = None
-            if t is not None and np.any(t.weights > 0):
-                const = (_as_slice(self.model.tip_index), np.asarray(t.points), t.weights / SALIENT_SCALE_MM)
-            self._sal = (t, const)
+        (then ``E_sal`` is (B,)); ``each``: the constants of every pose's own targets
+        (:func:`_stacked_targets`: points (B, 5, 3), weights (B, 5)) in place of ``targets``'."""
+        if each is not _UNSET:
+            const = each
+        else:
+            t = self.targets
+            key, const = self._sal
+            if t is not key:  # the targets' constants, once per targets object
+                const = None
+                if t is not None and np.any(t.weights > 0):
+                    const = (_as_slice(self.model.tip_index), np.asarray(t.points), t.weights / SALIENT_SCALE_MM)
+                self._sal = (t, const)
         if const is None or w_sal <= 0:
             return 0.0
         tips, points, w = const
