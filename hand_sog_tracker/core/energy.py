@@ -590,7 +590,8 @@ def _smooth_scale() -> NDArray[np.float64]:
 
 
 class Objective:
-    """The objective ``E(theta)`` for one frame.
+    """The objective ``E(theta)`` for one frame, at one pose (:meth:`__call__`) or at a batch
+    of poses in one evaluation (:meth:`batch`).
 
     Parameters
     ----------
