@@ -126,6 +126,7 @@ DIAG_KEYS: Final[tuple[str, ...]] = (
     "processing_ms",
     "answer_ms",
     "latency_ms",
+    "worst_frame_ms",
     "status",
     "confidence",
     "frames_received",
@@ -133,6 +134,7 @@ DIAG_KEYS: Final[tuple[str, ...]] = (
     "frames_dropped",
     "frames_missed",
     "frames_rejected",
+    "frames_cut",
     "last_problem",
 )
 #: The frame counters among :data:`DIAG_KEYS` (integers since the node started).
