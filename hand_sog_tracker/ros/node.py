@@ -71,7 +71,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from numpy.typing import NDArray
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.context import Context
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -178,6 +178,9 @@ DIRECT_FRAMES = 4
 #: (shifted by a pixel or 3 mm in depth, 96 runs: 16.7 -> 15.6 mm); a finger-shift candidate
 #: needs 4 passes to be judged.  (Chosen here, issue 11.)
 IDLE_REFINE_PASSES = 9
+#: ~/calibrate requests kept while the executor is busy with a frame (each is then answered at
+#: once, "busy" during a fit): more calls arriving within one frame's processing are lost.
+CALIBRATE_QUEUE = 100
 _NUMBERS = re.compile(r"\d+(\.\d+)?")
 
 
@@ -275,6 +278,7 @@ class TrackerNode(CalibrationService, Node):
         self._period_ns: int | None = None  # camera period: median of the recent intervals
         self._intervals: collections.deque[int] = collections.deque(maxlen=RATE_WINDOW)
         self._deadline = math.inf  # perf_counter() at which the current frame's budget is spent
+        self._last_step_at = 0.0  # perf_counter() of the last _image_waiting() call in the frame
         self._frame_cut = False
         self._intrinsics: Intrinsics | None = None
         self._intrinsics_problem = ""
@@ -287,6 +291,8 @@ class TrackerNode(CalibrationService, Node):
         self._tracker.refine_stop = self._image_waiting
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
+        self._last_intr: Intrinsics | None = None  # of the last frame that passed the checks
+        self._last_intr_shape: tuple[int, int] | None = None
         self._markers_shown = False
         self._frame_id = ""
         # Recent tracked frames for ~/calibrate and the automatic fit (calibration_service.py),
@@ -297,8 +303,10 @@ class TrackerNode(CalibrationService, Node):
 
         # Every callback is in the node's default group except ~/calibrate: its coroutine holds
         # its callback group while it awaits the calibration worker thread, so it gets a group
-        # of its own (one call at a time) and tracking goes on in the default group meanwhile.
-        self._calib_group = MutuallyExclusiveCallbackGroup()
+        # of its own and tracking goes on in the default group meanwhile.  A reentrant group:
+        # a call that comes during a fit is taken at once and answered "busy" (a mutually
+        # exclusive one left such calls in the service's queue, beyond which they were lost).
+        self._calib_group = ReentrantCallbackGroup()
         sensor_qos = copy.copy(qos_profile_sensor_data)
         sensor_qos.depth = 1
         out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
@@ -337,7 +345,8 @@ class TrackerNode(CalibrationService, Node):
         self._publish_description(None)
 
         self._calibrate_srv = self.create_service(
-            Trigger, CALIBRATE_SERVICE, self._on_calibrate, callback_group=self._calib_group
+            Trigger, CALIBRATE_SERVICE, self._on_calibrate, callback_group=self._calib_group,
+            qos_profile=QoSProfile(depth=CALIBRATE_QUEUE, reliability=ReliabilityPolicy.RELIABLE),
         )
         # Triggered by the calibration worker when it is done: wakes the executor, which then
         # resumes the waiting (async) service callback.
@@ -540,6 +549,7 @@ class TrackerNode(CalibrationService, Node):
             return
         t0 = time.perf_counter()
         self._deadline, self._frame_cut = t0 + self._settings.frame_budget_ms * 1e-3, False
+        self._last_step_at = t0
         try:
             with self._tracker_lock:
                 answered_at = self._process(msg, intr, intr_problem)
@@ -653,6 +663,13 @@ class TrackerNode(CalibrationService, Node):
             self._reject(problem)
             self._warn(f"{problem}: frame skipped")
             return None
+        if self._last_intr is not None and intr != self._last_intr and shape == self._last_intr_shape:
+            # A pose fitted with other intrinsics is wrong with these (a track carried over
+            # from a K 2x off stayed 60 mm off): start anew, as on a resolution change.
+            self._warn(f"CameraInfo changed ({self._last_intr} -> {intr}): tracker reset")
+            self._reset_track(header)
+            self._calib_history.clear()
+        self._last_intr, self._last_intr_shape = intr, shape
 
         top = float(depth.max())
         if top <= 0.0:
@@ -730,10 +747,17 @@ class TrackerNode(CalibrationService, Node):
 
     def _image_waiting(self) -> bool:
         """Whether the work on the current frame should stop: a newer image than the one being
-        processed has arrived, or the frame's ``frame_budget_ms`` is spent (the frame is cut)."""
+        processed has arrived, or the frame's ``frame_budget_ms`` would be overrun by another
+        step as long as the last one (the frame is cut).
+
+        The budget does not hold back the second half of an initialisation when no newer image
+        comes (a single image is answered; a stream's next image finishes it anyway).
+        """
         if self._pending is not None or self._take_waiting(self._image_sub, self._on_image):
             return True
-        if time.perf_counter() > self._deadline:
+        now = time.perf_counter()
+        step, self._last_step_at = now - self._last_step_at, now
+        if now + step > self._deadline and not self._tracker.initialising:
             self._frame_cut = True
             return True
         return False

@@ -227,7 +227,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = _tracker_specs() + (
     ),
     ParamSpec(
         "frame_budget_ms",
-        250.0,
+        200.0,
         "Time budget of one frame (ms): the work a frame can do without (the refinement on a "
         "still image, the restarts after the answer) stops when it is spent, and the frame "
         "counts as cut in /diagnostics.",
@@ -268,7 +268,7 @@ class NodeSettings:
     publish_wrist_joints: bool = False
     publish_tf: bool = False
     max_image_pixels: int = MAX_IMAGE_PIXELS
-    frame_budget_ms: float = 250.0
+    frame_budget_ms: float = 200.0
 
 
 def tf_available() -> bool:
