@@ -369,7 +369,9 @@ def _extra(msg: Image) -> None:
 kind("image", "data longer than the image", "track")(_tracked(lambda d, s: (lambda m: (_extra(m), m)[1])(image(d, s))))
 kind("image", "step smaller than a row", "reject", "step 100 is smaller")(_raw(_setattr("step", 100)))
 kind("image", "step 0", "reject", "step 0 is smaller")(_raw(_setattr("step", 0)))
-kind("image", "data truncated to half", "reject", "truncated")(_raw(lambda m: setattr(m, "data", bytes(m.data)[: len(m.data) // 2])))
+kind("image", "data truncated to half", "reject", "truncated")(
+    _raw(lambda m: setattr(m, "data", bytes(m.data)[: len(m.data) // 2]))
+)
 kind("image", "data one byte short", "reject", "truncated")(_raw(lambda m: setattr(m, "data", bytes(m.data)[:-1])))
 kind("image", "data empty", "reject", "truncated")(_raw(_setattr("data", b"")))
 kind("image", "width 0", "reject", "zero size")(_raw(_setattr("width", 0)))
@@ -404,7 +406,9 @@ kind("values", "metres sent as 16UC1 (0-2)", "reject", "metres sent as 16UC1")(
     lambda b: _bad(b, [image(np.round(b.frame()[0] / 1000.0 * 3), b.stamp())]))
 kind("values", "millimetres sent as 32FC1", "reject", "millimetres sent as 32FC1")(
     _depth(lambda d: d * 1000.0, "32FC1"))
-kind("values", "1e30 m (32FC1)", "reject", "millimetres sent as 32FC1")(_depth(lambda d: np.where(d > 0, 1e33, 0.0), "32FC1"))
+kind("values", "1e30 m (32FC1)", "reject", "millimetres sent as 32FC1")(
+    _depth(lambda d: np.where(d > 0, 1e33, 0.0), "32FC1")
+)
 kind("values", "tiny 1e-30 m (32FC1)", "no_pose")(_depth(lambda d: np.where(d > 0, 1e-27, 0.0), "32FC1"))
 kind("values", "saturated 65535", "no_pose")(_depth(lambda d: np.full_like(d, 65535.0)))
 kind("values", "one valid pixel", "no_pose")(_depth(lambda d: np.pad(np.full((1, 1), 420.0), ((0, H - 1), (0, W - 1)))))
@@ -536,7 +540,8 @@ def _burst_then_30hz(b: Bench):
     b._stamp = max(b._stamp, t)
     grew = b.node.stats.missed - missed0
     fast = b.node._tracker.restart_interval_s is not None
-    return [], [], ([f"{grew} frames counted missed at 30 Hz"] if grew else []) + (["still a 'fast camera'"] if fast else [])
+    problems = [f"{grew} frames counted missed at 30 Hz"] if grew else []
+    return [], [], problems + (["still a 'fast camera'"] if fast else [])
 
 
 kind("stamps", "200 Hz burst, then 30 Hz", "bounded")(_burst_then_30hz)
@@ -597,7 +602,8 @@ def _info_kind(msg: Callable[[], CameraInfo]):
 
 
 def _k(fx: float, fy: float | None = None, cx: float | None = None, cy: float | None = None) -> list[float]:
-    return [fx, 0.0, INTR.cx if cx is None else cx, 0.0, fx if fy is None else fy, INTR.cy if cy is None else cy, 0, 0, 1]
+    cx, cy = INTR.cx if cx is None else cx, INTR.cy if cy is None else cy
+    return [fx, 0.0, cx, 0.0, fx if fy is None else fy, cy, 0, 0, 1]
 
 
 F = INTR.fx
@@ -728,12 +734,16 @@ kind("compressed", "png 8-bit", "reject", "bit depth 8")(lambda b: _bad(b, [comp
 kind("compressed", "png 16-bit colour", "reject", "colour type 2")(lambda b: _bad(b, [compressed(
     "16UC1; compressedDepth png",
     HEADER + __import__("cv2").imencode(".png", np.zeros((H, W, 3), np.uint16))[1].tobytes(), b.stamp())]))
-kind("compressed", "png of half the resolution", "reject", "but CameraInfo is")(_comp(lambda d: _enc()(d[::2, ::2].copy())))
+kind("compressed", "png of half the resolution", "reject", "but CameraInfo is")(
+    _comp(lambda d: _enc()(d[::2, ::2].copy()))
+)
 kind("compressed", "rvl truncated", "reject", "truncated")(_mut("rvl", lambda x: x[: len(x) - 64]))
 kind("compressed", "rvl length not a multiple of 4", "reject", "multiple of 4")(_mut("rvl", lambda x: x[:-1]))
 kind("compressed", "rvl with data after the image", "reject", "follow the image")(
     _mut("rvl", lambda x: x + rvl_encode(np.arange(1, 200, dtype=np.uint16))))
-kind("compressed", "rvl size 0x5", "reject", "zero size")(_mut("rvl", lambda x: x[:12] + struct.pack("<II", 0, 5) + x[20:]))
+kind("compressed", "rvl size 0x5", "reject", "zero size")(
+    _mut("rvl", lambda x: x[:12] + struct.pack("<II", 0, 5) + x[20:])
+)
 kind("compressed", "rvl size 9000x9000", "reject", "more than max_image_pixels")(
     _mut("rvl", lambda x: x[:12] + struct.pack("<II", 9000, 9000) + x[20:]))
 kind("compressed", "rvl size 2^32-1 x 2^32-1", "reject", "more than max_image_pixels")(
@@ -746,7 +756,9 @@ kind("compressed", "rvl of random words", "reject", "RVL data is")(
     _mut("rvl", lambda x: x[:20] + np.random.default_rng(6).integers(0, 256, len(x) - 20, dtype=np.uint8).tobytes()))
 kind("compressed", "rvl of 4 MB of random words", "reject", "longer than any RVL stream")(
     _mut("rvl", lambda x: x[:20] + np.random.default_rng(7).integers(0, 256, 4 * 2**20, dtype=np.uint8).tobytes()))
-kind("compressed", "compressionFormat -1", "reject", "compressionFormat -1")(_mut("png", lambda x: struct.pack("<i", -1) + x[4:]))
+kind("compressed", "compressionFormat -1", "reject", "compressionFormat -1")(
+    _mut("png", lambda x: struct.pack("<i", -1) + x[4:])
+)
 kind("compressed", "header only", "reject", "not more than the 12-byte header")(_mut("png", lambda x: x[:12]))
 kind("compressed", "empty data", "reject", "not more than the 12-byte header")(_mut("png", lambda x: b""))
 kind("compressed", "format 'compressed jpeg'", "reject", "unsupported compressed depth format")(
@@ -760,7 +772,9 @@ kind("compressed", "32FC1 with A = NaN", "reject", "quantisation")(
     _mut("png", lambda x: x[:4] + struct.pack("<ff", np.nan, 1.0) + x[12:], "32FC1"))
 kind("compressed", "16UC1 payload declared 32FC1", "reject", "quantisation")(
     _mut("png", lambda x: x, "16UC1", fmt="32FC1; compressedDepth png"))
-kind("compressed", "metres as 16UC1, png", "reject", "metres sent as 16UC1")(_comp(lambda d: _enc()(np.round(d / 1000.0 * 3))))
+kind("compressed", "metres as 16UC1, png", "reject", "metres sent as 16UC1")(
+    _comp(lambda d: _enc()(np.round(d / 1000.0 * 3)))
+)
 
 # -- runtime parameters ---------------------------------------------------------------------
 
@@ -784,7 +798,9 @@ kind("parameters", "init_hypotheses at its maximum (256)", "bounded")(_params({"
 kind("parameters", "max_width_px 4096, min_quad_px 2", "bounded")(_params({"max_width_px": 4096, "min_quad_px": 2}))
 kind("parameters", "quadtree_threshold_mm 1, min_quad_px 2", "bounded")(
     _params({"quadtree_threshold_mm": 1.0, "min_quad_px": 2}))
-kind("parameters", "refine_iterations 50, median_kernel 5", "bounded")(_params({"refine_iterations": 50, "median_kernel": 5}))
+kind("parameters", "refine_iterations 50, median_kernel 5", "bounded")(
+    _params({"refine_iterations": 50, "median_kernel": 5})
+)
 kind("parameters", "far_mm 10000 with a wall", "bounded")(_params({"far_mm": 10000.0, "roi_radius_mm": 1000.0}))
 
 

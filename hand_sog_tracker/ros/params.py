@@ -36,7 +36,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from hand_sog_tracker.compressed_depth import MAX_IMAGE_PIXELS
-
 from hand_sog_tracker.core.model_io import default_model_path
 from hand_sog_tracker.core.types import TrackerConfig
 from hand_sog_tracker.errors import InputError
