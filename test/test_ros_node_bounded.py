@@ -486,6 +486,36 @@ kind("stamps", "stamp in 2038 (sec = 2^31 - 1)", "track", "ahead of the node's c
     lambda b: ([], [(b.send(image(b.frame()[0], (2**31 - 1) * 10**9)), b.clean[b._seq % 12][1])], []))
 
 
+def _diagnostics_with_future_stamps(b: Bench):
+    """/diagnostics after frames stamped a year ahead: no absurd latency (it was -3e10 ms), the
+    worst frame and the cut frames reported."""
+    published = []
+    pub = b.node._diag_pub
+    publish = pub.publish
+    pub.publish = lambda msg: (published.append(msg), publish(msg))
+    try:
+        b.node._publish_diagnostics()  # (a fresh window)
+        tracked = []
+        for _ in range(2):
+            d, tips = b.frame()
+            tracked.append((b.send(image(d, time.time_ns() + 365 * 86400 * 10**9)), tips))
+        b.node._publish_diagnostics()
+    finally:
+        pub.publish = publish
+    values = {kv.key: kv.value for kv in published[-1].status[0].values}
+    problems = []
+    if values.get("latency_ms") != "nan":
+        problems.append(f"latency_ms {values.get('latency_ms')}")
+    if not float(values.get("worst_frame_ms", "0")) > 0 or "frames_cut" not in values:
+        problems.append(f"no worst_frame_ms / frames_cut in {sorted(values)}")
+    return [], tracked[:1], problems
+
+
+kind("stamps", "/diagnostics after stamps a year ahead", "track", "ahead of the node's clock")(
+    _diagnostics_with_future_stamps
+)
+
+
 def _repeat_stamp(b: Bench):
     stamp, _ = b.good()
     d, tips = b.frame()
@@ -1007,22 +1037,34 @@ def test_every_concurrent_calibrate_call_is_answered(bench: Bench, monkeypatch: 
 
 def test_battery_memory_and_time(bench: Bench) -> None:
     """After the battery: the worst frame and peak memory against steady tracking (recorded),
-    loose bounds that the unbounded faults of issue 50 broke (2-3.5 s frames, +1.6 GB)."""
+    bounds that the unbounded faults of issue 50 broke (frames of 4-17 s, 12-50 initialisations
+    long; +0.8-1.1 GB)."""
     if not RESULTS:
         pytest.skip("the battery did not run")
     for _ in range(20):
         bench.good()
     peak = max([r["rss_mb"] for r in RESULTS] + [bench.sampler.peak])
     after = rss_mb()
+    try:  # what of it is free heap that glibc keeps (depth_sog raised its trim threshold to 32 MiB)
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+        trimmed = rss_mb()
+    except (OSError, AttributeError):
+        trimmed = after
     worst = max(RESULTS, key=lambda r: r["worst_ms"])
     failed = [r["kind"] for r in RESULTS if r["problems"] and not r["xfail"]]
     print(f"{_SIZE}: {len(RESULTS)} kinds, {len(failed)} failed; steady tracking: worst frame "
           f"{bench.steady_ms:.0f} ms, peak RSS {bench.steady_rss:.0f} MB; battery: worst frame "
           f"{worst['worst_ms']:.0f} ms ({worst['kind']}), peak RSS {peak:.0f} MB "
-          f"(+{peak - bench.steady_rss:.0f}), after {after:.0f} MB (+{after - bench.steady_rss:.0f})")
+          f"(+{peak - bench.steady_rss:.0f}), after {after:.0f} MB (+{after - bench.steady_rss:.0f}; "
+          f"+{trimmed - bench.steady_rss:.0f} after malloc_trim)")
     if RECORD:
         with open(RECORD, "a") as f:
             f.write(json.dumps(dict(summary=_SIZE, steady_ms=bench.steady_ms, steady_rss=bench.steady_rss,
-                                    peak_rss=peak, after_rss=after, worst=worst)) + "\n")
+                                    peak_rss=peak, after_rss=after, trimmed_rss=trimmed, worst=worst)) + "\n")
     assert peak - bench.steady_rss < 50.0
-    assert worst["worst_ms"] < 1500.0
+    # No bad input costs more than a small factor of a clean frame's initialisation (the clean
+    # frames after each kind, measured in the same run: the machine's load scales both).
+    init_ms = max(r["recover_ms"] for r in RESULTS)
+    assert worst["worst_ms"] <= 3.0 * init_ms, (worst, init_ms)
