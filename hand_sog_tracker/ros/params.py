@@ -365,7 +365,7 @@ def _type_mistake(err: InvalidParameterTypeException) -> str:
     found = _TYPE_MISTAKE.search(str(err))
     spec = _SPEC_BY_NAME.get(found["name"]) if found else None
     if found is None or spec is None:
-        return f"cannot start: {err}"
+        return str(err)
     value, expected = found["value"], type(spec.default)
     hint = ""
     if expected is float and found["type"] == "INTEGER":
