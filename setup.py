@@ -50,6 +50,8 @@ setup(
             f"evaluate_bag = {PACKAGE}.tools.evaluate_bag:main",
             f"replay_bag = {PACKAGE}.tools.replay_bag:main",
             f"make_sample_bags = {PACKAGE}.tools.make_sample_bags:main",
+            f"make_scene_bags = {PACKAGE}.tools.make_scene_bags:main",
+            f"scene_eval = {PACKAGE}.tools.scene_eval:main",
             f"benchmark = {PACKAGE}.tools.benchmark:main",
             f"calibration_benchmark = {PACKAGE}.tools.calibration_benchmark:main",
             f"demo = {PACKAGE}.tools.demo:main",
