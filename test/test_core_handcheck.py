@@ -50,6 +50,14 @@ def test_a_hand_under_its_model_passes_with_every_finger_shown() -> None:
     assert np.all(dec.fingers > 0.6)
 
 
+def test_a_hand_resting_on_a_wall_passes() -> None:
+    """The wall 25 mm behind the hand's centre (the back of the hand on it) is background."""
+    rng = np.random.default_rng(5)
+    depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=445.0), rng)
+    dec = check_hand(depth, INTR, MODEL, _result(THETA))
+    assert dec.confidence >= 0.9, dec.evidence
+
+
 def test_a_head_a_forearm_stump_and_a_wall_are_no_hand() -> None:
     res = _result(THETA)
     palm = THETA[:3] + np.array([0.0, -50.0, 0.0])
@@ -92,7 +100,8 @@ def test_the_gate_resets_at_once_on_no_hand_and_after_reset_frames_when_unsure(m
     import hand_sog_tracker.core.handcheck as hc
 
     conf = [0.0]
-    monkeypatch.setattr(hc, "check_hand", lambda *a: hc.HandDecision(False, conf[0], np.ones(5)))
+    ev = hc.HandEvidence(1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+    monkeypatch.setattr(hc, "check_hand", lambda *a: hc.HandDecision(False, conf[0], np.ones(5), ev))
     t = _Counting()
     gate = HandGate(threshold=0.5, reset_frames=3)
     wall = np.zeros((INTR.height, INTR.width), np.float32)
@@ -104,6 +113,26 @@ def test_the_gate_resets_at_once_on_no_hand_and_after_reset_frames_when_unsure(m
     assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present and t.resets == 2
     with pytest.raises(ValueError):
         HandGate(threshold=1.5)
+
+
+def test_a_new_track_is_reported_from_its_first_frame_with_a_finger_end(monkeypatch) -> None:
+    """A model curled into a fist fits a head: a new track waits for a finger seen to end."""
+    import hand_sog_tracker.core.handcheck as hc
+
+    ends = [math.nan]
+    monkeypatch.setattr(
+        hc, "check_hand",
+        lambda *a: hc.HandDecision(False, 0.9, np.ones(5), hc.HandEvidence(1.0, 1.0, 1.0, ends[0], 1.0, 1.0)),
+    )
+    gate, t = HandGate(), _Counting()
+    wall = np.zeros((INTR.height, INTR.width), np.float32)
+    assert not gate.decide(t, wall, INTR, MODEL, _result(THETA)).present  # no finger seen yet
+    ends[0] = 1.0
+    assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present
+    ends[0] = math.nan  # the hand closes: still the same track
+    assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present
+    gate.decide(t, wall, INTR, MODEL, TrackResult(TrackerStatus.LOST, None, None, None, 0.0, 0.0, 0))
+    assert not gate.decide(t, wall, INTR, MODEL, _result(THETA)).present  # a new track: again
 
 
 def test_checked_tracker_drops_the_pose_of_a_frame_that_is_no_hand() -> None:

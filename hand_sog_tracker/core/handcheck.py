@@ -7,29 +7,35 @@ The tracker fits its model to whatever lies near the last hand: a forearm at the
 border, a head, a cup.  :func:`check_hand` compares the fitted model with the depth image on a
 coarse pixel grid (about 160 px wide) and measures what a hand gives and those do not:
 
-* **model on data** (``on``): of the model's projected silhouette (each Gaussian a disc of its
-  skin radius, with its front surface depth), the share whose pixels hold data at the model's
-  depth (within ``DEPTH_TOL_MM``).  Pixels whose data lie in front of the model are *occluded*
+* **model on data** (``on``): of the cores of the model's projected Gaussians (each a disc of
+  ``ON_CORE`` times its skin radius, with its front surface depth: the model's spheres overflow
+  a flat palm or finger seen edge-on), the share whose pixels hold data at the model's depth
+  (within ``DEPTH_TOL_MM``).  Pixels whose data lie in front of the model are *occluded*
   (an object in the hand, another finger) and count neither way; pixels with no data, data
   behind the model or outside the image count against.
 * **data explained** (``explained``): of the foreground data around the model (within
   ``MARGIN_MM`` of its silhouette, on the hand side of the wrist plane, not behind the nearest
-  model surface by more than ``BEHIND_MM``: a table or a wall behind the hand is background),
+  model surface by more than ``DEPTH_TOL_MM``: a table or a wall behind the hand is background),
   the share the silhouette covers.  A head, a torso or a table edge the model sits on leaves
   much of it unexplained; a hand does not.
 * **fingers on data** (``fingers_on``): the same share per finger (thumb .. little), averaged
   over the five.  The palm alone lying on a forearm stump, its fingers in the air, gives a high
   ``on`` but a low ``fingers_on``.
+* **outline** (``outline``): in a ring just outside the silhouette (hand side of the wrist), the
+  share where the depth steps back by more than ``EDGE_MM`` from the data of the nearest model
+  pixel, or has none: a hand's outline is a depth edge, also on a table; a model lying on a
+  head, a box or a table top has the same surface on both sides of its outline.
 * **finger ends** (``ends``): past each fingertip, along the finger in the image, the data must
-  end (a finger-like extremity): a model finger lying on a forearm, a head or a box runs into
-  more surface there.  Fingers seen end-on are left out.
+  end or step back by more than ``EDGE_MM`` (a finger-like extremity): a model finger lying on
+  a forearm, a head or a box runs into more surface there.  Fingers seen end-on are left out.
 
-The confidence is the product of the four, each mapped linearly onto [0, 1]: ``on`` from
+The confidence is the product of the five, each mapped linearly onto [0, 1]: ``on`` from
 ``ON_LOW`` to ``ON_HIGH``, ``fingers_on`` from ``FINGERS_LOW`` to ``FINGERS_HIGH``,
-``explained`` from ``EXPLAINED_LOW`` to ``EXPLAINED_HIGH``, ``ends`` from ``ENDS_LOW`` to 1 (no
-finger checked: 1).  A product, because each failure alone means "no hand": a model on a head
-or a table edge lies on data but explains little of it, a model on a forearm stump explains it
-but its fingers hang off it, a model flat on a table does both but its fingers do not end.
+``explained`` from ``EXPLAINED_LOW`` to ``EXPLAINED_HIGH``, ``outline`` from ``OUTLINE_LOW`` to
+``OUTLINE_HIGH``, ``ends`` from ``ENDS_LOW`` to 1 (no finger checked: 1).  A product, because
+each failure alone means "no hand": a model on a head or among cups lies on data but explains
+little of it and has no outline, a model on a forearm stump explains it but its fingers hang off
+it, a model flat on a table top does both but has no outline.
 
 Per finger: the share of that finger's
 silhouette on data (occluded pixels count against: a finger the data cannot show is reported
@@ -38,7 +44,10 @@ with a low confidence).
 :class:`HandGate` applies it: below its threshold the frame is "no hand" (no pose is reported);
 below ``RESET_BELOW``, or after ``RESET_FRAMES`` frames in a row below the threshold, the
 tracker is reset, so that the next frame searches the whole image afresh instead of keeping a
-wrong lock.
+wrong lock.  A new track is reported only from its first frame with a finger seen to end
+(``ends`` at least ``ENDS_CONFIRM``): a model curled into a fist fits a head or a ball as well
+as a fist, and the fingers are what a hand has and they do not (a fist that enters the view is
+reported once it opens a finger; a tracked hand that closes into a fist stays reported).
 """
 
 from __future__ import annotations
@@ -57,7 +66,6 @@ from hand_sog_tracker.core.types import Intrinsics, TrackResult
 __all__ = [
     "DEPTH_TOL_MM",
     "MARGIN_MM",
-    "BEHIND_MM",
     "HAND_THRESHOLD",
     "HandEvidence",
     "HandDecision",
@@ -68,18 +76,23 @@ __all__ = [
 
 DEPTH_TOL_MM: Final = 20.0  #: data within this of the model's front surface lie on it (chosen here)
 MARGIN_MM: Final = 35.0  #: foreground data this close to the silhouette must be explained (chosen here)
-BEHIND_MM: Final = 12.0  #: data farther behind the nearest model surface are background (chosen here)
+ON_CORE: Final = 0.6  #: ``on`` looks at discs of this share of each Gaussian's radius (chosen here)
 WRIST_MARGIN_MM: Final = 10.0  #: data beyond the wrist plane by more than this are the forearm
+OUTLINE_RING_PX: Final = (1.5, 3.5)  #: the outline ring, grid pixels outside the silhouette
+EDGE_MM: Final = 10.0  #: a step back of more than this is an edge (chosen here)
 END_GAP_MM: Final = 25.0  #: finger-end samples this far (and 1.5 times) past the tip's skin (chosen here)
 END_STRAIGHT_COS: Final = 0.5  #: fingers whose distal and proximal bones are nearer than 60 deg are checked
-ON_LOW, ON_HIGH = 0.65, 0.85  #: ``on`` mapped onto 0 .. 1 (chosen on scenes_dev)
-FINGERS_LOW, FINGERS_HIGH = 0.3, 0.6  #: ``fingers_on`` mapped onto 0 .. 1 (chosen on scenes_dev)
+ON_LOW, ON_HIGH = 0.60, 0.85  #: ``on`` mapped onto 0 .. 1 (chosen on scenes_dev)
+FINGERS_LOW, FINGERS_HIGH = 0.35, 0.65  #: ``fingers_on`` mapped onto 0 .. 1 (chosen on scenes_dev)
+OUTLINE_LOW, OUTLINE_HIGH = 0.2, 0.6  #: ``outline`` mapped onto 0 .. 1 (chosen on scenes_dev)
 EXPLAINED_LOW, EXPLAINED_HIGH = 0.70, 0.92  #: ``explained`` mapped onto 0 .. 1 (chosen on scenes_dev)
 ENDS_LOW: Final = 0.3  #: share of ending fingers mapped onto 0 (chosen on scenes_dev)
 #: Default threshold of :class:`HandGate` (and of the node's ``hand_threshold``).
 HAND_THRESHOLD: Final = 0.2
 #: Default ``reset_frames`` of :class:`HandGate` (0.1 s at 30 Hz; chosen on scenes_dev).
 RESET_FRAMES: Final = 3
+#: A new track is reported from its first frame with at least this share of finger ends.
+ENDS_CONFIRM: Final = 0.5
 #: A tracked frame below this confidence resets the tracker at once (one evidence failed
 #: outright: the model is on something else).
 RESET_BELOW: Final = 0.05
@@ -102,6 +115,9 @@ class HandEvidence:
         Share of the checked fingers whose data end past the fingertip (NaN: none checked).
     in_view : float
         Share of the model's silhouette inside the image.
+    outline : float
+        Share of the ring just outside the silhouette (hand side of the wrist) where the depth
+        steps back from the model's data or has none: the hand's outline is a depth edge.
     """
 
     on: float
@@ -109,6 +125,7 @@ class HandEvidence:
     fingers_on: float
     ends: float
     in_view: float
+    outline: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,13 +197,14 @@ def check_hand(
     u0, u1 = int(math.floor((u - rp).min())) - pad, int(math.ceil((u + rp).max())) + pad + 1
     v0, v1 = int(math.floor((v - rp).min())) - pad, int(math.ceil((v + rp).max())) + pad + 1
     if u1 - u0 > 4 * gw or v1 - v0 > 4 * gh:  # (a degenerate pose: nothing sensible to check)
-        return HandDecision(False, 0.0, evidence=HandEvidence(0.0, 0.0, 0.0, math.nan, 0.0))
+        return HandDecision(False, 0.0, evidence=HandEvidence(0.0, 0.0, 0.0, math.nan, 0.0, 0.0))
     uu = np.arange(u0, u1, dtype=np.float64)
     vv = np.arange(v0, v1, dtype=np.float64)
     bh, bw = vv.size, uu.size
     # Model front depth (inf: off the model) and the Gaussian that makes it.
     front = np.full((bh, bw), np.inf)
     owner = np.full((bh, bw), -1, dtype=np.int64)
+    core = np.zeros((bh, bw), dtype=bool)
     for i in range(C.shape[0]):
         a0, a1 = max(int(u[i] - rp[i]) - u0, 0), min(int(u[i] + rp[i]) + 2 - u0, bw)
         b0, b1 = max(int(v[i] - rp[i]) - v0, 0), min(int(v[i] + rp[i]) + 2 - v0, bh)
@@ -200,6 +218,7 @@ def check_hand(
         closer = zf < view
         view[closer] = zf[closer]
         own[closer] = i
+        core[b0:b1, a0:a1] |= d2 >= (1.0 - ON_CORE * ON_CORE) * r[i] * r[i]
     on_model = np.isfinite(front)
     # The data in the box (0 outside the image).
     data = np.zeros((bh, bw), dtype=np.float32)
@@ -210,9 +229,9 @@ def check_hand(
     inside[max(iv0 - v0, 0) : max(iv1 - v0, 0), max(iu0 - u0, 0) : max(iu1 - u0, 0)] = True
     valid = data > 0
     diff = np.where(valid, data - np.where(on_model, front, 0.0), np.inf)
-    on = on_model & valid & (np.abs(diff) <= DEPTH_TOL_MM)
-    occluded = on_model & valid & (diff < -DEPTH_TOL_MM)
-    off = on_model & ~on & ~occluded
+    on = core & valid & (np.abs(diff) <= DEPTH_TOL_MM)
+    occluded = core & valid & (diff < -DEPTH_TOL_MM)
+    off = core & ~on & ~occluded
     n_on, n_off = int(np.count_nonzero(on)), int(np.count_nonzero(off))
     on_share = n_on / max(n_on + n_off, 1)
     in_view = float(np.count_nonzero(on_model & inside)) / max(int(np.count_nonzero(on_model)), 1)
@@ -225,18 +244,19 @@ def check_hand(
     px = ((uu[None, :] - cx) / fx) * zs
     py = ((vv[:, None] - cy) / fy) * zs
     along = (px - result.pose[0]) * axis[0] + (py - result.pose[1]) * axis[1] + (zs - result.pose[2]) * axis[2]
-    fg = valid & np.isfinite(near_front) & (data <= near_front + BEHIND_MM + DEPTH_TOL_MM)
+    fg = valid & np.isfinite(near_front) & (data <= near_front + DEPTH_TOL_MM)
     fg &= (data >= near_front - 3.0 * MARGIN_MM) & (along > -WRIST_MARGIN_MM)
     covered = cv2.dilate(on_model.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     n_fg = int(np.count_nonzero(fg))
     explained = float(np.count_nonzero(fg & covered)) / max(n_fg, 1) if n_fg else 0.0
 
+    outline = _outline(data, valid, inside, on_model, (uu, vv), (fx, fy, cx, cy), result.pose, axis)
     ends = _finger_ends(depth, result, model, (fx, fy, cx, cy), on_model, (u0, v0))
     fingers = np.zeros(5)  # per finger: on / all (occluded counts against: not shown)
     visible_on = np.zeros(5)  # per finger: on / (on + off)
     own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
     for c in range(5):
-        mine = own_chain == c
+        mine = (own_chain == c) & core
         n = int(np.count_nonzero(mine))
         n_c_on = int(np.count_nonzero(mine & on))
         fingers[c] = n_c_on / n if n else 0.0
@@ -248,10 +268,56 @@ def check_hand(
         _ramp(on_share, ON_LOW, ON_HIGH)
         * _ramp(fingers_on, FINGERS_LOW, FINGERS_HIGH)
         * _ramp(explained, EXPLAINED_LOW, EXPLAINED_HIGH)
+        * _ramp(outline, OUTLINE_LOW, OUTLINE_HIGH)
         * e_factor
     )
     fingers *= confidence > 0  # (no finger of a frame that is no hand)
-    return HandDecision(False, confidence, fingers, HandEvidence(on_share, explained, fingers_on, ends, in_view))
+    return HandDecision(
+        False, confidence, fingers, HandEvidence(on_share, explained, fingers_on, ends, in_view, outline)
+    )
+
+
+def _outline(
+    data: NDArray[np.float32],
+    valid: NDArray[np.bool_],
+    inside: NDArray[np.bool_],
+    on_model: NDArray[np.bool_],
+    grid: tuple[NDArray[np.float64], NDArray[np.float64]],
+    k: tuple[float, float, float, float],
+    theta: NDArray[np.float64],
+    axis: NDArray[np.float64],
+) -> float:
+    """Share of the outline ring (``OUTLINE_RING_PX`` outside the silhouette) that is a depth
+    edge: no data, or data more than ``EDGE_MM`` behind the data of the nearest model pixel."""
+    if not on_model.any():
+        return 0.0
+    dist, labels = cv2.distanceTransformWithLabels(
+        (~on_model).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    lut = np.zeros(int(labels.max()) + 1, dtype=np.int64)
+    model_flat = np.flatnonzero(on_model)
+    lut[labels.ravel()[model_flat]] = model_flat
+    ring = (dist > OUTLINE_RING_PX[0]) & (dist <= OUTLINE_RING_PX[1]) & inside
+    ring_idx = np.flatnonzero(ring)
+    near = lut[labels.ravel()[ring_idx]]
+    inner = data.ravel()[near]
+    ok = valid.ravel()[near]
+    ring_idx, near, inner = ring_idx[ok], near[ok], inner[ok]
+    if ring_idx.size == 0:
+        return 0.0
+    fx, fy, cx, cy = k
+    uu, vv = grid
+    w = on_model.shape[1]
+    pu, pv = uu[ring_idx % w], vv[ring_idx // w]
+    p = np.stack([(pu - cx) / fx * inner, (pv - cy) / fy * inner, inner.astype(np.float64)], 1)
+    hand_side = (p - theta[:3]) @ axis > -WRIST_MARGIN_MM
+    d = data.ravel()[ring_idx]
+    has = valid.ravel()[ring_idx]
+    edge = ~has | (d > inner + EDGE_MM)
+    occluder = has & (d < inner - DEPTH_TOL_MM)
+    count = hand_side & ~occluder
+    n = int(np.count_nonzero(count))
+    return float(np.count_nonzero(edge & count)) / n if n else 0.0
 
 
 def _hand_axis(theta: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -298,9 +364,12 @@ def _finger_ends(
             bu, bv = iu - origin[0], iv - origin[1]
             if 0 <= bu < bw and 0 <= bv < bh and on_model[bv, bu]:
                 continue  # another part of the model lies there (a crossing thumb)
-            samples += 1
             dz = float(depth[iv, iu])
-            fg += dz > 0 and abs(dz - tip[2]) < 1.5 * DEPTH_TOL_MM
+            surface = tip[2] - float(model.tip_radii[c])
+            if 0 < dz < surface - DEPTH_TOL_MM:
+                continue  # something in front of the finger: cannot tell
+            samples += 1
+            fg += 0 < dz <= surface + EDGE_MM
         if samples == 0:
             continue
         checked += 1
@@ -338,6 +407,7 @@ class HandGate:
         self.threshold = float(threshold)
         self.reset_frames = int(reset_frames)
         self._low = 0
+        self._confirmed = False  # the current track has shown a finger end
 
     def decide(
         self, tracker: _Resettable, depth_mm: NDArray, intr: Intrinsics, model: HandModel, result: TrackResult
@@ -347,12 +417,18 @@ class HandGate:
         dec = check_hand(depth_mm, intr, model, result)
         if result.pose is None:
             self._low = 0
+            self._confirmed = False
             return dec
-        present = dec.confidence >= self.threshold
-        self._low = 0 if present else self._low + 1
+        ends = math.nan if dec.evidence is None else dec.evidence.ends
+        sure = dec.confidence >= self.threshold
+        if sure and not self._confirmed and ends >= ENDS_CONFIRM:  # (NaN: no finger seen)
+            self._confirmed = True
+        present = sure and self._confirmed
+        self._low = 0 if sure else self._low + 1
         if self._low >= self.reset_frames or dec.confidence < RESET_BELOW:
             tracker.reset()
             self._low = 0
+            self._confirmed = False
         return HandDecision(present, dec.confidence, dec.fingers, dec.evidence)
 
 

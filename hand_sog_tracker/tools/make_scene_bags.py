@@ -5,8 +5,8 @@ and sensors of the two splits define one reproducible data set.
 
 Usage::
 
-    make_scene_bags --set scenes_dev  [--out bags/scenes_dev]  [--frames 45]
-    make_scene_bags --set scenes_test [--out DIR] [--frames 60] [--repeats 3]
+    make_scene_bags --set scenes_dev --surface-frames 15     # the bundled bags/scenes_dev
+    make_scene_bags --set scenes_test --out DIR [--frames 45] [--repeats 3]
 
 One bag per scene type of :data:`hand_sog_tracker.synth.scenes.SCENE_TYPES` (and per repeat,
 ``<type>_<r>`` for ``r > 0``), rendered by :func:`~hand_sog_tracker.synth.scenes.scene_frames`
@@ -18,6 +18,10 @@ hand in the scene, even outside the image).  Each bag directory also holds:
   sensor, handedness, size, frames);
 * ``scene_truth.json``: per frame its stamp (ns), visibility (``full``/``partial``/``absent``)
   and the 21 joints (mm, MediaPipe order, null without a hand).
+
+``--surface-frames N`` gives the scenes with large surfaces (``nohand_head``, ``nohand_objects``,
+``table``: a noisy ToF surface is 30-50 kB per compressed frame) N frames instead (the bundled
+``bags/scenes_dev`` uses 15 to stay small; the generator writes bigger sets).
 
 ``scenes_dev`` (look, tune) and ``scenes_test`` (score only) differ in seeds
 (``crc32("<set>/<type>/<repeat>")``), hand shapes and sensor assignment.
@@ -61,6 +65,8 @@ _SETS: Final[dict[str, dict[str, Any]]] = {
 }
 #: The scene sets :func:`scene_set` knows.
 SCENE_SETS: Final = tuple(_SETS)
+#: Scene types with large surfaces (see ``--surface-frames``).
+SURFACE_TYPES: Final = ("nohand_head", "nohand_objects", "table")
 
 
 @dataclass(frozen=True)
@@ -76,8 +82,9 @@ class SceneSpec:
     split: str
 
 
-def scene_set(name: str, frames: int = 45, repeats: int = 1) -> list[SceneSpec]:
-    """The bags of scene set ``name`` (``scenes_dev`` or ``scenes_test``), deterministic.
+def scene_set(name: str, frames: int = 45, repeats: int = 1, surface_frames: int | None = None) -> list[SceneSpec]:
+    """The bags of scene set ``name`` (``scenes_dev`` or ``scenes_test``), deterministic;
+    ``surface_frames``: frames of the :data:`SURFACE_TYPES` (default ``frames``).
 
     Raises
     ------
@@ -100,7 +107,7 @@ def scene_set(name: str, frames: int = 45, repeats: int = 1) -> list[SceneSpec]:
                     seed=zlib.crc32(f"{name}/{kind}/{r}".encode("utf-8")) & 0x7FFFFFFF,
                     shape=MeshShape(*d["shapes"][i % len(d["shapes"])]),
                     sensor=d["sensors"][(i + r) % len(d["sensors"])],
-                    frames=frames,
+                    frames=surface_frames if surface_frames and kind in SURFACE_TYPES else frames,
                     split=d["split"],
                 )
             )
@@ -167,12 +174,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="output directory (default bags/<set>)")
     p.add_argument("--frames", type=int, default=45, help="frames per bag (default 45, 1.5 s at 30 fps)")
     p.add_argument("--repeats", type=int, default=1, help="bags per scene type, other seeds (default 1)")
+    p.add_argument("--surface-frames", type=int, default=None, metavar="N",
+                   help="frames of the scenes with large surfaces (default --frames)")
     p.add_argument("--only", nargs="+", metavar="TYPE", choices=SCENE_TYPES, help="only these scene types")
     args = p.parse_args(argv)
     root = Path(args.out or Path("bags") / args.scene_set)
     try:
         total = 0
-        for spec in scene_set(args.scene_set, args.frames, args.repeats):
+        for spec in scene_set(args.scene_set, args.frames, args.repeats, args.surface_frames):
             if args.only and spec.kind not in args.only:
                 continue
             size = write_scene_bag(root / spec.name, spec)

@@ -81,8 +81,12 @@ def evaluate_scene_core(bag: str | Path, gate: bool = True, threshold: float | N
                 "confidence": dec.confidence, "fingers": dec.fingers.round(3).tolist(),
                 "tip_mm": tip, "tip_max_mm": tip_max, "palm_mm": palm,
                 "reported_skeleton": skel is not None,
-                "evidence": None if ev is None else [ev.on, ev.explained, ev.fingers_on, ev.ends, ev.in_view],
+                "evidence": None if ev is None else [
+                    ev.on, ev.explained, ev.fingers_on, ev.ends, ev.in_view, ev.outline
+                ],
                 "check_ms": ms,
+                "pose": None if res.pose is None else np.round(res.pose, 5).tolist(),
+                "model_length": float(model.shape.length),
             })
     return out
 
@@ -160,6 +164,45 @@ def refind_frames(records: list[dict[str, Any]]) -> list[int | None]:
     return out
 
 
+def write_overlays(bag: str | Path, records: list[dict[str, Any]], out_dir: str | Path, n: int = 2) -> list[Path]:
+    """Overlay PNGs (:func:`~hand_sog_tracker.core.overlay.draw_overlay`) of the ``n`` worst
+    frames of a core-mode run of ``bag``: the most confident frames without a hand, or the
+    frames with a hand reported farthest off or not reported at all (largest tip error)."""
+    import cv2
+
+    from hand_sog_tracker.core.hand_model import HandShape, default_hand_model
+    from hand_sog_tracker.core.overlay import draw_overlay
+
+    def badness(r: dict[str, Any]) -> float:
+        if r["visibility"] == ABSENT:
+            return r["confidence"] if r["reported"] else -1.0
+        if r["visibility"] != FULL:
+            return -1.0
+        return (0.0 if r["reported"] else 1000.0) + (r["tip_mm"] if r["tip_mm"] == r["tip_mm"] else 500.0)
+
+    worst = sorted((r for r in records if badness(r) >= 0), key=badness, reverse=True)[:n]
+    want = {r["index"]: r for r in worst}
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    with DepthBagReader(bag, require_truth=False) as reader:
+        for f in reader.frames():
+            r = want.get(f.index)
+            if r is None:
+                continue
+            model = default_hand_model().scaled(HandShape(length=r.get("model_length", 1.0)))
+            pose = None if r.get("pose") is None else np.asarray(r["pose"])
+            label = (
+                f"{Path(bag).name} #{f.index} {r['visibility']} conf {r['confidence']:.2f} "
+                f"{'hand' if r['reported'] else 'no hand'} tip {r['tip_mm']:.0f} mm"
+            )
+            img = draw_overlay(f.depth_mm, f.intrinsics, model, pose, 150.0, 900.0, label)
+            path = out / f"{Path(bag).name}_{f.index:03d}.png"
+            cv2.imwrite(str(path), img)
+            written.append(path)
+    return written
+
+
 def evaluate_scene_node(bag: str | Path, domain_id: int) -> list[dict[str, Any]]:
     """Per-frame records of ``bag`` replayed to ``tracker_node`` at its rate (30 Hz)."""
     from hand_sog_tracker.tools.scene_node import replay_scene
@@ -175,6 +218,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--domain-id", type=int, default=91)
     p.add_argument("--no-gate", action="store_true", help="core mode without the hand gate (evidence only)")
     p.add_argument("--json", default=None, help="write the per-frame records and summaries here")
+    p.add_argument("--overlays", default=None, metavar="DIR", help="core mode: overlays of the 2 worst frames per bag")
     args = p.parse_args(argv)
     bags: list[Path] = []
     for a in args.paths:
@@ -190,6 +234,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 recs = evaluate_scene_core(bag, gate=not args.no_gate)
             s = summarise(recs)
             s["refind"] = refind_frames(recs)
+            if args.overlays and not args.through_node:
+                write_overlays(bag, recs, args.overlays)
             results[bag.name] = {"scene": kind, "split": read_sidecar(bag).get("split"), "summary": s, "records": recs}
             print(f"{bag.name:16s} " + " ".join(f"{k}={_fmt(v)}" for k, v in s.items()), flush=True)
     except HandSogError as err:
