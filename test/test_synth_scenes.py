@@ -83,3 +83,22 @@ def test_pose_mesh_wrist_is_the_pose_translation() -> None:
     pm = pose_mesh(theta)
     d = np.linalg.norm(pm.joints[:, 0] - theta[:3], axis=1)
     assert d.min() > 20.0 and d.max() < 120.0
+
+
+def test_scene_metrics_auc_refind_and_no_hand_share() -> None:
+    from hand_sog_tracker.tools.scene_eval import refind_frames, roc_auc, summarise
+
+    assert roc_auc([0.9, 0.8, 0.1], [True, True, False]) == 1.0
+    assert roc_auc([0.5, 0.5], [True, False]) == 0.5
+    assert np.isnan(roc_auc([0.5], [True]))
+
+    def rec(vis: str, reported: bool, tip: float, conf: float) -> dict:
+        return {"visibility": vis, "reported": reported, "posed": reported or conf > 0, "tip_mm": tip,
+                "tip_max_mm": tip, "palm_mm": tip, "confidence": conf}
+
+    recs = [rec(FULL, True, 5.0, 0.9), rec(ABSENT, False, np.nan, 0.0), rec(ABSENT, True, np.nan, 0.4),
+            rec(FULL, True, 50.0, 0.1), rec(FULL, False, 30.0, 0.0), rec(FULL, True, 8.0, 0.8)]
+    s = summarise(recs)
+    assert s["no_hand_reported"] == 0.5 and s["full_ok"] == 0.5
+    assert s["auc"] == 1.0 and s["auc_frames"] == (2, 2)  # good: 0.9, 0.8; bad: 0.4 (no hand), 0.1
+    assert refind_frames(recs) == [2]  # back in full view at frame 3, all tips < 20 mm at frame 5

@@ -45,7 +45,8 @@ with a low confidence).
 below ``RESET_BELOW``, or after ``RESET_FRAMES`` frames in a row below the threshold, the
 tracker is reset, so that the next frame searches the whole image afresh instead of keeping a
 wrong lock.  A new track is reported only from its first frame with a finger seen to end
-(``ends`` at least ``ENDS_CONFIRM``): a model curled into a fist fits a head or a ball as well
+(``ends`` at least ``ENDS_CONFIRM``; until then its confidence is multiplied by the ``ends``
+ramp, a frame with no finger seen counting as none ending): a model curled into a fist fits a head or a ball as well
 as a fist, and the fingers are what a hand has and they do not (a fist that enters the view is
 reported once it opens a finger; a tracked hand that closes into a fist stays reported).
 """
@@ -420,7 +421,10 @@ class HandGate:
             self._confirmed = False
             return dec
         ends = math.nan if dec.evidence is None else dec.evidence.ends
-        sure = dec.confidence >= self.threshold
+        conf = dec.confidence
+        if not self._confirmed:  # a new track: no finger seen to end counts as none ending
+            conf *= _ramp(0.0 if math.isnan(ends) else ends, ENDS_LOW, 1.0)
+        sure = conf >= self.threshold
         if sure and not self._confirmed and ends >= ENDS_CONFIRM:  # (NaN: no finger seen)
             self._confirmed = True
         present = sure and self._confirmed
@@ -429,7 +433,7 @@ class HandGate:
             tracker.reset()
             self._low = 0
             self._confirmed = False
-        return HandDecision(present, dec.confidence, dec.fingers, dec.evidence)
+        return HandDecision(present, conf, dec.fingers * (conf > 0), dec.evidence)
 
 
 class CheckedTracker:

@@ -203,11 +203,11 @@ def write_overlays(bag: str | Path, records: list[dict[str, Any]], out_dir: str 
     return written
 
 
-def evaluate_scene_node(bag: str | Path, domain_id: int) -> list[dict[str, Any]]:
-    """Per-frame records of ``bag`` replayed to ``tracker_node`` at its rate (30 Hz)."""
+def evaluate_scene_node(bag: str | Path, domain_id: int, rate_hz: float = 30.0) -> list[dict[str, Any]]:
+    """Per-frame records of ``bag`` replayed to ``tracker_node`` at ``rate_hz`` (the bags: 30 Hz)."""
     from hand_sog_tracker.tools.scene_node import replay_scene
 
-    return replay_scene(bag, domain_id)
+    return replay_scene(bag, domain_id, rate_hz)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -216,6 +216,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("paths", nargs="+", help="scene bags or directories of them")
     p.add_argument("--through-node", action="store_true")
     p.add_argument("--domain-id", type=int, default=91)
+    p.add_argument("--rate-hz", type=float, default=30.0, help="--through-node: publishing rate (default 30)")
     p.add_argument("--no-gate", action="store_true", help="core mode without the hand gate (evidence only)")
     p.add_argument("--json", default=None, help="write the per-frame records and summaries here")
     p.add_argument("--overlays", default=None, metavar="DIR", help="core mode: overlays of the 2 worst frames per bag")
@@ -229,7 +230,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for bag in bags:
             kind = read_sidecar(bag).get("scene", bag.name)
             if args.through_node:
-                recs = evaluate_scene_node(bag, args.domain_id)
+                recs = evaluate_scene_node(bag, args.domain_id, args.rate_hz)
             else:
                 recs = evaluate_scene_core(bag, gate=not args.no_gate)
             s = summarise(recs)

@@ -3,7 +3,8 @@
 One job: the node side of :mod:`hand_sog_tracker.tools.scene_eval`; kept apart because it needs
 rclpy (through :class:`~hand_sog_tracker.tools.node_harness.NodeHarness`).
 
-The bag's frames are published at 30 Hz (their stamps' rate) after one warm-up frame; the node's
+The bag's frames are published at 30 Hz (their stamps' rate) after the first frame alone as a
+warm-up (see :func:`replay_scene`); the node's
 ``hand/confidence`` (every processed frame) and ``hand/keypoints`` (the reported hands) are
 matched to the frames by stamp.  A frame without a ``hand/confidence`` message was not processed
 (dropped): it counts as "no hand reported".
@@ -30,7 +31,9 @@ __all__ = ["replay_scene"]
 _RUN = [0]
 
 
-def replay_scene(bag: str | Path, domain_id: int, rate_hz: float = 30.0, drain_s: float = 3.0) -> list[dict[str, Any]]:
+def replay_scene(
+    bag: str | Path, domain_id: int, rate_hz: float = 30.0, drain_s: float = 3.0
+) -> list[dict[str, Any]]:
     """Per-frame records (as :func:`scene_eval.evaluate_scene_core`'s) of ``bag`` through the node."""
     from geometry_msgs.msg import PoseArray
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -61,13 +64,17 @@ def replay_scene(bag: str | Path, domain_id: int, rate_hz: float = 30.0, drain_s
         h.node.create_subscription(JointState, h.topic(CONFIDENCE_TOPIC), on_conf, qos)
         h.node.create_subscription(PoseArray, h.topic(KEYPOINTS_TOPIC), on_kp, qos)
         time.sleep(1.0)  # (the new subscriptions match)
-        # Warm-up: an empty frame with a stamp before the bag's, answered before the replay.
+        # Warm-up as evaluate_bag --through-node does: the first frame alone, answered before the
+        # replay, which then starts again from it (same stamp: the node keeps its track), so that
+        # the one-off cost of the node's first detection is not part of the 30 Hz replay.
         f0 = frames[0]
-        warm = f0.stamp_ns - 1_000_000_000
-        h.publish_depth(np.zeros_like(f0.depth_mm), f0.intrinsics, warm)
-        t_end = time.monotonic() + 10.0
-        while time.monotonic() < t_end and warm not in conf:
+        h.publish_depth(f0.depth_mm, f0.intrinsics, f0.stamp_ns)
+        t_end = time.monotonic() + 15.0
+        while time.monotonic() < t_end and f0.stamp_ns not in conf:
             time.sleep(0.02)
+        with lock:
+            conf.pop(f0.stamp_ns, None)
+            kps.pop(f0.stamp_ns, None)
         t0 = time.monotonic()
         for k, f in enumerate(frames):
             delay = t0 + k / rate_hz - time.monotonic()
