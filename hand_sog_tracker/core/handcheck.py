@@ -428,7 +428,8 @@ class HandGate:
         if sure and not self._confirmed and ends >= ENDS_CONFIRM:  # (NaN: no finger seen)
             self._confirmed = True
         present = sure and self._confirmed
-        self._low = 0 if sure else self._low + 1
+        # (the resets go by the evidence alone: a fist that waits for a finger keeps its track)
+        self._low = 0 if dec.confidence >= self.threshold else self._low + 1
         if self._low >= self.reset_frames or dec.confidence < RESET_BELOW:
             tracker.reset()
             self._low = 0
