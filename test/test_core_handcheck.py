@@ -133,6 +133,7 @@ def test_a_new_track_is_reported_from_its_first_frame_with_a_finger_end(monkeypa
     assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present
     gate.decide(t, wall, INTR, MODEL, TrackResult(TrackerStatus.LOST, None, None, None, 0.0, 0.0, 0))
     assert not gate.decide(t, wall, INTR, MODEL, _result(THETA)).present  # a new track: again
+    assert HandGate(confirm_ends=False).decide(t, wall, INTR, MODEL, _result(THETA)).present
 
 
 def test_checked_tracker_drops_the_pose_of_a_frame_that_is_no_hand() -> None:

@@ -398,9 +398,14 @@ class HandGate:
         Confidence at or above which the tracked hand is reported (in [0, 1]).
     reset_frames : int
         Low frames in a row that reset the tracker (>= 1).
+    confirm_ends : bool
+        A new track waits for a finger end (see the module docstring); False reports it from
+        its first sure frame (a fist then is reported at once, a head fitted by a fist too).
     """
 
-    def __init__(self, threshold: float = HAND_THRESHOLD, reset_frames: int = RESET_FRAMES) -> None:
+    def __init__(
+        self, threshold: float = HAND_THRESHOLD, reset_frames: int = RESET_FRAMES, confirm_ends: bool = True
+    ) -> None:
         if not (0.0 <= threshold <= 1.0):
             raise ValueError(f"threshold must be in [0, 1], got {threshold!r}")
         if reset_frames < 1:
@@ -408,6 +413,7 @@ class HandGate:
         self.threshold = float(threshold)
         self.reset_frames = int(reset_frames)
         self._low = 0
+        self.confirm_ends = bool(confirm_ends)
         self._confirmed = False  # the current track has shown a finger end
 
     def decide(
@@ -422,6 +428,8 @@ class HandGate:
             return dec
         ends = math.nan if dec.evidence is None else dec.evidence.ends
         conf = dec.confidence
+        if not self.confirm_ends:
+            self._confirmed = True
         if not self._confirmed:  # a new track: no finger seen to end counts as none ending
             conf *= _ramp(0.0 if math.isnan(ends) else ends, ENDS_LOW, 1.0)
         sure = conf >= self.threshold
