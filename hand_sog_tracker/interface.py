@@ -45,6 +45,8 @@ __all__ = [
     "FINGERTIPS_TOPIC",
     "KEYPOINTS_TOPIC",
     "DEBUG_IMAGE_TOPIC",
+    "CONFIDENCE_TOPIC",
+    "CONFIDENCE_NAMES",
     "DESCRIPTION_TOPIC",
     "DIAGNOSTICS_TOPIC",
     "TF_TOPIC",
@@ -93,6 +95,13 @@ POSE_TOPIC: Final[str] = "hand/pose"
 FINGERTIPS_TOPIC: Final[str] = "hand/fingertips"
 #: The 21 keypoints (``geometry_msgs/PoseArray``).
 KEYPOINTS_TOPIC: Final[str] = "hand/keypoints"
+#: The hand decision of every processed frame (``sensor_msgs/JointState``, names
+#: :data:`CONFIDENCE_NAMES`, ``position`` = values in [0, 1]).
+CONFIDENCE_TOPIC: Final[str] = "hand/confidence"
+#: Entries of a ``hand/confidence`` message: ``present`` (1 = a hand is reported on the other
+#: topics, 0 = no hand), ``hand`` (the hand check's confidence), then one per finger (how much
+#: of it the data show).
+CONFIDENCE_NAMES: Final[tuple[str, ...]] = ("present", "hand", "thumb", "index", "middle", "ring", "little")
 #: Depth colour map with the projected model (``sensor_msgs/Image`` bgr8).
 DEBUG_IMAGE_TOPIC: Final[str] = "hand/debug_image"
 #: URDF of the model in use (``std_msgs/String``, transient local).

@@ -475,3 +475,31 @@ def test_end_to_end_latency(rig: Rig) -> None:
     print(f"latency ms: first {lat[0]:.1f}, tracking median {np.median(tracking):.1f}, "
           f"p95 {np.percentile(tracking, 95):.1f}")
     assert np.median(tracking) < 150.0  # loose: the machine may be busy (measured: ~15 ms)
+
+
+def test_hand_confidence_is_published_for_every_processed_frame(rig: Rig) -> None:
+    """hand/confidence (issue 46): one message per processed frame with the image's stamp, a hand
+    with present = 1 and a high confidence, and "no hand" (present = 0) for a frame without one
+    or with a wall where the hand was; no markers or pose for those."""
+    from hand_sog_tracker.interface import CONFIDENCE_NAMES
+
+    got: list[JointState] = []
+    reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    rig.io.create_subscription(JointState, "hand/confidence", got.append, reliable)
+    pub = next(p for p in rig.node.publishers if p.topic_name == f"{rig.ns}/hand/confidence")
+    assert rig.spin_until(lambda: pub.get_subscription_count() > 0), "DDS discovery on loopback did not complete"
+    rig.send_info()
+    depth = hand_depth(hand_poses(1)[0], seed=5)
+    frames = [depth, np.full_like(depth, 432.0), np.zeros_like(depth)]
+    stamps = [T0_NS + k * 33_333_333 for k in range(3)]
+    for d, s in zip(frames, stamps):
+        rig.send(image_msg(d, s))
+    assert rig.spin_until(lambda: len(got) == 3, 5.0)
+    by = {stamp_to_ns(m.header.stamp): m for m in got}
+    assert sorted(by) == stamps and all(m.header.frame_id == FRAME for m in got)
+    assert all(tuple(m.name) == CONFIDENCE_NAMES for m in got)
+    hand, wall, empty = (by[s].position for s in stamps)
+    assert hand[0] == 1.0 and hand[1] > 0.5 and min(hand[2:]) > 0.3
+    assert wall[0] == 0.0 and wall[1] < 0.2
+    assert empty[0] == 0.0 and empty[1] == 0.0
+    assert [stamp_to_ns(p.header.stamp) for p in rig.poses] == stamps[:1]

@@ -14,6 +14,8 @@ Topics (relative names, so a namespace or remapping moves them):
 ``hand/joint_states``                     ``sensor_msgs/JointState``, 20 angles (rad) (+ 6 wrist joints)
 ``hand/pose``                             ``geometry_msgs/PoseStamped``, wrist pose (m)
 ``hand/keypoints``                        ``geometry_msgs/PoseArray``, 21 points, MediaPipe order (m)
+``hand/confidence``                       ``sensor_msgs/JointState``, every processed frame: present,
+                                          hand and finger confidences (see ``interface``)
 ``hand/robot_description``                ``std_msgs/String`` URDF of the current model (latched)
 ``/tf``                                   ``tf2_msgs/TFMessage`` with ``publish_tf: true``
 ``hand/fingertips``                       ``visualization_msgs/MarkerArray`` fingertips + skeleton
@@ -90,6 +92,7 @@ from visualization_msgs.msg import MarkerArray
 
 from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory
 from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
+from hand_sog_tracker.core.handcheck import HandDecision, HandGate
 from hand_sog_tracker.core.model_io import load_hand_shape
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
@@ -104,6 +107,7 @@ from hand_sog_tracker.errors import (
 from hand_sog_tracker.interface import (
     CALIBRATE_SERVICE,
     COMPRESSED_DEPTH_TOPIC,
+    CONFIDENCE_TOPIC,
     DEBUG_IMAGE_TOPIC,
     DEPTH_TOPIC,
     DESCRIPTION_TOPIC,
@@ -123,6 +127,7 @@ from hand_sog_tracker.interface import (
 from hand_sog_tracker.ros.calibration_service import CalibrationService, FitWorker
 from hand_sog_tracker.ros.conversions import (
     bgr_to_image_msg,
+    confidence_msg,
     delete_all_markers,
     diagnostic_array,
     fingertip_markers,
@@ -331,6 +336,11 @@ class TrackerNode(CalibrationService, Node):
         self._keypoints_pub = self.create_publisher(
             PoseArray, KEYPOINTS_TOPIC, out_qos, qos_overriding_options=overrides
         )
+        # The hand decision of every processed frame (issue 46), "no hand" included.
+        self._confidence_pub = self.create_publisher(
+            JointState, CONFIDENCE_TOPIC, out_qos, qos_overriding_options=overrides
+        )
+        self._hand_gate = HandGate()
         latched = QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
         )
@@ -703,8 +713,17 @@ class TrackerNode(CalibrationService, Node):
             self._warn(f"tracker rejected the frame: {err}")
             return None
 
+        # -- the hand check (issue 46): a tracked frame that is no hand is answered "no hand",
+        # with no pose and no markers, and the track is reset (the next frame searches afresh).
+        decision = self._hand_gate.decide(self._tracker, depth, intr, self._tracker.model, result)
+        if result.pose is not None and not decision.present:
+            result = replace(
+                result, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,
+                gaussians_mm=None, gaussian_radii_mm=None,
+            )
+        # ---------------------------------------------------------------------------------
         self._frame_id = header.frame_id
-        self._publish_result(header, result, depth, intr)
+        self._publish_result(header, result, depth, intr, decision)
         answered_at = time.perf_counter()
         tracked = result.pose if result.status is TrackerStatus.TRACKING else None
         self._remember(depth, intr, tracked, stamp)
@@ -713,7 +732,7 @@ class TrackerNode(CalibrationService, Node):
             self._stats,
             processed=self._stats.processed + 1,
             status=result.status,
-            confidence=float(result.confidence),
+            confidence=float(decision.confidence),
         )
         self._window.processed += 1
         if abs(skew_s) <= STAMP_SKEW_S:
@@ -787,8 +806,17 @@ class TrackerNode(CalibrationService, Node):
             self._markers_shown = False
 
     def _publish_result(
-        self, header: Header, result: TrackResult, depth: NDArray[np.float32], intr: Intrinsics
+        self,
+        header: Header,
+        result: TrackResult,
+        depth: NDArray[np.float32],
+        intr: Intrinsics,
+        decision: HandDecision | None = None,
     ) -> None:
+        if decision is not None and self._confidence_pub.get_subscription_count():
+            self._confidence_pub.publish(
+                confidence_msg(header, decision.present, decision.confidence, decision.fingers)
+            )
         if result.pose is not None and result.fingertips_mm is not None:
             wrist_joints = self._settings.publish_wrist_joints
             self._publish_description(header.frame_id if wrist_joints else None)
