@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from std_srvs.srv import Trigger
+from test_core_calibration import _rows
 
 from hand_sog_tracker.core.calibration import CalibrationRejected, Validation
 from hand_sog_tracker.core.hand_model import HandShape, default_hand_model, rest_pose
@@ -74,15 +75,24 @@ def test_tracking_goes_on_during_a_calibration_and_the_fit_is_saved_with_metadat
         assert info["holdout_score_fitted"] >= info["holdout_score_current"] + info["guard_margin"]
         assert len(str(info["holdout_stamps"]).split()) == info["holdout_frames"] >= 3
         assert info["holdout_worst_frame_gain"] >= -info["guard_frame_drop"]
-        assert "guard_margin" in str(info["guard_rules"])
+        assert "re-tracked score" in str(info["guard_rules"]) and "re-tracked score" in str(info["guard_evidence"])
     finally:
         rig.close()
 
 
-def test_a_refused_fit_changes_and_saves_nothing(ros_context, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("already", [False, True], ids=["refused", "already-fits"])
+def test_a_refused_fit_changes_and_saves_nothing(
+    ros_context, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, already: bool
+) -> None:
+    """A fit the guard refuses, or one within the noise ("the current model already fits"):
+    ``success: false`` with the numbers, the model unchanged and nothing saved."""
+    gains = [0.0, 0.001, -0.001, 0.0] if already else [-0.02, -0.01, -0.012, -0.015]
+    validation = Validation(**_rows(gains, [0.0] * 4, gains, [0.0] * 4))
+    assert validation.already_fits is already and not validation.accepted
+
     def refuse(frames, intrinsics, config, model, start_pose=None, **kwargs):  # type: ignore[no-untyped-def]
         assert len(kwargs["holdout"]) >= 1 and len(kwargs["poses"]) == len(frames)
-        raise CalibrationRejected(HandShape(0.9, 0.9, 0.9, 0.9), Validation(3, 0.8412, 0.8321, 0.01))
+        raise CalibrationRejected(HandShape(0.9, 0.9, 0.9, 0.9), validation)
 
     monkeypatch.setattr(calibration_service, "calibrate", refuse)
     monkeypatch.setattr(calibration_service, "FIT_IN_PROCESS", False)  # the stand-in runs on the worker thread
@@ -95,8 +105,12 @@ def test_a_refused_fit_changes_and_saves_nothing(ros_context, tmp_path: Path, mo
         future = rig.calib.call_async(Trigger.Request())
         assert rig.spin_until(future.done, 30.0)
         answer = future.result()
-        assert answer.success is False
-        assert "rejected" in answer.message and "0.8412" in answer.message and "0.8321" in answer.message
+        assert answer.success is False and "nothing changed or saved" in answer.message
+        if already:
+            assert answer.message.startswith("the current model already fits: held-out score 0.8000")
+        else:
+            assert "rejected" in answer.message and "held-out score worse" in answer.message
+        assert f"{validation.score_fitted:.4f}" in answer.message and "re-tracked score" in answer.message
         assert rig.node.hand_model is before
         assert not (tmp_path / "hand_model.yaml").exists()
     finally:
