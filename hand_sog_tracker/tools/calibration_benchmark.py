@@ -94,16 +94,23 @@ __all__ = [
     "TRACK_FPS",
     "TRACK_FRAMES",
     "TRACK_SEED_OFFSET",
+    "PREDICTORS",
+    "SIZE_BINS",
+    "STATIC_FPS",
+    "BagCheck",
     "HandResult",
     "RendererSummary",
     "draw_factors",
     "format_hand",
     "format_notes",
     "format_summary",
+    "check_bag",
     "main",
     "mesh_length_ratio",
+    "predictor_correlations",
     "run_calibration_benchmark",
     "run_hand",
+    "size_table",
     "summarise",
     "true_factors",
 ]
@@ -540,6 +547,80 @@ def format_notes(s: RendererSummary) -> str:
     )
 
 
+#: Candidate predictors of the change in fingertip error (fitted - default) that
+#: :func:`predictor_correlations` reports (keys of :attr:`HandResult.evidence`): the guard's
+#: held-out refit (score, detection distance, tracking objective and its collision term,
+#: coverage), its re-track from each model's own previous pose (``hre_``), a fresh tracker
+#: re-tracking every history frame not fitted on (``re_``), and the size of the change.
+PREDICTORS = (
+    "hold_score", "hold_score_worst", "hold_tip", "hold_objective", "hold_col", "hold_coverage",
+    "hre_score", "hre_tip_mm", "re_score", "re_tip_mm", "re_energy", "re_confidence", "size_change",
+)
+#: Size bins of :func:`size_table`: the larger of |length - 1| and |width - 1| of the true factors.
+SIZE_BINS = ((0.0, 0.04), (0.04, 0.08), (0.08, 0.12), (0.12, 1.0))
+
+
+def _verdict(r: HandResult) -> str:
+    if r.accepted:
+        return "accepted"
+    if r.reason.startswith("the current model already fits"):
+        return "already fits"
+    return "refused" if r.fitted is not None else "failed"
+
+
+def size_table(results: Sequence[HandResult]) -> list[str]:
+    """Markdown rows: per renderer and size bin, the verdicts and the change of the mean
+    fingertip error (mm; fitted - default) where accepted and if every fit were used."""
+    lines = [
+        "| renderer | size (larger of length, width off 1.0) | hands | accepted | already fits | refused or failed "
+        "| change where accepted (mean; worst) | if every fit were used (mean; worst) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for renderer in sorted({r.renderer for r in results}) + ["all"]:
+        for lo, hi in (*SIZE_BINS, (0.0, 1.0)):
+            sel = [
+                r for r in results
+                if renderer in ("all", r.renderer) and lo <= max(abs(r.truth[0] - 1), abs(r.truth[1] - 1)) < hi
+            ]
+            if not sel:
+                continue
+            verdicts = [_verdict(r) for r in sel]
+            acc = [r.tip_fitted_mm - r.tip_default_mm for r, v in zip(sel, verdicts) if v == "accepted"]
+            every = [r.tip_fitted_mm - r.tip_default_mm for r in sel if np.isfinite(r.tip_fitted_mm)]
+            name = f"{100 * lo:.0f}-{100 * hi:.0f}%" if hi < 1 else f">= {100 * lo:.0f}%"
+            name = "all" if (lo, hi) == (0.0, 1.0) else name
+            a = f"{np.mean(acc):+.2f}; {max(acc):+.2f}" if acc else "-"
+            e = f"{np.mean(every):+.2f}; {max(every):+.2f}" if every else "-"
+            lines.append(
+                f"| {renderer} | {name} | {len(sel)} | {verdicts.count('accepted')} | "
+                f"{verdicts.count('already fits')} | {verdicts.count('refused') + verdicts.count('failed')} | {a} | {e} |"
+            )
+    return lines
+
+
+def predictor_correlations(results: Sequence[HandResult]) -> dict[str, tuple[float, float, int]]:
+    """Each of :data:`PREDICTORS`: (Pearson r, Spearman rho, hands) with the change in fingertip
+    error of the fitted model (fitted - default, mm) over the hands with a fit and the number."""
+    out = {}
+    rows = [r for r in results if r.evidence and np.isfinite(r.tip_fitted_mm)]
+    d = np.array([r.tip_fitted_mm - r.tip_default_mm for r in rows])
+    for key in PREDICTORS:
+        x = np.array([float(r.evidence.get(key, np.nan)) for r in rows])
+        ok = np.isfinite(x)
+        if ok.sum() < 3 or np.std(x[ok]) == 0:
+            continue
+
+        def rank(v: np.ndarray) -> np.ndarray:
+            return np.argsort(np.argsort(v)).astype(float)
+
+        out[key] = (
+            float(np.corrcoef(x[ok], d[ok])[0, 1]),
+            float(np.corrcoef(rank(x[ok]), rank(d[ok]))[0, 1]),
+            int(ok.sum()),
+        )
+    return out
+
+
 def run_calibration_benchmark(
     renderers: Sequence[str] = RENDERERS,
     split: str = "test",
@@ -547,12 +628,13 @@ def run_calibration_benchmark(
     track: bool = True,
     first_seed: int | None = None,
     log: Any = None,
+    motion: str = "moving",
 ) -> dict[str, Any]:
     """Run the benchmark; returns ``{"split", "seeds", "hands": [HandResult dicts],
     "summary": {renderer: RendererSummary dict}}``.
 
     ``first_seed`` overrides the split's first seed; ``log`` (a file) gets each hand's line as
-    it is done.
+    it is done; ``motion``: ``moving``, ``static`` or ``alternate`` (odd seeds static).
     """
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
@@ -562,7 +644,8 @@ def run_calibration_benchmark(
     for renderer in renderers:
         results = []
         for seed in seeds:
-            r = run_hand(renderer, seed, track=track)
+            m = ("static" if seed % 2 else "moving") if motion == "alternate" else motion
+            r = run_hand(renderer, seed, track=track, motion=m)
             results.append(r)
             out["hands"].append(asdict(r) | {"within_5pct": r.within_5pct})
             if log is not None:
@@ -695,6 +778,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="seeds 9000-9011 (test, not tuned on) or 2000-2011 (dev)")
     parser.add_argument("--hands", type=int, default=12, metavar="N", help="hands (consecutive seeds), default 12")
     parser.add_argument("--no-track", action="store_true", help="skip tracking with the default and fitted model")
+    parser.add_argument("--motion", choices=("moving", "static", "alternate"), default="moving",
+                        help="the hands move (abdadd), are held still, or alternate (odd seeds still)")
+    parser.add_argument("--by-size", action="store_true",
+                        help="also the verdicts by size bin and the predictors' correlations with the change")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write every number to this JSON file")
     parser.add_argument("--bag", type=Path, action="append", metavar="BAG",
                         help="instead of the renders: fit, guard and report what ~/calibrate would do on this bag "
@@ -721,7 +808,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     renderers = RENDERERS if args.renderer == "both" else (args.renderer,)
     seeds = SPLITS[args.split]
     print(f"split {args.split}: seeds {seeds}-{seeds + args.hands - 1}, {args.hands} hands, 320x240", flush=True)
-    out = run_calibration_benchmark(renderers, args.split, args.hands, track=not args.no_track, log=sys.stdout)
+    out = run_calibration_benchmark(
+        renderers, args.split, args.hands, track=not args.no_track, log=sys.stdout, motion=args.motion
+    )
     print("| renderer | accepted | max factor error of accepted fits (length, width, thickness) | all three "
           "within 5% | mean fingertip error, default -> calibrated | accepted and worse | fit time (CPU) |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
@@ -729,6 +818,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(format_summary(RendererSummary(**out["summary"][renderer])))
     for renderer in renderers:
         print(format_notes(RendererSummary(**out["summary"][renderer])))
+    if args.by_size and not args.no_track:
+        results = [HandResult(**{k: v for k, v in h.items() if k != "within_5pct"}) for h in out["hands"]]
+        print("\n".join(size_table(results)))
+        for key, (r, rho, n) in predictor_correlations(results).items():
+            print(f"{key}: r {r:+.2f}, rho {rho:+.2f} ({n} hands)")
     if args.json is not None:
         args.json.write_text(json.dumps(out, indent=1, default=float) + "\n")
         print(f"wrote {args.json}")
