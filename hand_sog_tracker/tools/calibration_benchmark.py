@@ -593,7 +593,8 @@ def size_table(results: Sequence[HandResult]) -> list[str]:
             e = f"{np.mean(every):+.2f}; {max(every):+.2f}" if every else "-"
             lines.append(
                 f"| {renderer} | {name} | {len(sel)} | {verdicts.count('accepted')} | "
-                f"{verdicts.count('already fits')} | {verdicts.count('refused') + verdicts.count('failed')} | {a} | {e} |"
+                f"{verdicts.count('already fits')} | {verdicts.count('refused') + verdicts.count('failed')} | "
+                f"{a} | {e} |"
             )
     return lines
 
