@@ -59,25 +59,25 @@ Cost: see the README (about 0.3-0.5 s CPU on one core for 3 fit frames with trac
 :data:`DEFAULT_HOLDOUT_FRAMES` held-out frames, the node's case); without poses a tracker
 run finds them first.
 
-Guard.  With ``holdout`` frames (not used for the fit), the fitted model must
-explain them better than the current model: on each held-out frame both
-models get the same pose refit from the frame's pose, palm centre kept
-(:data:`GUARD_RIGID_ITERATIONS` global, then :data:`GUARD_REFIT_ITERATIONS` full
-iterations of the tracking objective with its silhouette and fingertip-detection
-terms, as the tracker fits a frame), then two rules (:meth:`Validation.failures`):
-the mean :func:`shape_score` must rise by at least :data:`GUARD_MARGIN`, and no frame may
-lose more than :data:`GUARD_FRAME_DROP`.  Otherwise :class:`CalibrationRejected` is raised
-(with the numbers) and the caller must keep (and not save) the current model.  The
-distance of the refitted fingertips to the fingertip detections is reported too.  None of
-this has fingertip truth: the guard refuses fits that explain unseen frames worse, not
-every fit that tracks a little worse (on rendered hands a 1% change of the model moves the
-tracker's mean fingertip error over 30 frames by up to 0.7 mm either way).  On 4 of 12 capsule
-dev hands (seeds 2000-2011 of ``calibration_benchmark``) the tracker follows the hand worse with
-its true shape than with the default model (by 0.18-1.15 mm; 0.30-1.42 mm with the tracker of
-commit f4afae2, also with the collision, finger-order or silhouette term off); the guard's
-score, the same score on all non-fit history frames, and the score along a history re-tracked
-with each model all rated the true shape higher on most of them, so such fits pass when they
-are accurate.
+Guard.  With ``holdout`` frames (not used for the fit), the fitted model must explain them
+better than the current model by several kinds of evidence (:meth:`Validation.evidence`), each
+against its own noise (:data:`GUARD_NOISE_SE` standard errors of its mean over the frames, at
+least a floor): on each held-out frame both models get the same pose refit from the frame's
+pose, palm centre kept (:data:`GUARD_RIGID_ITERATIONS` global, then
+:data:`GUARD_REFIT_ITERATIONS` full iterations of the tracking objective with its silhouette
+and fingertip-detection terms, as the tracker fits a frame) and are compared by the
+:func:`shape_score` and by the distance of their fingertips to the fingertip detections; then
+each model re-tracks the held-out frames in order from its own pose on the previous one and is
+scored again.  Any evidence worse beyond its noise, or one frame losing more than
+:data:`GUARD_FRAME_DROP`, refuses the fit; both scores must rise beyond their noise, else "the
+current model already fits" (nothing to do).  Either way :class:`CalibrationRejected` is raised
+(with the numbers) and the caller keeps (and does not save) the current model.  None of this
+has fingertip truth: the measurements that chose the rules, the predictors tried and the hands
+whose true shape tracks worse than the default model are in ``doc/notes/calib.md``.
+
+Thickness.  The fitted depth and sigma are at most :data:`MAX_THICKNESS_PER_WIDTH` times the
+fitted width (:func:`_bounded_thickness`): fingers thicker relative to the palm than the
+default model's crowd each other and are tracked worse, with the hand's true thickness too.
 """
 
 from __future__ import annotations
@@ -172,11 +172,8 @@ GUARD_RIGID_ITERATIONS = 8
 #: No held-out frame may lose more than this :func:`shape_score` with the fitted model (a
 #: model fitted to some poses that explains another pose clearly worse is wrong).
 GUARD_FRAME_DROP = 0.05
-#: Not a rule: the guard also reports how far the refitted fingertips lie from the tracker's
-#: fingertip detections (``tip_current`` / ``tip_fitted``).  As a rule (fitted at most 0.25
-#: or 1 mm farther) it refused fits that tracked better as often as ones that tracked worse on
-#: the dev hands, and once a correct 12% width change; it follows the detector's bias.
-#: A model fingertip without a detection within this (mm) counts as this far (assignment cost).
+#: The guard's fingertip-detection distance (``tip_current`` / ``tip_fitted``, one kind of its
+#: evidence): a model fingertip without a detection within this (mm) counts as this far.
 GUARD_TIP_LAMBDA_MM = 30.0
 #: The fitted thickness (depth and sigma) is at most this times the fitted width (unitless;
 #: the default model's ratio): see :func:`_bounded_thickness`.
@@ -304,7 +301,7 @@ class Validation:
         Mean distance (mm) of the refitted model's fingertips to the fingertip detections
         (:func:`~hand_sog_tracker.core.salient.detect_fingertips`; an unmatched fingertip
         counts :data:`GUARD_TIP_LAMBDA_MM`), over frames with detections; NaN without any.
-        Reported, not a rule (see :data:`GUARD_TIP_LAMBDA_MM`'s note).
+        One kind of the guard's evidence (per frame in :attr:`per_frame`).
     tip_frames : int
         Held-out frames with fingertip detections.
     measured_finger_mm : tuple of float
