@@ -31,6 +31,8 @@ _SCRIPTS = {
     "evaluate_bag": f"{PACKAGE}.tools.evaluate_bag:main",
     "replay_bag": f"{PACKAGE}.tools.replay_bag:main",
     "make_sample_bags": f"{PACKAGE}.tools.make_sample_bags:main",
+    "make_scene_bags": f"{PACKAGE}.tools.make_scene_bags:main",
+    "scene_eval": f"{PACKAGE}.tools.scene_eval:main",
     "benchmark": f"{PACKAGE}.tools.benchmark:main",
     "calibration_benchmark": f"{PACKAGE}.tools.calibration_benchmark:main",
     "demo": f"{PACKAGE}.tools.demo:main",

@@ -23,6 +23,8 @@ CONSOLE_SCRIPTS = {
     "evaluate_bag": "hand_sog_tracker.tools.evaluate_bag:main",
     "replay_bag": "hand_sog_tracker.tools.replay_bag:main",
     "make_sample_bags": "hand_sog_tracker.tools.make_sample_bags:main",
+    "make_scene_bags": "hand_sog_tracker.tools.make_scene_bags:main",
+    "scene_eval": "hand_sog_tracker.tools.scene_eval:main",
     "benchmark": "hand_sog_tracker.tools.benchmark:main",
     "calibration_benchmark": "hand_sog_tracker.tools.calibration_benchmark:main",
     "demo": "hand_sog_tracker.tools.demo:main",

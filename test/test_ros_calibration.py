@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from std_srvs.srv import Trigger
+from test_core_calibration import _rows
 
 from hand_sog_tracker.core.calibration import CalibrationRejected, Validation
 from hand_sog_tracker.core.hand_model import HandShape, default_hand_model, rest_pose
@@ -33,7 +34,10 @@ def open_hand_frames(n: int, model) -> list[np.ndarray]:
     return out
 
 
-def test_tracking_goes_on_during_a_calibration_and_the_fit_is_saved_with_metadata(ros_context, tmp_path: Path) -> None:
+def test_tracking_goes_on_during_a_calibration_and_the_answer_has_the_numbers(ros_context, tmp_path: Path) -> None:
+    """A real fit in the child process while the 30 Hz camera goes on.  The guard may accept it
+    (the model is saved with its metadata) or not ("the current model already fits" on this
+    static hand, whose held-out frames differ little: nothing saved); either way the numbers."""
     model = default_hand_model().scaled(HandShape(length=1.12, width=1.08, depth=1.05, sigma=1.05))
     frames = open_hand_frames(40, model)
     rig = Rig(ros_context, tmp_path)
@@ -63,26 +67,76 @@ def test_tracking_goes_on_during_a_calibration_and_the_fit_is_saved_with_metadat
         print(f"call {call_s:.2f} s, {len(sent)} frames sent meanwhile, {share:.0%} got a JointState; {answer.message}")
         assert len(sent) >= 5  # the fit takes several frame periods ...
         assert share >= 0.5  # ... and most of them are still tracked (README: measured share)
-        assert answer.success, answer.message
-        assert "held-out score" in answer.message and "saved to" in answer.message
-        shape, right = load_hand_shape(tmp_path / "hand_model.yaml")
-        assert right and rig.node.hand_model.shape == shape
-        info = read_calibration_info(tmp_path / "hand_model.yaml")
-        assert info["fit_frames"] >= 1 and info["holdout_frames"] >= 1
-        assert len(str(info["fit_stamps"]).split()) == info["fit_frames"]
-        assert len(str(info["fit_pose_0"]).split()) == 26
-        assert info["holdout_score_fitted"] >= info["holdout_score_current"] + info["guard_margin"]
-        assert len(str(info["holdout_stamps"]).split()) == info["holdout_frames"] >= 3
-        assert info["holdout_worst_frame_gain"] >= -info["guard_frame_drop"]
-        assert "guard_margin" in str(info["guard_rules"])
+        assert "held-out score" in answer.message and "re-tracked score" in answer.message
+        if not answer.success:
+            assert answer.message.startswith("the current model already fits") or "rejected" in answer.message
+            assert not (tmp_path / "hand_model.yaml").exists() and rig.node.hand_model.shape == HandShape()
+            return
+        _check_saved(rig, tmp_path, answer.message)
     finally:
         rig.close()
 
 
-def test_a_refused_fit_changes_and_saves_nothing(ros_context, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def _check_saved(rig: Rig, tmp_path: Path, message: str) -> None:
+    """The accepted fit is in use and saved with the guard's metadata."""
+    assert "saved to" in message
+    shape, right = load_hand_shape(tmp_path / "hand_model.yaml")
+    assert right and rig.node.hand_model.shape == shape
+    info = read_calibration_info(tmp_path / "hand_model.yaml")
+    assert info["fit_frames"] >= 1 and info["holdout_frames"] >= 1
+    assert len(str(info["fit_stamps"]).split()) == info["fit_frames"]
+    assert len(str(info["fit_pose_0"]).split()) == 26
+    assert info["holdout_score_fitted"] >= info["holdout_score_current"] + info["guard_margin"]
+    assert len(str(info["holdout_stamps"]).split()) == info["holdout_frames"] >= 3
+    assert info["holdout_worst_frame_gain"] >= -info["guard_frame_drop"]
+    assert "re-tracked score" in str(info["guard_rules"]) and "re-tracked score" in str(info["guard_evidence"])
+
+
+def test_an_accepted_fit_is_used_and_saved_with_the_guard_metadata(
+    ros_context, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The node's side of an accepted fit (a stand-in fit whose guard's evidence all improves):
+    the model switches and the file holds the fit's and the guard's numbers."""
+    from hand_sog_tracker.core.calibration import CalibrationResult
+
+    validation = Validation(**_rows([0.02, 0.03, 0.025, 0.02], [-1.0] * 4, [0.03, 0.02, 0.04, 0.03], [0.0] * 4))
+    shape = HandShape(1.1, 1.05, 1.0, 1.0)
+
+    def accept(frames, intrinsics, config, model, start_pose=None, **kwargs):  # type: ignore[no-untyped-def]
+        poses = np.array([p for p in kwargs["poses"]])
+        used = tuple(range(len(frames)))
+        return CalibrationResult(shape, model.scaled(shape), poses[0], 0.80, 0.83, 0.3, poses, used, validation)
+
+    monkeypatch.setattr(calibration_service, "calibrate", accept)
+    monkeypatch.setattr(calibration_service, "FIT_IN_PROCESS", False)
+    rig = Rig(ros_context, tmp_path)
+    try:
+        rig.send_info()
+        for i, depth in enumerate(open_hand_frames(12, default_hand_model())):
+            rig.send(image_msg(depth, T0_NS + i * 2 * PERIOD_NS))
+        future = rig.calib.call_async(Trigger.Request())
+        assert rig.spin_until(future.done, 30.0)
+        answer = future.result()
+        assert answer.success, answer.message
+        assert rig.node.hand_model.shape == shape
+        _check_saved(rig, tmp_path, answer.message)
+    finally:
+        rig.close()
+
+
+@pytest.mark.parametrize("already", [False, True], ids=["refused", "already-fits"])
+def test_a_refused_fit_changes_and_saves_nothing(
+    ros_context, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, already: bool
+) -> None:
+    """A fit the guard refuses, or one within the noise ("the current model already fits"):
+    ``success: false`` with the numbers, the model unchanged and nothing saved."""
+    gains = [0.0, 0.001, -0.001, 0.0] if already else [-0.02, -0.01, -0.012, -0.015]
+    validation = Validation(**_rows(gains, [0.0] * 4, gains, [0.0] * 4))
+    assert validation.already_fits is already and not validation.accepted
+
     def refuse(frames, intrinsics, config, model, start_pose=None, **kwargs):  # type: ignore[no-untyped-def]
         assert len(kwargs["holdout"]) >= 1 and len(kwargs["poses"]) == len(frames)
-        raise CalibrationRejected(HandShape(0.9, 0.9, 0.9, 0.9), Validation(3, 0.8412, 0.8321, 0.01))
+        raise CalibrationRejected(HandShape(0.9, 0.9, 0.9, 0.9), validation)
 
     monkeypatch.setattr(calibration_service, "calibrate", refuse)
     monkeypatch.setattr(calibration_service, "FIT_IN_PROCESS", False)  # the stand-in runs on the worker thread
@@ -95,8 +149,12 @@ def test_a_refused_fit_changes_and_saves_nothing(ros_context, tmp_path: Path, mo
         future = rig.calib.call_async(Trigger.Request())
         assert rig.spin_until(future.done, 30.0)
         answer = future.result()
-        assert answer.success is False
-        assert "rejected" in answer.message and "0.8412" in answer.message and "0.8321" in answer.message
+        assert answer.success is False and "nothing changed or saved" in answer.message
+        if already:
+            assert answer.message.startswith("the current model already fits: held-out score 0.8000")
+        else:
+            assert "rejected" in answer.message and "held-out score worse" in answer.message
+        assert f"{validation.score_fitted:.4f}" in answer.message and "re-tracked score" in answer.message
         assert rig.node.hand_model is before
         assert not (tmp_path / "hand_model.yaml").exists()
     finally:
@@ -120,7 +178,7 @@ def test_calibration_needs_frames_to_check_the_fit_on(ros_context, tmp_path: Pat
 def test_the_node_fits_a_large_hand_by_itself_keeps_tracking_and_saves_nothing(ros_context, tmp_path: Path) -> None:
     # Half a second of a hand 1.12x long and 1.1x wide at 30 Hz: the node fits the model by
     # itself (auto_calibrate, the default) in a child process, answers every frame meanwhile,
-    # uses the fitted model and writes no file.
+    # uses the fitted model if the guard accepts it, and writes no file.
     model = default_hand_model().scaled(HandShape(length=1.12, width=1.1, depth=1.05, sigma=1.05))
     frames = open_hand_frames(40, model)
     rig = Rig(ros_context, tmp_path, auto_calibrate=True)
@@ -129,15 +187,26 @@ def test_the_node_fits_a_large_hand_by_itself_keeps_tracking_and_saves_nothing(r
         rig.send_info()
         k = 0
         end = time.monotonic() + 60.0
-        while time.monotonic() < end and rig.node.hand_model.shape == HandShape():
+        auto = rig.node._auto_calib
+
+        def settled() -> bool:  # the model switched, or the fits ended without a switch
+            done = auto.attempts > 0 and not auto.running and (auto.accepted or auto.attempts >= auto.max_attempts)
+            return rig.node.hand_model.shape != HandShape() or (done and auto._pending is None)
+
+        first_fit = None
+        while time.monotonic() < end and not settled():
             rig.send(image_msg(frames[k % len(frames)], T0_NS + k * PERIOD_NS))
             rig.spin_until(lambda: False, 1.0 / 30.0)  # a 30 Hz camera
+            first_fit = k if first_fit is None and auto.attempts else first_fit
             k += 1
         shape = rig.node.hand_model.shape
-        auto = rig.node._auto_calib
-        assert shape != HandShape(), f"no automatic fit after {k} frames ({auto.attempts} attempts)"
-        assert k >= 15  # not before the history holds half a second
-        assert 1.05 <= shape.length <= 1.19 and 1.03 <= shape.width <= 1.17, shape
+        assert auto.attempts >= 1 and first_fit is not None, f"no automatic fit after {k} frames"
+        assert first_fit >= 14  # not before the history holds half a second
+        if shape != HandShape():  # accepted: in use from AUTO_APPLY_S after the fit's start
+            assert k >= first_fit + 30
+            assert 1.05 <= shape.length <= 1.19 and 1.03 <= shape.width <= 1.17, shape
+        else:  # the guard found no clear gain (a static hand: held-out frames much like the fit's)
+            assert auto.accepted or auto.attempts == auto.max_attempts
         assert rig.node.stats.processed == k  # every frame was answered during the fit
         assert not (tmp_path / "hand_model.yaml").exists()
     finally:

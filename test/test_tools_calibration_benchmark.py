@@ -101,3 +101,19 @@ def test_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
     data = json.loads(out.read_text())
     assert data["split"] == "dev" and data["seeds"] == [2000] and set(data["summary"]) == {"capsule"}
     assert math.isnan(data["hands"][0]["tip_default_mm"])  # --no-track
+
+
+def test_the_bag_check_fits_guards_and_reports_without_a_node(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``calibration_benchmark --bag``: on the bundled capsule bag (the default model's own hand)
+    the fit runs, the guard answers and the rest of the bag is tracked with both models."""
+    bag = Path(__file__).resolve().parents[1] / "bags" / "abdadd"
+    out = tmp_path / "check.json"
+    assert main(["--bag", str(bag), "--json", str(out)]) == 0
+    line = capsys.readouterr().out
+    check = json.loads(out.read_text())[0]
+    print(line)
+    assert check["verdict"] in ("accepted", "already fits", "refused") and check["shape"] is not None
+    assert "held-out score" in check["message"] and check["verdict"] in line
+    assert 0.5 < check["tip_default_mm"] < 10.0 and 0.5 < check["tip_fitted_mm"] < 10.0
+    assert check["stamp_ns"] > 0 and check["fit_s"] > 0.0
+

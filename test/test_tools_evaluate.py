@@ -299,13 +299,15 @@ def test_core_mode_fits_the_model_automatically_as_the_node_does(
 ) -> None:
     # The real tracker on a rendered open hand (30 Hz): once the history holds AUTO_MIN_FRAMES
     # tracked frames, the fit runs on open-hand frames with their tracked poses, checked on
-    # others, and its model is used from the next frame on; auto_calibrate=False fits nothing.
+    # others, and its model is used from the first frame stamped AUTO_APPLY_S after the fit's
+    # start on (as in the node: by image stamps); auto_calibrate=False fits nothing.
     from hand_sog_tracker.core import calibration
-    from hand_sog_tracker.core.autocalibration import AUTO_MIN_FRAMES, AUTO_MIN_LENGTH
+    from hand_sog_tracker.core.autocalibration import AUTO_APPLY_S, AUTO_MIN_FRAMES, AUTO_MIN_LENGTH
     from hand_sog_tracker.core.hand_model import HandShape, default_hand_model
     from hand_sog_tracker.tools.make_sample_bags import write_sample_bag
 
-    bag = write_sample_bag(tmp_path / "b", "abdadd", AUTO_MIN_FRAMES + 5, width=160, height=120)
+    n_frames = AUTO_MIN_FRAMES + int(AUTO_APPLY_S * 30) + 3  # (30 Hz)
+    bag = write_sample_bag(tmp_path / "b", "abdadd", n_frames, width=160, height=120)
     calls: list[dict] = []
     fitted_shape = HandShape(length=1.1, width=1.05)
 

@@ -4,15 +4,16 @@ The default model is one adult hand; a hand 10% larger or smaller than it is tra
 fingertips a few millimetres short or long, and worse: a wide finger holds two model fingers
 side by side, so that when a finger curls into the palm its neighbours take its place.  With
 ``auto_calibrate`` on (the node's default), the node fits the hand model by itself once, with
-the same fit as ``~/calibrate`` (:func:`~hand_sog_tracker.core.calibration.calibrate`) and a
-more lenient guard (:data:`AUTO_GUARD_MARGIN`, :data:`AUTO_FRAME_DROP`): as soon as its
-recent tracked frames hold :data:`AUTO_MIN_FRAMES` frames of one camera among which
+the same fit and the same guard as ``~/calibrate``
+(:func:`~hand_sog_tracker.core.calibration.calibrate`), as soon as its recent tracked frames
+hold :data:`AUTO_MIN_FRAMES` frames of one camera among which
 :func:`~hand_sog_tracker.core.calibration.select_frames` finds an open hand to fit on (on at
 least :data:`AUTO_MIN_FIT_FRAMES` frames) and frames to check the fit on.  An accepted fit
-replaces the model for the rest of the run unless :func:`why_not_used` finds a reason (a hand
+replaces the model (on the first frame stamped :data:`AUTO_APPLY_S` after the fit's start) for
+the rest of the run unless :func:`why_not_used` finds a reason (a hand
 shrunk below :data:`AUTO_MIN_LENGTH`, a fit at an end of its search range); it is not saved
 (``~/calibrate`` saves).  A refused or failed one is tried again :data:`AUTO_RETRY_S` later, at
-most :data:`AUTO_ATTEMPTS` times.  A saved user
+most :data:`AUTO_ATTEMPTS` times; after "the current model already fits" none is tried again.  A saved user
 model, or a successful ``~/calibrate``, turns it off.
 
 This module holds what the node and ``evaluate_bag`` share: :class:`FrameHistory` (the
@@ -35,9 +36,8 @@ from hand_sog_tracker.core.hand_model import HandModel, HandShape
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 
 __all__ = [
+    "AUTO_APPLY_S",
     "AUTO_ATTEMPTS",
-    "AUTO_FRAME_DROP",
-    "AUTO_GUARD_MARGIN",
     "AUTO_MIN_FIT_FRAMES",
     "AUTO_MIN_FRAMES",
     "AUTO_MIN_LENGTH",
@@ -73,23 +73,12 @@ AUTO_MIN_FRAMES = HISTORY_FRAMES
 #: than 0.3 mm, 6 / 11 / 4 worse), the sets 6.28 -> 6.11, 6.17 -> 6.03 and 6.07 -> 5.93 mm.
 #: The 11 fits under 0.85 (no minimum at all): 3 better, 6 worse, +0.07 mm on average.
 AUTO_MIN_LENGTH = 0.85
-#: The guard of an automatic fit (:func:`~hand_sog_tracker.core.calibration.validate`): the
-#: mean held-out score may fall by up to 0.02 (see below) and one frame's by up to 0.10
-#: (unitless; the fit is not saved; ``~/calibrate`` keeps the strict guard, +0.003 and 0.05).
-#: The margin was first -0.01, chosen on 144 dev
-#: renders, where the strict guard refused the first fit of about half of the hands larger than
-#: the model in every motion, fits close to the truth among them: 7.46 -> 7.07 mm instead of
-#: 7.13 mm (28 sequences better by more than 0.5 mm, 2 worse; strict: 22 and 1).  On 144 other
-#: renders 7.28 -> 7.00 mm instead of 7.10 mm (23 better, 6 worse; strict: 14 and 6).  No guard
-#: at all gave 7.03 and 6.99 mm with 2 and 7 worse.  Widened from -0.01 to -0.02 (issue 12/14):
-#: fed 100 Hz finger counting of a hand 1.10-1.12x, the node's fit (on other frames than the
-#: core's, the node's timing picks them) fell by 0.013 and was refused, where the core's passed:
-#: 14 mm against 9.5 mm.  With -0.02, 3 of 2 x 144 dev renders track 0.2-0.9 mm better and none
-#: worse (7.60 -> 7.59 and 7.27 -> 7.26 mm), 2 of 6 large-hand finger-counting renders 0.5 and
-#: 3.8 mm better, the bundled bags the same; a fit on half-curled frames falls by 0.06 and stays
-#: refused.
-AUTO_GUARD_MARGIN = -0.02
-AUTO_FRAME_DROP = 0.10
+#: An accepted automatic fit's model takes effect on the first frame stamped at least this
+#: long (s) after the frame the fit started on: the switch goes by image stamps, not by when
+#: the fit (in a child process, while tracking goes on) happens to end, so every run of a bag
+#: switches on the same frame (the fit takes 0.3-0.6 s; a fit that ends later switches on
+#: the first frame after it ends).
+AUTO_APPLY_S = 1.0
 #: Open-hand frames an automatic fit needs (count): a fit on a single frame of a half-curled hand
 #: returned length 0.80-0.88 and width 0.80 for hands 1.08-1.13x on dev renders (refused, but it
 #: spent an attempt; no dev or validation render scored differently with this rule).
@@ -130,6 +119,11 @@ class FrameHistory:
 
     def __len__(self) -> int:
         return len(self._frames)
+
+    @property
+    def size(self) -> int:
+        """Frames kept at most."""
+        return int(self._frames.maxlen or 0)
 
     def remember(
         self, depth: NDArray[np.float32], intrinsics: Intrinsics, pose: NDArray[np.float64] | None, stamp_ns: int
@@ -179,17 +173,15 @@ class FitFrames:
         self, config: TrackerConfig, model: HandModel, automatic: bool = False
     ) -> tuple[tuple, dict]:
         """The arguments of :func:`~hand_sog_tracker.core.calibration.calibrate` for these frames
-        (with the tracked poses, and the held-out frames for its guard); ``automatic``: with the
-        automatic fit's guard (:data:`AUTO_GUARD_MARGIN`, :data:`AUTO_FRAME_DROP`), else the
-        strict default of ``~/calibrate``."""
+        (with the tracked poses, and the held-out frames for its guard).  ``automatic`` changes
+        nothing: the automatic fit has the guard of ``~/calibrate`` (an accepted fit that tracks
+        worse costs the rest of the run)."""
         args = ([f.depth for f in self.fit], self.intrinsics, config, model)
         kwargs: dict = dict(
             poses=[f.pose for f in self.fit],
             holdout=[f.depth for f in self.holdout],
             holdout_poses=[f.pose for f in self.holdout],
         )
-        if automatic:
-            kwargs.update(margin=AUTO_GUARD_MARGIN, frame_drop=AUTO_FRAME_DROP)
         return args, kwargs
 
 
@@ -268,15 +260,18 @@ class AutoCalibration:
         min_frames: int = AUTO_MIN_FRAMES,
         retry_s: float = AUTO_RETRY_S,
         attempts: int = AUTO_ATTEMPTS,
+        apply_s: float = AUTO_APPLY_S,
     ) -> None:
         self.enabled = enabled
         self.min_frames = min_frames
         self.retry_ns = int(retry_s * 1e9)
+        self.apply_ns = int(apply_s * 1e9)
         self.max_attempts = attempts
         self.attempts = 0
         self.running = False
         self.accepted = False
         self._last_ns: int | None = None
+        self._pending: object | None = None
 
     def due(self, history: FrameHistory, stamp_ns: int) -> FitFrames | None:
         """The frames to fit on now, or None (off, done, running, too soon, or no usable frames)."""
@@ -297,10 +292,21 @@ class AutoCalibration:
         self.attempts += 1
         self._last_ns = stamp_ns
 
-    def finished(self, accepted: bool) -> None:
-        """The fit ended; ``accepted``: its model is now in use (no further attempts)."""
+    def finished(self, accepted: bool, result: object | None = None) -> None:
+        """The fit ended; ``accepted``: by the guard (no further attempts).  ``result`` (e.g. the
+        fitted model) is handed out by :meth:`take` once its frame is due."""
         self.running = False
         self.accepted = self.accepted or accepted
+        if result is not None:
+            self._pending = result
+
+    def take(self, stamp_ns: int) -> object | None:
+        """The finished fit's ``result`` when the frame stamped ``stamp_ns`` is at least
+        :data:`AUTO_APPLY_S` after the fit's start (once), else None."""
+        if self._pending is None or self._last_ns is None or stamp_ns - self._last_ns < self.apply_ns:
+            return None
+        out, self._pending = self._pending, None
+        return out
 
     def stop(self) -> None:
         """No more automatic fits (a user model is in use)."""

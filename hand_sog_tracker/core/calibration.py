@@ -59,25 +59,25 @@ Cost: see the README (about 0.3-0.5 s CPU on one core for 3 fit frames with trac
 :data:`DEFAULT_HOLDOUT_FRAMES` held-out frames, the node's case); without poses a tracker
 run finds them first.
 
-Guard.  With ``holdout`` frames (not used for the fit), the fitted model must
-explain them better than the current model: on each held-out frame both
-models get the same pose refit from the frame's pose, palm centre kept
-(:data:`GUARD_RIGID_ITERATIONS` global, then :data:`GUARD_REFIT_ITERATIONS` full
-iterations of the tracking objective with its silhouette and fingertip-detection
-terms, as the tracker fits a frame), then two rules (:meth:`Validation.failures`):
-the mean :func:`shape_score` must rise by at least :data:`GUARD_MARGIN`, and no frame may
-lose more than :data:`GUARD_FRAME_DROP`.  Otherwise :class:`CalibrationRejected` is raised
-(with the numbers) and the caller must keep (and not save) the current model.  The
-distance of the refitted fingertips to the fingertip detections is reported too.  None of
-this has fingertip truth: the guard refuses fits that explain unseen frames worse, not
-every fit that tracks a little worse (on rendered hands a 1% change of the model moves the
-tracker's mean fingertip error over 30 frames by up to 0.7 mm either way).  On 4 of 12 capsule
-dev hands (seeds 2000-2011 of ``calibration_benchmark``) the tracker follows the hand worse with
-its true shape than with the default model (by 0.18-1.15 mm; 0.30-1.42 mm with the tracker of
-commit f4afae2, also with the collision, finger-order or silhouette term off); the guard's
-score, the same score on all non-fit history frames, and the score along a history re-tracked
-with each model all rated the true shape higher on most of them, so such fits pass when they
-are accurate.
+Guard.  With ``holdout`` frames (not used for the fit), the fitted model must explain them
+better than the current model by several kinds of evidence (:meth:`Validation.evidence`), each
+against its own noise (:data:`GUARD_NOISE_SE` standard errors of its mean over the frames, at
+least a floor): on each held-out frame both models get the same pose refit from the frame's
+pose, palm centre kept (:data:`GUARD_RIGID_ITERATIONS` global, then
+:data:`GUARD_REFIT_ITERATIONS` full iterations of the tracking objective with its silhouette
+and fingertip-detection terms, as the tracker fits a frame) and are compared by the
+:func:`shape_score` and by the distance of their fingertips to the fingertip detections; then
+each model re-tracks the held-out frames in order from its own pose on the previous one and is
+scored again.  Any evidence worse beyond its noise, or one frame losing more than
+:data:`GUARD_FRAME_DROP`, refuses the fit; both scores must rise beyond their noise, else "the
+current model already fits" (nothing to do).  Either way :class:`CalibrationRejected` is raised
+(with the numbers) and the caller keeps (and does not save) the current model.  None of this
+has fingertip truth: the measurements that chose the rules, the predictors tried and the hands
+whose true shape tracks worse than the default model are in ``doc/notes/calib.md``.
+
+Thickness.  The fitted depth and sigma are at most :data:`MAX_THICKNESS_PER_WIDTH` times the
+fitted width (:func:`_bounded_thickness`): fingers thicker relative to the palm than the
+default model's crowd each other and are tracked worse, with the hand's true thickness too.
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.articulations import OPEN
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
-from hand_sog_tracker.core.energy import Objective, TipTargets
+from hand_sog_tracker.core.energy import EnergyTerms, Objective, TipTargets
 from hand_sog_tracker.core.hand_model import (
     FINGER_ABD,
     FIRST_JOINT,
@@ -111,12 +111,13 @@ from hand_sog_tracker.core.salient import Detections, assign_detections, assigne
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.skin import SCORE_TOLERANCE_MM, ScoreData, overlap_score, score_data, shape_score
 from hand_sog_tracker.core.tracker import Tracker, coverage, hand_roi
-from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import CalibrationError, HandSogError
 
 __all__ = [
     "CalibrationResult",
     "CalibrationRejected",
+    "Evidence",
     "Validation",
     "calibrate",
     "validate",
@@ -128,6 +129,12 @@ __all__ = [
     "GUARD_RIGID_ITERATIONS",
     "GUARD_FRAME_DROP",
     "GUARD_TIP_LAMBDA_MM",
+    "GUARD_NOISE_SE",
+    "GUARD_TIP_FLOOR_MM",
+    "MAX_THICKNESS_PER_WIDTH",
+    "PER_FRAME_COLUMNS",
+    "RETRACK_COLUMNS",
+    "retrack",
     "DEFAULT_FIT_FRAMES",
     "DEFAULT_HOLDOUT_FRAMES",
     "calibrate_pickled_stdio",
@@ -149,6 +156,12 @@ DEFAULT_FIT_FRAMES = 3
 #: fits that track worse: at 0.02 a third of the dev fits that track better are refused and two
 #: that track worse (0.17-0.61 mm) still pass, at 0.03 two thirds are refused.
 GUARD_MARGIN = 0.003
+#: A measure of the guard is worse (or better) beyond its noise when its mean change over the
+#: held-out frames exceeds this many standard errors of that mean, and its floor: the margin
+#: for the scores, :data:`GUARD_TIP_FLOOR_MM` for the fingertip-detection distances.
+GUARD_NOISE_SE = 2.0
+#: Floor of the fingertip-detection distances' noise (mm).
+GUARD_TIP_FLOOR_MM = 0.5
 #: Held-out frames the guard checks by default (the node holds out this many of its history).
 DEFAULT_HOLDOUT_FRAMES = 4
 #: Pose-refit iterations each model gets on a held-out frame before it is scored (in two
@@ -159,12 +172,12 @@ GUARD_RIGID_ITERATIONS = 8
 #: No held-out frame may lose more than this :func:`shape_score` with the fitted model (a
 #: model fitted to some poses that explains another pose clearly worse is wrong).
 GUARD_FRAME_DROP = 0.05
-#: Not a rule: the guard also reports how far the refitted fingertips lie from the tracker's
-#: fingertip detections (``tip_current`` / ``tip_fitted``).  As a rule (fitted at most 0.25
-#: or 1 mm farther) it refused fits that tracked better as often as ones that tracked worse on
-#: the dev hands, and once a correct 12% width change; it follows the detector's bias.
-#: A model fingertip without a detection within this (mm) counts as this far (assignment cost).
+#: The guard's fingertip-detection distance (``tip_current`` / ``tip_fitted``, one kind of its
+#: evidence): a model fingertip without a detection within this (mm) counts as this far.
 GUARD_TIP_LAMBDA_MM = 30.0
+#: The fitted thickness (depth and sigma) is at most this times the fitted width (unitless;
+#: the default model's ratio): see :func:`_bounded_thickness`.
+MAX_THICKNESS_PER_WIDTH = 1.0
 #: Search rounds: span and step of the grid each factor is searched on about the best so far.
 #: A third round like the second (poses refitted and widths measured again with the second
 #: round's model, the length searched again) was tried on ``calibration_benchmark``: on the dev
@@ -226,6 +239,48 @@ def _candidate(shape: HandShape, name: str, offset: float) -> HandShape | None:
 
 
 @dataclass(frozen=True)
+class Evidence:
+    """One kind of the guard's evidence: the mean change (fitted - current) and its noise.
+
+    Attributes
+    ----------
+    name : str
+    change : float
+        Mean over the frames of fitted minus current (score: unitless; distances: mm).
+    noise : float
+        :data:`GUARD_NOISE_SE` standard errors of that mean, at least the measure's floor.
+    higher_is_better : bool
+    frames : int
+    """
+
+    name: str
+    change: float
+    noise: float
+    higher_is_better: bool
+    frames: int
+
+    @property
+    def worse(self) -> bool:
+        """Worse with the fitted model beyond the noise."""
+        return bool(-self.change > self.noise if self.higher_is_better else self.change > self.noise)
+
+    @property
+    def better(self) -> bool:
+        """Better with the fitted model by at least the noise."""
+        return bool(self.change >= self.noise if self.higher_is_better else -self.change >= self.noise)
+
+    def describe(self) -> str:
+        return f"{self.change:+.4f} (noise {self.noise:.4f}, {self.frames} frames)"
+
+
+def _evidence(name: str, diff: NDArray[np.float64], floor: float, higher_is_better: bool) -> Evidence:
+    """:class:`Evidence` of per-frame changes ``diff`` (NaN: not measured on that frame)."""
+    d = diff[np.isfinite(diff)]
+    se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else 0.0
+    return Evidence(name, float(d.mean()), max(floor, GUARD_NOISE_SE * se), higher_is_better, len(d))
+
+
+@dataclass(frozen=True)
 class Validation:
     """The guard's numbers on held-out frames (scores: higher is better; tips: lower is better).
 
@@ -246,7 +301,7 @@ class Validation:
         Mean distance (mm) of the refitted model's fingertips to the fingertip detections
         (:func:`~hand_sog_tracker.core.salient.detect_fingertips`; an unmatched fingertip
         counts :data:`GUARD_TIP_LAMBDA_MM`), over frames with detections; NaN without any.
-        Reported, not a rule (see :data:`GUARD_TIP_LAMBDA_MM`'s note).
+        One kind of the guard's evidence (per frame in :attr:`per_frame`).
     tip_frames : int
         Held-out frames with fingertip detections.
     measured_finger_mm : tuple of float
@@ -258,6 +313,11 @@ class Validation:
         The factors these widths give (:func:`~hand_sog_tracker.core.measure.shape_from_widths`).
     widths_from_measurement : bool
         Whether the fit took width, depth and sigma from the measurement (else from the search).
+    per_frame : tuple of tuple of float
+        Per held-out frame, :data:`PER_FRAME_COLUMNS` each as (current, fitted) (16 values).
+    retrack_frames : tuple of tuple of float
+        Per re-tracked held-out frame (the second on), :data:`RETRACK_COLUMNS` each as
+        (current, fitted) (8 values).
     """
 
     frames: int
@@ -275,20 +335,63 @@ class Validation:
     measured_sigma: float = float("nan")
     measured_width: float = float("nan")
     widths_from_measurement: bool = False
+    per_frame: tuple[tuple[float, ...], ...] = ()
+    retrack_frames: tuple[tuple[float, ...], ...] = ()
 
     @property
     def gain(self) -> float:
         """``score_fitted - score_current``."""
         return self.score_fitted - self.score_current
 
-    def failures(self) -> list[str]:
-        """The guard's rules the fitted model breaks (empty: accepted)."""
+    def evidence(self) -> list[Evidence]:
+        """Each kind of evidence the guard weighs (see :class:`Evidence`), on held-out frames.
+
+        The held-out score (:attr:`gain`, floor :attr:`margin`), the fingertip-detection
+        distance at the refit poses (with detections), and the score along the held-out frames
+        re-tracked with each model from its own pose on the previous frame
+        (:attr:`retrack_frames`, from the second held-out frame on).  Without per-frame rows
+        (a :class:`Validation` built by hand) the mean score alone, its noise the margin.
+        """
         out = []
-        if not self.gain >= self.margin:
-            out.append(f"mean held-out score gain {self.gain:+.4f} < margin {self.margin:.4f}")
+        pf = np.array(self.per_frame, dtype=float).reshape(-1, 2 * len(PER_FRAME_COLUMNS))
+        if len(pf):
+            out.append(_evidence("held-out score", pf[:, 1] - pf[:, 0], self.margin, True))
+            tips = pf[:, 3] - pf[:, 2]
+            if np.isfinite(tips).any():
+                out.append(_evidence("fingertip-detection distance (mm)", tips, GUARD_TIP_FLOOR_MM, False))
+        else:
+            out.append(Evidence("held-out score", self.gain, self.margin, True, self.frames))
+        rt = np.array(self.retrack_frames, dtype=float).reshape(-1, 2 * len(RETRACK_COLUMNS))
+        both = np.isfinite(rt[:, 0]) & np.isfinite(rt[:, 1])
+        if both.any():
+            out.append(_evidence("re-tracked score", rt[both, 1] - rt[both, 0], self.margin, True))
+        return out
+
+    def failures(self) -> list[str]:
+        """Why the guard does not accept the fitted model (empty: accepted).
+
+        Refused when any evidence is worse beyond its noise or one held-out frame loses more
+        than :attr:`frame_drop`; "the current model already fits" when nothing is worse but the
+        scores (held-out and re-tracked) do not both rise beyond their noise.
+        """
+        ev = self.evidence()
+        out = [f"{e.name} worse: {e.describe()}" for e in ev if e.worse]
         if np.isfinite(self.worst_frame_gain) and self.worst_frame_gain < -self.frame_drop:
             out.append(f"one held-out frame loses {-self.worst_frame_gain:.4f} > {self.frame_drop:.4f}")
+        if not out:
+            flat = [e for e in ev if e.higher_is_better and not e.better]
+            if flat:
+                out.append(
+                    "the current model already fits: "
+                    + "; ".join(f"{e.name} {e.describe()} (within the noise)" for e in flat)
+                )
         return out
+
+    @property
+    def already_fits(self) -> bool:
+        """Nothing worse beyond the noise, and no score that rises beyond it either."""
+        f = self.failures()
+        return len(f) == 1 and f[0].startswith("the current model already fits")
 
     @property
     def accepted(self) -> bool:
@@ -306,9 +409,14 @@ class Validation:
         ``holdout_tip_current_mm``, ``holdout_tip_fitted_mm`` (reported, not a rule).
         """
         out: dict[str, float | int | str] = {
-            "guard_rules": "mean held-out score gain >= guard_margin; every held-out frame's gain >= -guard_frame_drop",
+            "guard_rules": (
+                "no evidence worse beyond its noise; held-out and re-tracked score both higher by their noise; "
+                "every held-out frame's gain >= -guard_frame_drop"
+            ),
             "guard_frame_drop": float(self.frame_drop),
         }
+        if self.per_frame:
+            out["guard_evidence"] = "; ".join(f"{e.name} {e.describe()}" for e in self.evidence())
         if np.isfinite(self.worst_frame_gain):
             out["holdout_worst_frame_gain"] = float(self.worst_frame_gain)
         if self.measured_finger_mm:
@@ -343,6 +451,10 @@ class Validation:
                 f"; fingertip-detection distance {self.tip_current:.2f} -> {self.tip_fitted:.2f} mm "
                 f"on {self.tip_frames} frames"
             )
+        if self.per_frame:
+            text += "; change (fitted - current): " + ", ".join(
+                f"{e.name} {e.describe()}" for e in self.evidence()
+            )
         return text
 
 
@@ -361,11 +473,15 @@ class CalibrationRejected(CalibrationError):
         self.shape = shape
         self.validation = validation
         self._args = (shape, validation)
-        why = "; ".join(validation.failures()) or "refused"
-        super().__init__(
-            f"fitted model rejected ({why}), kept the current one: {validation.describe()} "
-            f"(fit {shape.describe()})"
-        )
+        if validation.already_fits:
+            text = f"the current model already fits: {validation.describe()} (fit {shape.describe()} not used)"
+        else:
+            why = "; ".join(validation.failures()) or "refused"
+            text = (
+                f"fitted model rejected ({why}), kept the current one: {validation.describe()} "
+                f"(fit {shape.describe()})"
+            )
+        super().__init__(text)
 
     def __reduce__(self):  # type: ignore[no-untyped-def]
         """Pickle with the constructor's arguments (the fit may run in another process)."""
@@ -580,6 +696,9 @@ def validate(
     found = _find_poses(frames, list(poses), intrinsics, config, current)
     scores: list[tuple[float, float]] = []
     tips: list[tuple[float, float]] = []
+    per_frame: list[tuple[float, ...]] = []
+    re_frames: list[tuple[float, ...]] = []
+    carried: list[NDArray[np.float64] | None] = [None, None]
     for pre, pose in zip(pres, found):
         if pose is None:
             continue
@@ -589,11 +708,23 @@ def validate(
         roi, window = hand_roi(current, fr.pose, pre.intrinsics, config.roi_radius_mm)
         det = detect_fingertips(pre, roi, window)
         sil = silhouette(pre, window, roi) if config.w_sil > 0 else None
-        frame_scores, frame_tips = [], []
-        for m in (current, fitted):
-            th = _guard_refit(m, _keep_palm_centre(fr.pose, current, m), fr.data, config, det, sil)
+        frame_scores, frame_tips, row, re_row = [], [], [], []
+        for j, m in enumerate((current, fitted)):
+            th, terms = _guard_refit(m, _keep_palm_centre(fr.pose, current, m), fr.data, config, det, sil)
             frame_scores.append(overlap_score(m, th, fr.scoring, pre.intrinsics, SCORE_TOLERANCE_MM))
             frame_tips.append(_tip_distance(m, th, det))
+            row.append((frame_scores[-1], frame_tips[-1], terms.total, coverage(m, th, fr.data),
+                        terms.sim, terms.col, terms.sil, terms.sal))
+            # The re-track: each model follows the held-out frames in order from its own pose
+            # on the previous one (the first frame's is the refit above).
+            if carried[j] is not None:
+                th, terms = _guard_refit(m, carried[j], fr.data, config, det, sil)  # type: ignore[arg-type]
+                re_row.append((overlap_score(m, th, fr.scoring, pre.intrinsics, SCORE_TOLERANCE_MM),
+                               _tip_distance(m, th, det), terms.total, coverage(m, th, fr.data)))
+            carried[j] = th
+        per_frame.append(tuple(float(v) for pair in zip(*row) for v in pair))
+        if re_row:
+            re_frames.append(tuple(float(v) for pair in zip(*re_row) for v in pair))
         scores.append((frame_scores[0], frame_scores[1]))
         if det.n:
             tips.append((frame_tips[0], frame_tips[1]))
@@ -611,7 +742,54 @@ def validate(
         tip_current=float(tp[:, 0].mean()) if len(tp) else float("nan"),
         tip_fitted=float(tp[:, 1].mean()) if len(tp) else float("nan"),
         tip_frames=len(tp),
+        per_frame=tuple(per_frame),
+        retrack_frames=tuple(re_frames),
     )
+
+
+#: Columns of :attr:`Validation.per_frame`'s rows, each as (current, fitted): the score, the
+#: fingertip-detection distance (mm), the tracking objective and the tracker's coverage at the
+#: guard's refit, and the objective's similarity, collision, silhouette and salient terms.
+PER_FRAME_COLUMNS = ("score", "tip_mm", "objective", "coverage", "sim", "col", "sil", "sal")
+#: Columns of :func:`retrack`'s rows (energy and confidence: the tracker's) and, each as
+#: (current, fitted), of :attr:`Validation.retrack_frames`' (there the objective and the
+#: coverage at the re-tracked pose).
+RETRACK_COLUMNS = ("score", "tip_mm", "energy", "confidence")
+
+
+def retrack(
+    frames: Sequence[NDArray], intrinsics: Intrinsics, config: TrackerConfig, model: HandModel
+) -> NDArray[np.float64]:
+    """Track ``frames`` in order with a fresh tracker and ``model``; per frame the numbers of
+    :data:`RETRACK_COLUMNS`.
+
+    Returns
+    -------
+    array, shape (n, 4)
+        Per frame: :func:`shape_score` at the tracked pose, mean fingertip-detection distance
+        there (mm, as :attr:`Validation.tip_current`), the tracker's energy and confidence; NaN
+        where the tracker does not report TRACKING.
+    """
+    mirrored = model.mirrored(config.right_hand)
+    tracker = Tracker(config, mirrored)
+    out = np.full((len(frames), len(RETRACK_COLUMNS)), np.nan)
+    for k, frame in enumerate(frames):
+        res = tracker.process(frame, intrinsics)
+        if res.status is not TrackerStatus.TRACKING or res.pose is None:
+            continue
+        pre = preprocess(frame, intrinsics, config)
+        fr = _prepare(pre, res.pose, mirrored, config)
+        if fr is None:
+            continue
+        roi, window = hand_roi(mirrored, res.pose, pre.intrinsics, config.roi_radius_mm)
+        det = detect_fingertips(pre, roi, window)
+        out[k] = (
+            overlap_score(mirrored, res.pose, fr.scoring, pre.intrinsics, SCORE_TOLERANCE_MM),
+            _tip_distance(mirrored, res.pose, det),
+            res.energy,
+            res.confidence,
+        )
+    return out
 
 
 def _tip_targets(model: HandModel, theta: NDArray[np.float64], det: Detections) -> TipTargets | None:
@@ -642,12 +820,13 @@ def _guard_refit(
     config: TrackerConfig,
     det: Detections,
     sil: Silhouette | None,
-) -> NDArray[np.float64]:
+) -> tuple[NDArray[np.float64], EnergyTerms]:
     """The guard's pose refit of one held-out frame with ``model``, as the tracker fits a frame.
 
     :data:`GUARD_RIGID_ITERATIONS` global-pose iterations, then :data:`GUARD_REFIT_ITERATIONS`
     full ones in two halves with the tracker's salient (fingertip detections, re-assigned
-    before each half) and silhouette terms.
+    before each half) and silhouette terms.  Returns the pose and the tracking objective's terms
+    there (the second half's objective).
     """
     rigid = Objective(model, data, config, silhouette=sil)
     th = maximise(rigid, theta, iterations=GUARD_RIGID_ITERATIONS, active=_RIGID).x
@@ -655,7 +834,7 @@ def _guard_refit(
     for _ in range(2):
         obj = Objective(model, data, config, targets=_tip_targets(model, th, det), silhouette=sil)
         th = maximise(obj, th, iterations=half).x
-    return th
+    return th, obj.evaluate(th, gradient=False)[0]
 
 
 def calibrate(
@@ -807,6 +986,10 @@ def calibrate(
                 val, ths = evaluate(cand, ref_model)
                 if val > best_val:
                     best_val, best_shape, best_poses = val, cand, ths
+    bounded = _bounded_thickness(best_shape)
+    if bounded is not best_shape:
+        best_shape = bounded
+        best_val, best_poses = evaluate(best_shape, ref_model)
     if _FINGER_LENGTHS:
         # The fingers refitted first with the model found so far (the user's fingers are seldom
         # exactly straight and together; a model finger beside its data is fitted short), the
@@ -855,6 +1038,19 @@ def calibrate(
         used_frames=tuple(used),
         validation=validation,
     )
+
+
+def _bounded_thickness(shape: HandShape) -> HandShape:
+    """``shape`` with depth and sigma at most :data:`MAX_THICKNESS_PER_WIDTH` times its width.
+
+    Fingers thicker relative to the palm than the default model's crowd each other: the
+    collision term then pushes them apart and the tracker follows the hand worse, with the
+    hand's true thickness too (doc/notes/calib.md).
+    """
+    top = MAX_THICKNESS_PER_WIDTH * shape.width
+    if shape.sigma <= top and shape.depth <= top:
+        return shape
+    return HandShape(shape.length, shape.width, min(shape.depth, top), min(shape.sigma, top), shape.fingers)
 
 
 def _fit_finger_lengths(

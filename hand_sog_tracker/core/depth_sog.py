@@ -39,6 +39,11 @@ __all__ = [
 ]
 
 MAX_QUAD_PX = 16  #: largest quad side (px) at the processing resolution (chosen here)
+#: Most data Gaussians of one quadtree: the energy's cost grows with their number, and no input
+#: may make a frame unboundedly dear.  A near hand (200 mm, 2 px leaves) gives about 1100,
+#: 400 mm about 700; an image textured finer than the leaves (2 px at 640x480: 77 000) would
+#: give thousands.  Beyond it the leaves are thinned (:func:`quadtree_sog`).
+MAX_DATA_GAUSSIANS = 1536
 MIN_QUAD_PX = 4  #: default smallest quad side (px; chosen here)
 #: A hand farther than this many focal lengths (f in processing pixels, so mm per px) gets
 #: leaves half as wide (:func:`leaf_px`), again beyond twice that: 2 f is 575 mm for a 58 deg
@@ -525,6 +530,7 @@ def quadtree_sog(
     roi: tuple[int, int, int, int] | None = None,
     depth_window_mm: tuple[float, float] | None = None,
     min_quad_px: int = MIN_QUAD_PX,
+    max_gaussians: int = MAX_DATA_GAUSSIANS,
 ) -> ImageSoG:
     """Cluster a preprocessed depth image into quadtree leaves, one Gaussian each.
 
@@ -540,6 +546,10 @@ def quadtree_sog(
     min_quad_px : int
         Side of the smallest leaves (a power of two up to ``MAX_QUAD_PX``);
         these may be partly valid (at least half their pixels).
+    max_gaussians : int
+        At most this many Gaussians: more leaves are thinned to an evenly spread subset (every
+        k-th leaf of each level).  (Coarser leaves instead would leave nothing of a texture
+        finer than them.)
     """
     depth = pre.depth_mm
     h, w = depth.shape
@@ -633,6 +643,7 @@ def quadtree_sog(
             found.append((cells, vsum.ravel().take(cells), cnt.ravel().take(cells), leaf.shape[1], size))
     if not found:
         return _empty(pre.intrinsics)
+    n_leaves = sum(f[0].size for f in found)
     # Every level's leaves at once (the same operations per leaf as level by level, with the
     # level's width and block side per leaf: a few calls instead of a dozen per level).
     cells, sums, counts, widths, sizes = zip(*found)
@@ -640,13 +651,17 @@ def quadtree_sog(
     cells = np.concatenate(cells)
     width = np.repeat(widths, per_level)
     side = np.repeat(np.array(sizes, dtype=np.float64), per_level)
+    sums, counts = np.concatenate(sums), np.concatenate(counts)
+    if n_leaves > max_gaussians:  # an evenly spread subset, the same share of every level
+        keep = np.linspace(0, n_leaves - 1, max_gaussians).astype(np.int64)
+        cells, width, side, sums, counts = cells[keep], width[keep], side[keep], sums[keep], counts[keep]
     bv = cells // width  # (row and column by division: cheaper than 2-d nonzero)
     bu = cells - bv * width
     mu = np.empty((cells.size, 2))
     mu[:, 0] = u0 + (bu + 0.5) * side - 0.5
     mu[:, 1] = v0 + (bv + 0.5) * side - 0.5
     sigma = side / np.sqrt(2.0)
-    dq = np.concatenate(sums).astype(np.float64) / np.concatenate(counts)
+    dq = sums.astype(np.float64) / counts
     pts = pre.intrinsics.backproject(mu, dq)
     return ImageSoG(
         mu=mu,

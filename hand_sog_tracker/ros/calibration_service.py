@@ -219,6 +219,7 @@ class CalibrationService:
     _calib_wake: GuardCondition
     _fit_worker: FitWorker
     _model_generation: int = 0
+    _calibrating: bool = False  # a ~/calibrate call is being served (set on the instance)
 
     def _run_fit(self, args: tuple, kwargs: dict) -> CalibrationResult:
         """:func:`~hand_sog_tracker.core.calibration.calibrate` in the child process
@@ -235,6 +236,7 @@ class CalibrationService:
 
         Called with ``_tracker_lock`` held (the node's frame processing holds it).
         """
+        self._apply_auto_fit(stamp)
         if not self._calib_history.remember(depth, intr, pose, stamp):
             return
         auto = self._auto_calib
@@ -248,8 +250,24 @@ class CalibrationService:
         auto.started(stamp)
         self._start_auto_fit(frames, self._tracker.model, self._model_generation)
 
+    def _apply_auto_fit(self, stamp: int) -> None:
+        """Switch to an accepted automatic fit's model once the frame stamped ``stamp`` is due
+        (:meth:`~hand_sog_tracker.core.autocalibration.AutoCalibration.take`: by image stamps,
+        so every run of a bag switches on the same frame).  Called with ``_tracker_lock`` held."""
+        pending = self._auto_calib.take(stamp)
+        if pending is None:
+            return
+        model, generation, fitted = pending  # type: ignore[misc]
+        if generation == self._model_generation and self._auto_calib.enabled:
+            self._tracker.set_model(model)
+            self._model_generation += 1
+            self.get_logger().info(f"automatic calibration in use (not saved; ~/calibrate saves): {fitted}")
+        else:
+            self.get_logger().info("automatic calibration: dropped (the model was changed meanwhile)")
+
     def _start_auto_fit(self, frames: FitFrames, model: HandModel, generation: int) -> None:
-        """Run an automatic fit on a worker thread; switch to its model if the guard accepts it."""
+        """Run an automatic fit on a worker thread; its model, if the guard accepts it, is
+        switched to by :meth:`_apply_auto_fit`."""
         settings = self._settings
         args, kwargs = frames.calibrate_args(settings.tracker, model, automatic=True)
         attempt = self._auto_calib.attempts
@@ -261,6 +279,7 @@ class CalibrationService:
         def work() -> None:
             logger = self.get_logger()
             accepted = False
+            pending: tuple | None = None
             try:
                 res = self._run_fit(args, kwargs)
                 s = res.shape
@@ -273,16 +292,9 @@ class CalibrationService:
                 if reason is not None:
                     logger.info(f"automatic calibration: {fitted}; not used: {reason}")
                     return
-                with self._tracker_lock:
-                    used = generation == self._model_generation and self._auto_calib.enabled
-                    if used:
-                        self._tracker.set_model(res.model)
-                        self._model_generation += 1
-                if used:
-                    logger.info(f"automatic calibration in use (not saved; ~/calibrate saves): {fitted}")
-                else:
-                    logger.info("automatic calibration: dropped (the model was changed meanwhile)")
+                pending = (res.model, generation, fitted)
             except CalibrationRejected as err:
+                accepted = err.validation.already_fits  # (nothing to do: no further attempts)
                 logger.info(f"automatic calibration refused, the model is unchanged: {err}")
             except HandSogError as err:
                 logger.info(f"automatic calibration failed, the model is unchanged: {err}")
@@ -291,11 +303,25 @@ class CalibrationService:
                     logger.error(f"automatic calibration error: {err!r}")
             finally:
                 with self._tracker_lock:
-                    self._auto_calib.finished(accepted)
+                    self._auto_calib.finished(accepted, pending)
 
         threading.Thread(target=work, name="hand_sog_auto_calibration", daemon=True).start()
 
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """The ``~/calibrate`` callback: :meth:`_calibrate`, one call at a time; a call that comes
+        while one is served is answered at once, ``success: false``, ``"busy: ..."`` (the
+        service's callback group is reentrant, so no call waits in a queue for the fit)."""
+        if self._calibrating:
+            response.success = False
+            response.message = "busy: a calibration is running (call again when it has answered)"
+            return response
+        self._calibrating = True
+        try:
+            return await self._calibrate(request, response)
+        finally:
+            self._calibrating = False
+
+    async def _calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Fit the hand model to recent frames in a child process; tracking goes on meanwhile.
 
         The callback is a coroutine: it starts a worker thread, which runs the fit in a child
@@ -307,7 +333,7 @@ class CalibrationService:
         ones) and is checked on up to CALIB_HOLDOUT other frames of it (the guard of
         :func:`~hand_sog_tracker.core.calibration.calibrate`); a refused fit changes and
         saves nothing.  A fit that is saved ends the automatic fits.  Calls are served one at
-        a time (own callback group).
+        a time (:meth:`_on_calibrate`).
         """
         with self._tracker_lock:  # a consistent snapshot of the history and the model
             history = self._calib_history.frames()
@@ -357,8 +383,12 @@ class CalibrationService:
             res: CalibrationResult = await future
         except CalibrationRejected as err:
             response.success = False
-            response.message = f"calibration rejected, nothing changed or saved: {err}"
-            self.get_logger().warning(response.message)
+            if err.validation.already_fits:
+                response.message = f"{err}; nothing changed or saved"
+                self.get_logger().info(response.message)
+            else:
+                response.message = f"calibration rejected, nothing changed or saved: {err}"
+                self.get_logger().warning(response.message)
             return response
         except HandSogError as err:
             kind = "calibration failed" if isinstance(err, CalibrationError) else "calibration error"

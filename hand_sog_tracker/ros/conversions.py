@@ -39,6 +39,7 @@ from hand_sog_tracker.errors import InputError
 # The input side is pure NumPy on duck-typed messages: it lives in the ROS-free interface module
 # (so bag tools can use it without sensor_msgs) and is re-exported here.
 from hand_sog_tracker.interface import (
+    CONFIDENCE_NAMES,
     DEPTH_ENCODINGS,
     FINGERTIPS_NS,
     SKELETON_MARKER_ID,
@@ -57,6 +58,7 @@ from hand_sog_tracker.interface import (
 rotation_to_quaternion = quaternion_from_matrix
 
 __all__ = [
+    "confidence_msg",
     "ImageLike",
     "CameraInfoLike",
     "DEPTH_ENCODINGS",
@@ -151,6 +153,17 @@ def keypoints_mm(skeleton_mm: NDArray[np.float64], fingertips_mm: NDArray[np.flo
     out = sk.copy()
     out[4::4] = tips
     return out
+
+
+def confidence_msg(header: Header, present: bool, confidence: float, fingers: NDArray[np.float64]) -> JointState:
+    """``hand/confidence``: the frame's hand decision as a ``sensor_msgs/JointState``.
+
+    ``name`` = :data:`~hand_sog_tracker.interface.CONFIDENCE_NAMES`, ``position`` = present
+    (1.0 or 0.0), the hand confidence and the five finger confidences (each in [0, 1]);
+    ``velocity`` and ``effort`` empty.
+    """
+    values = [1.0 if present else 0.0, float(confidence)] + [float(f) for f in np.asarray(fingers).reshape(5)]
+    return JointState(header=header, name=list(CONFIDENCE_NAMES), position=values)
 
 
 def keypoints_msg(header: Header, skeleton_mm: NDArray[np.float64], fingertips_mm: NDArray[np.float64]) -> PoseArray:

@@ -14,6 +14,8 @@ Topics (relative names, so a namespace or remapping moves them):
 ``hand/joint_states``                     ``sensor_msgs/JointState``, 20 angles (rad) (+ 6 wrist joints)
 ``hand/pose``                             ``geometry_msgs/PoseStamped``, wrist pose (m)
 ``hand/keypoints``                        ``geometry_msgs/PoseArray``, 21 points, MediaPipe order (m)
+``hand/confidence``                       ``sensor_msgs/JointState``, every processed frame: present,
+                                          hand and finger confidences (see ``interface``)
 ``hand/robot_description``                ``std_msgs/String`` URDF of the current model (latched)
 ``/tf``                                   ``tf2_msgs/TFMessage`` with ``publish_tf: true``
 ``hand/fingertips``                       ``visualization_msgs/MarkerArray`` fingertips + skeleton
@@ -32,20 +34,30 @@ takes a CameraInfo waiting in its subscription and tracks the image at once; an 
 that arrives meanwhile is taken from the subscription by the tracking itself (a frame
 that finds the hand is answered on the next one).  Frames that are never processed are counted: ``dropped``
 (received but replaced by a newer one before processing) and ``missed`` (replaced inside
-DDS, so never received; estimated
-from gaps in the image stamps against the shortest stamp interval seen).
+DDS, so never received; estimated from gaps in the image stamps against the camera period,
+the running median of the last :data:`RATE_WINDOW` intervals, learned anew after a pause or
+a jump back).
 :func:`main` spins a single-threaded executor (see :func:`make_executor`).
 
 Robustness: a bad frame (encoding, size, truncated data, no CameraInfo yet,
 stamps going backwards, resolution change, any error from the core) is
 skipped with a throttled warning naming the problem and counted as rejected;
-the tracker state is reset only where the track cannot continue.
+the tracker state is reset only where the track cannot continue.  Every frame is bounded:
+images above ``max_image_pixels`` are refused before anything of their size is allocated,
+implausible CameraInfo is refused (:func:`~hand_sog_tracker.interface.camera_info_to_intrinsics`),
+the core clips its search to the image and caps its data, and the work a frame can do without
+stops when ``frame_budget_ms`` is spent (``frames_cut``, ``worst_frame_ms`` in /diagnostics).
+An image without ``frame_id`` is tracked in :data:`DEFAULT_FRAME_ID` (with a warning); stamps
+more than :data:`STAMP_SKEW_S` from the node's clock are warned about and left out of
+``latency_ms``.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import copy
+import math
 import re
 import sys
 import threading
@@ -61,7 +73,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from numpy.typing import NDArray
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.context import Context
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -80,6 +92,7 @@ from visualization_msgs.msg import MarkerArray
 
 from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory
 from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
+from hand_sog_tracker.core.handcheck import HandDecision, HandGate
 from hand_sog_tracker.core.model_io import load_hand_shape
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
@@ -94,6 +107,7 @@ from hand_sog_tracker.errors import (
 from hand_sog_tracker.interface import (
     CALIBRATE_SERVICE,
     COMPRESSED_DEPTH_TOPIC,
+    CONFIDENCE_TOPIC,
     DEBUG_IMAGE_TOPIC,
     DEPTH_TOPIC,
     DESCRIPTION_TOPIC,
@@ -113,6 +127,7 @@ from hand_sog_tracker.interface import (
 from hand_sog_tracker.ros.calibration_service import CalibrationService, FitWorker
 from hand_sog_tracker.ros.conversions import (
     bgr_to_image_msg,
+    confidence_msg,
     delete_all_markers,
     diagnostic_array,
     fingertip_markers,
@@ -138,6 +153,15 @@ COMPRESSED_TOPIC = COMPRESSED_DEPTH_TOPIC
 WARN_THROTTLE_S = 2.0
 #: A gap between two received images longer than this is a pause, not missed frames.
 MAX_GAP_S = 1.0
+#: Intervals between received images whose running median is the camera period (a burst at
+#: 200 Hz is forgotten after this many intervals at the camera's own rate).
+RATE_WINDOW = 15
+#: Where outputs of an image without ``header.frame_id`` are (the usual optical frame of a
+#: depth camera driver).
+DEFAULT_FRAME_ID = "camera_depth_optical_frame"
+#: Image stamps further than this from the node's clock (s) are warned about and left out of the
+#: latency in /diagnostics (a bag replayed without use_sim_time, unsynchronised clocks).
+STAMP_SKEW_S = 30.0
 #: Cameras faster than this (Hz) get the tracker's restarts at most every
 #: ``FAST_CAMERA_RESTART_INTERVAL_S`` (a frame whose restarts an unexplained detection or a
 #: dangling finger sets off takes 5-20 ms more; at 30 Hz the node keeps up without the limit).
@@ -158,6 +182,9 @@ DIRECT_FRAMES = 4
 IDLE_REFINE_PASSES = 9
 #: Seconds a fingertip marker stays in RViz without a newer one (so a stopped node's hand goes).
 MARKER_LIFETIME_S = 1.0
+#: ~/calibrate requests kept while the executor is busy with a frame (each is then answered at
+#: once, "busy" during a fit): more calls arriving within one frame's processing are lost.
+CALIBRATE_QUEUE = 100
 _NUMBERS = re.compile(r"\d+(\.\d+)?")
 
 
@@ -178,6 +205,8 @@ class NodeStats:
         frame was processed), estimated from gaps in the image stamps.
     rejected : int
         Frames skipped because of bad input.
+    cut : int
+        Processed frames whose optional work was stopped by ``frame_budget_ms``.
     last_problem : str
         Why the last frame was rejected ("" if none was).
     status : TrackerStatus
@@ -191,6 +220,7 @@ class NodeStats:
     dropped: int = 0
     missed: int = 0
     rejected: int = 0
+    cut: int = 0
     last_problem: str = ""
     status: TrackerStatus = TrackerStatus.NO_HAND
     confidence: float = 0.0
@@ -206,6 +236,8 @@ class _Window:
     proc_ms: float = 0.0
     answer_ms: float = 0.0  # from the start of a frame's processing to its result published
     latency_ms: float = 0.0
+    latency_frames: int = 0  # frames whose stamp is within STAMP_SKEW_S of the clock
+    worst_ms: float = 0.0  # the longest processing of a frame
     start: float = field(default_factory=time.monotonic)
 
 
@@ -247,7 +279,11 @@ class TrackerNode(CalibrationService, Node):
         self._window = _Window()
         self._pending: Image | CompressedImage | None = None
         self._rx_stamp_ns: int | None = None  # stamp of the last received image
-        self._period_ns: int | None = None  # shortest interval between received images
+        self._period_ns: int | None = None  # camera period: median of the recent intervals
+        self._intervals: collections.deque[int] = collections.deque(maxlen=RATE_WINDOW)
+        self._deadline = math.inf  # perf_counter() at which the current frame's budget is spent
+        self._last_step_at = 0.0  # perf_counter() of the last _image_waiting() call in the frame
+        self._frame_cut = False
         self._intrinsics: Intrinsics | None = None
         self._intrinsics_problem = ""
         # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).
@@ -259,6 +295,8 @@ class TrackerNode(CalibrationService, Node):
         self._tracker.refine_stop = self._image_waiting
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
+        self._last_intr: Intrinsics | None = None  # of the last frame that passed the checks
+        self._last_intr_shape: tuple[int, int] | None = None
         self._markers_shown = False
         self._frame_id = ""
         # Recent tracked frames for ~/calibrate and the automatic fit (calibration_service.py),
@@ -269,8 +307,10 @@ class TrackerNode(CalibrationService, Node):
 
         # Every callback is in the node's default group except ~/calibrate: its coroutine holds
         # its callback group while it awaits the calibration worker thread, so it gets a group
-        # of its own (one call at a time) and tracking goes on in the default group meanwhile.
-        self._calib_group = MutuallyExclusiveCallbackGroup()
+        # of its own and tracking goes on in the default group meanwhile.  A reentrant group:
+        # a call that comes during a fit is taken at once and answered "busy" (a mutually
+        # exclusive one left such calls in the service's queue, beyond which they were lost).
+        self._calib_group = ReentrantCallbackGroup()
         sensor_qos = copy.copy(qos_profile_sensor_data)
         sensor_qos.depth = 1
         out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
@@ -296,6 +336,11 @@ class TrackerNode(CalibrationService, Node):
         self._keypoints_pub = self.create_publisher(
             PoseArray, KEYPOINTS_TOPIC, out_qos, qos_overriding_options=overrides
         )
+        # The hand decision of every processed frame (issue 46), "no hand" included.
+        self._confidence_pub = self.create_publisher(
+            JointState, CONFIDENCE_TOPIC, out_qos, qos_overriding_options=overrides
+        )
+        self._hand_gate = HandGate()
         latched = QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
         )
@@ -310,7 +355,8 @@ class TrackerNode(CalibrationService, Node):
         self._publish_description(None)
 
         self._calibrate_srv = self.create_service(
-            Trigger, CALIBRATE_SERVICE, self._on_calibrate, callback_group=self._calib_group
+            Trigger, CALIBRATE_SERVICE, self._on_calibrate, callback_group=self._calib_group,
+            qos_profile=QoSProfile(depth=CALIBRATE_QUEUE, reliability=ReliabilityPolicy.RELIABLE),
         )
         # Triggered by the calibration worker when it is done: wakes the executor, which then
         # resumes the waiting (async) service callback.
@@ -425,32 +471,40 @@ class TrackerNode(CalibrationService, Node):
     def _missed_before(self, stamp: int) -> int:
         """Frames the camera must have sent between the last received image and this one.
 
-        The camera period is taken as the shortest interval seen between two received images;
-        a gap over :data:`MAX_GAP_S` is a pause of the stream, not lost frames.
+        The camera period is the running median of the last :data:`RATE_WINDOW` intervals
+        between received images (robust to a burst, a stall or a missed frame, and forgotten
+        within that many frames when the rate changes); a gap over :data:`MAX_GAP_S` is a pause
+        of the stream, not lost frames, and like a jump back starts the estimate anew.
         """
         prev, self._rx_stamp_ns = self._rx_stamp_ns, stamp
-        if prev is None:
-            return 0
-        if stamp < prev:  # bag loop or clock reset: learn the period anew
-            self._period_ns = None
+        if prev is None or stamp == prev:
             return 0
         gap = stamp - prev
-        if gap == 0:
+        if gap < 0 or gap > MAX_GAP_S * 1e9:  # bag loop, clock reset or pause: learn the period anew
+            self._intervals.clear()
+            self._period_ns = None
             return 0
-        if self._period_ns is None or gap < self._period_ns:
-            self._period_ns = gap
+        period = self._period_ns
+        self._intervals.append(gap)
+        self._period_ns = int(np.median(self._intervals))
+        if period is None:
             return 0
-        if gap > MAX_GAP_S * 1e9:
-            return 0
-        return max(int(round(gap / self._period_ns)) - 1, 0)
+        return max(int(round(gap / period)) - 1, 0)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
+        """Keep the intrinsics of a usable CameraInfo; an unusable one (its reason warned
+        about) leaves none, so the images meanwhile are rejected with that reason."""
         try:
             intr = camera_info_to_intrinsics(msg)
         except IntrinsicsError as err:
             self._intrinsics = None
             self._intrinsics_problem = f"unusable CameraInfo: {err}"
             self._warn(f"unusable CameraInfo on {self._info_sub.topic_name}: {err}")
+            return
+        except (TypeError, ValueError, OverflowError, AttributeError) as err:  # (fields of other types)
+            self._intrinsics = None
+            self._intrinsics_problem = f"unusable CameraInfo: {err!r}"
+            self._warn(f"unusable CameraInfo on {self._info_sub.topic_name}: {err!r}")
             return
         self._intrinsics = intr
         self._intrinsics_problem = ""
@@ -465,7 +519,9 @@ class TrackerNode(CalibrationService, Node):
             "output_rate_hz": n_proc / dt,
             "processing_ms": w.proc_ms / n_proc if n_proc else 0.0,
             "answer_ms": w.answer_ms / n_proc if n_proc else 0.0,
-            "latency_ms": w.latency_ms / n_proc if n_proc else 0.0,
+            # (NaN when no frame's stamp was within STAMP_SKEW_S of the clock)
+            "latency_ms": w.latency_ms / w.latency_frames if w.latency_frames else (math.nan if n_proc else 0.0),
+            "worst_frame_ms": w.worst_ms,
             "status": c.status.value,
             "confidence": c.confidence,
             "frames_received": c.received,
@@ -473,6 +529,7 @@ class TrackerNode(CalibrationService, Node):
             "frames_dropped": c.dropped,
             "frames_missed": c.missed,
             "frames_rejected": c.rejected,
+            "frames_cut": c.cut,
             "last_problem": c.last_problem,
         }
         win_received, win_rejected, last_problem = w.received, w.rejected, c.last_problem
@@ -501,12 +558,22 @@ class TrackerNode(CalibrationService, Node):
         if msg is None:
             return
         t0 = time.perf_counter()
+        self._deadline, self._frame_cut = t0 + self._settings.frame_budget_ms * 1e-3, False
+        self._last_step_at = t0
         try:
             with self._tracker_lock:
                 answered_at = self._process(msg, intr, intr_problem)
             if answered_at is not None:
-                self._window.proc_ms += (time.perf_counter() - t0) * 1e3
+                ms = (time.perf_counter() - t0) * 1e3
+                self._window.proc_ms += ms
                 self._window.answer_ms += (answered_at - t0) * 1e3
+                self._window.worst_ms = max(self._window.worst_ms, ms)
+                if self._frame_cut:
+                    self._stats = replace(self._stats, cut=self._stats.cut + 1)
+                    self._warn(
+                        f"frame took {ms:.0f} ms, its budget is {self._settings.frame_budget_ms:.0f} ms "
+                        "(frame_budget_ms): its remaining work was cut"
+                    )
         except Exception as err:  # noqa: BLE001 - a bug in one frame must not kill the node
             if not self.context.ok():
                 return
@@ -520,6 +587,8 @@ class TrackerNode(CalibrationService, Node):
                 throttle_duration_sec=WARN_THROTTLE_S,
             )
             self.get_logger().debug(traceback.format_exc())
+        finally:
+            self._deadline = math.inf
 
     def _warn(self, text: str) -> None:
         """Per-frame warning, throttled per kind of problem (the text with its numbers masked).
@@ -548,8 +617,17 @@ class TrackerNode(CalibrationService, Node):
         settings = self._settings
         if settings.tracker != self._tracker.config:
             self._tracker.set_config(settings.tracker)
+        if not header.frame_id:
+            self._warn(f"image without header.frame_id: outputs are in '{DEFAULT_FRAME_ID}'")
+            header = Header(stamp=header.stamp, frame_id=DEFAULT_FRAME_ID)
 
         stamp = stamp_to_ns(header.stamp)
+        skew_s = (stamp - self.get_clock().now().nanoseconds) * 1e-9
+        if abs(skew_s) > STAMP_SKEW_S:
+            self._warn(
+                f"image stamp is {abs(skew_s):.0f} s {'ahead of' if skew_s > 0 else 'behind'} the node's clock "
+                "(unsynchronised clocks, or a bag replayed without use_sim_time?): tracked, left out of latency_ms"
+            )
         if self._last_stamp_ns is not None and stamp < self._last_stamp_ns:
             back_s = (self._last_stamp_ns - stamp) * 1e-9
             self._last_stamp_ns = stamp
@@ -569,7 +647,10 @@ class TrackerNode(CalibrationService, Node):
             return None
 
         try:
-            depth = compressed_image_to_depth_mm(msg) if isinstance(msg, CompressedImage) else image_to_depth_mm(msg)
+            if isinstance(msg, CompressedImage):
+                depth = compressed_image_to_depth_mm(msg, settings.max_image_pixels)
+            else:
+                depth = image_to_depth_mm(msg, settings.max_image_pixels)
         except DepthImageError as err:
             self._reject(f"bad depth image: {err}")
             self._warn(f"bad depth image: {err}: frame skipped")
@@ -592,9 +673,23 @@ class TrackerNode(CalibrationService, Node):
             self._reject(problem)
             self._warn(f"{problem}: frame skipped")
             return None
+        if self._last_intr is not None and intr != self._last_intr and shape == self._last_intr_shape:
+            # A pose fitted with other intrinsics is wrong with these (a track carried over
+            # from a K 2x off stayed 60 mm off): start anew, as on a resolution change.
+            self._warn(f"CameraInfo changed ({self._last_intr} -> {intr}): tracker reset")
+            self._reset_track(header)
+            self._calib_history.clear()
+        self._last_intr, self._last_intr_shape = intr, shape
 
-        if not np.any(depth > 0.0):
+        top = float(depth.max())
+        if top <= 0.0:
             self._warn("depth image has no valid pixels (all 0, NaN or Inf)")
+        else:
+            unit_problem = self._unit_problem(msg, depth, top)
+            if unit_problem:
+                self._reject(unit_problem)
+                self._warn(f"{unit_problem}: frame skipped")
+                return None
 
         fast = self._period_ns is not None and self._period_ns * 1e-9 * FAST_CAMERA_HZ < 1.0
         self._tracker.restart_interval_s = FAST_CAMERA_RESTART_INTERVAL_S if fast else None
@@ -618,8 +713,17 @@ class TrackerNode(CalibrationService, Node):
             self._warn(f"tracker rejected the frame: {err}")
             return None
 
+        # -- the hand check (issue 46): a tracked frame that is no hand is answered "no hand",
+        # with no pose and no markers, and the track is reset (the next frame searches afresh).
+        decision = self._hand_gate.decide(self._tracker, depth, intr, self._tracker.model, result)
+        if result.pose is not None and not decision.present:
+            result = replace(
+                result, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,
+                gaussians_mm=None, gaussian_radii_mm=None,
+            )
+        # ---------------------------------------------------------------------------------
         self._frame_id = header.frame_id
-        self._publish_result(header, result, depth, intr)
+        self._publish_result(header, result, depth, intr, decision)
         answered_at = time.perf_counter()
         tracked = result.pose if result.status is TrackerStatus.TRACKING else None
         self._remember(depth, intr, tracked, stamp)
@@ -628,19 +732,54 @@ class TrackerNode(CalibrationService, Node):
             self._stats,
             processed=self._stats.processed + 1,
             status=result.status,
-            confidence=float(result.confidence),
+            confidence=float(decision.confidence),
         )
         self._window.processed += 1
-        self._window.latency_ms += latency_ms
+        if abs(skew_s) <= STAMP_SKEW_S:
+            self._window.latency_ms += latency_ms
+            self._window.latency_frames += 1
         # This frame's restarts, after its answer (defer_restarts); they pause as soon as a
         # newer image waits and go on after it (issue 14: the detection restarts of one frame
         # can take 60 ms; cut after 10 ms, they held up the next frame by up to 8 ms).
         self._tracker.finish_frame(self._image_waiting)
         return answered_at
 
+    def _unit_problem(self, msg: Image | CompressedImage, depth: NDArray[np.float32], top: float) -> str:
+        """Why depth whose valid pixels all lie outside ``[near_mm, far_mm]`` looks like the wrong
+        unit ("" if it does not): metres sent as 16UC1, or millimetres as 32FC1."""
+        cfg = self._tracker.config
+        encoding = msg.format if isinstance(msg, CompressedImage) else msg.encoding
+        encoding = str(encoding).split(";")[0].strip().upper()
+        if encoding in ("16UC1", "MONO16") and top < cfg.near_mm:
+            return (
+                f"every valid depth of this {encoding} image is at most {top:.0f} mm, nearer than near_mm = "
+                f"{cfg.near_mm:g}: depth in metres sent as 16UC1 (which is mm)?"
+            )
+        if encoding == "32FC1" and top > max(cfg.far_mm, 1e5):  # (beyond 100 m: no depth camera's)
+            nearest = float(depth[depth > 0.0].min())
+            if nearest > max(cfg.far_mm, 1e5):
+                return (
+                    f"every valid depth of this 32FC1 image is at least {nearest / 1000:.0f} m: depth in "
+                    "millimetres sent as 32FC1 (which is metres)?"
+                )
+        return ""
+
     def _image_waiting(self) -> bool:
-        """Whether a newer image than the one being processed has arrived."""
-        return self._pending is not None or self._take_waiting(self._image_sub, self._on_image)
+        """Whether the work on the current frame should stop: a newer image than the one being
+        processed has arrived, or the frame's ``frame_budget_ms`` would be overrun by another
+        step as long as the last one (the frame is cut).
+
+        The budget does not hold back the second half of an initialisation when no newer image
+        comes (a single image is answered; a stream's next image finishes it anyway).
+        """
+        if self._pending is not None or self._take_waiting(self._image_sub, self._on_image):
+            return True
+        now = time.perf_counter()
+        step, self._last_step_at = now - self._last_step_at, now
+        if now + step > self._deadline and not self._tracker.initialising:
+            self._frame_cut = True
+            return True
+        return False
 
     @staticmethod
     def _take_waiting(sub: Subscription, callback: Callable[[Any], None]) -> bool:
@@ -667,8 +806,17 @@ class TrackerNode(CalibrationService, Node):
             self._markers_shown = False
 
     def _publish_result(
-        self, header: Header, result: TrackResult, depth: NDArray[np.float32], intr: Intrinsics
+        self,
+        header: Header,
+        result: TrackResult,
+        depth: NDArray[np.float32],
+        intr: Intrinsics,
+        decision: HandDecision | None = None,
     ) -> None:
+        if decision is not None and self._confidence_pub.get_subscription_count():
+            self._confidence_pub.publish(
+                confidence_msg(header, decision.present, decision.confidence, decision.fingers)
+            )
         if result.pose is not None and result.fingertips_mm is not None:
             wrist_joints = self._settings.publish_wrist_joints
             self._publish_description(header.frame_id if wrist_joints else None)

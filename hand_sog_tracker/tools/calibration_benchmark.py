@@ -78,7 +78,7 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from dataclasses import asdict, dataclass  # noqa: E402
+from dataclasses import asdict, dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, Iterable, Sequence  # noqa: E402
 
@@ -94,16 +94,23 @@ __all__ = [
     "TRACK_FPS",
     "TRACK_FRAMES",
     "TRACK_SEED_OFFSET",
+    "PREDICTORS",
+    "SIZE_BINS",
+    "STATIC_FPS",
+    "BagCheck",
     "HandResult",
     "RendererSummary",
     "draw_factors",
     "format_hand",
     "format_notes",
     "format_summary",
+    "check_bag",
     "main",
     "mesh_length_ratio",
+    "predictor_correlations",
     "run_calibration_benchmark",
     "run_hand",
+    "size_table",
     "summarise",
     "true_factors",
 ]
@@ -124,6 +131,9 @@ MESH_AT_ONE = (0.935, 1.046, 0.907)
 SPLITS = {"test": 9000, "dev": 2000}
 RENDERERS = ("mesh", "capsule")
 MOTION = "abdadd"
+#: Frame rate (Hz) of a ``static`` hand's renders: the 15 history frames span 15 ms of the
+#: motion's start, an open hand held still (each frame its own sensor noise).
+STATIC_FPS = 1000.0
 
 
 @dataclass(frozen=True)
@@ -188,6 +198,8 @@ class HandResult:
     tip_fitted_mm: float = float("nan")
     tip_truth_mm: float = float("nan")
     fingers: tuple[float, float, float, float, float] | None = None
+    motion: str = "moving"
+    evidence: dict[str, float] = field(default_factory=dict)
 
     @property
     def within_5pct(self) -> bool:
@@ -279,6 +291,11 @@ def true_factors(renderer: str, drawn: Sequence[float]) -> tuple[float, float, f
 
 
 def _frames(renderer: str, drawn: Sequence[float], n: int, seed: int, fps: float) -> list[Any]:
+    """Rendered frames of :data:`MOTION` (see :func:`_render`)."""
+    return _render(renderer, drawn, n, seed, fps)
+
+
+def _render(renderer: str, drawn: Sequence[float], n: int, seed: int, fps: float) -> list[Any]:
     """Rendered frames (:class:`~hand_sog_tracker.synth.sequence.SyntheticFrame`, depth in mm)."""
     from hand_sog_tracker.core.hand_model import HandShape
     from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
@@ -309,9 +326,10 @@ def _track_error(model: Any, frames: Iterable[Any]) -> float:
     return summarize_errors(np.array(rows)).mean_mm
 
 
-def run_hand(renderer: str, seed: int, track: bool = True) -> HandResult:
+def run_hand(renderer: str, seed: int, track: bool = True, motion: str = "moving") -> HandResult:
     """One hand of the benchmark (see the module docstring); ``track=False`` skips step 4
-    (fingertip errors NaN)."""
+    (fingertip errors NaN); ``motion`` ``static``: both sequences rendered at
+    :data:`STATIC_FPS` (an open hand held still)."""
     from hand_sog_tracker.core.calibration import (
         DEFAULT_FIT_FRAMES,
         DEFAULT_HOLDOUT_FRAMES,
@@ -331,7 +349,9 @@ def run_hand(renderer: str, seed: int, track: bool = True) -> HandResult:
     intr = default_intrinsics()
     tracker = Tracker(config, default)
     depth, poses = [], []
-    for f in _frames(renderer, drawn, HISTORY_FRAMES, seed, 1.0 / HISTORY_PERIOD_S):
+    static = motion == "static"
+    hist_fps = STATIC_FPS if static else 1.0 / HISTORY_PERIOD_S
+    for f in _frames(renderer, drawn, HISTORY_FRAMES, seed, hist_fps):
         out = tracker.process(f.depth_mm, intr)
         depth.append(f.depth_mm)
         poses.append(out.pose if out.status is TrackerStatus.TRACKING else None)
@@ -340,6 +360,7 @@ def run_hand(renderer: str, seed: int, track: bool = True) -> HandResult:
     shape: HandShape | None = None
     accepted, reason, model = False, "", default
     gain = worst = float("nan")
+    validation = None
     t0 = time.process_time()
     tracked = sum(p is not None for p in poses)
     if not fit_i or not hold_i:
@@ -352,6 +373,7 @@ def run_hand(renderer: str, seed: int, track: bool = True) -> HandResult:
             )
         except CalibrationRejected as err:
             shape = err.shape
+            validation = err.validation
             fitted = tuple(float(v) for v in err.shape.as_array())  # type: ignore[assignment]
             reason = "; ".join(err.validation.failures()) or "refused"
             gain, worst = err.validation.gain, err.validation.worst_frame_gain
@@ -361,16 +383,20 @@ def run_hand(renderer: str, seed: int, track: bool = True) -> HandResult:
             shape = res.shape
             fitted = tuple(float(v) for v in res.shape.as_array())  # type: ignore[assignment]
             accepted, model = True, res.model
+            validation = res.validation
             if res.validation is not None:
                 gain, worst = res.validation.gain, res.validation.worst_frame_gain
     cpu = time.process_time() - t0
+    evidence: dict[str, float] = {}
+    if shape is not None and validation is not None:
+        evidence = _evidence(validation, [depth[i] for i in range(len(depth)) if i not in fit_i], default, shape)
     errors = None
     if fitted is not None:
         fit3 = (fitted[0], fitted[1], fitted[3])
         errors = tuple(float(f / t - 1.0) for f, t in zip(fit3, truth))
     tip_default = tip_calibrated = tip_fitted = tip_truth = float("nan")
     if track:
-        seq = _frames(renderer, drawn, TRACK_FRAMES, seed + TRACK_SEED_OFFSET, TRACK_FPS)
+        seq = _frames(renderer, drawn, TRACK_FRAMES, seed + TRACK_SEED_OFFSET, STATIC_FPS if static else TRACK_FPS)
         tip_default = _track_error(default, seq)
         if fitted is not None:
             tip_fitted = _track_error(model if accepted else default.scaled(shape), seq)
@@ -396,7 +422,55 @@ def run_hand(renderer: str, seed: int, track: bool = True) -> HandResult:
         tip_fitted_mm=float(tip_fitted),
         tip_truth_mm=float(tip_truth),
         fingers=None if shape is None else shape.fingers,
+        motion=motion,
+        evidence=evidence,
     )
+
+
+def _evidence(validation: Any, rest: Sequence[Any], default: Any, shape: Any) -> dict[str, float]:
+    """Candidate predictors of the fit's change in fingertip error (fitted - current): the
+    guard's held-out numbers and a re-track of the history frames not fitted on."""
+    from hand_sog_tracker.core.calibration import PER_FRAME_COLUMNS, RETRACK_COLUMNS, retrack
+    from hand_sog_tracker.core.types import TrackerConfig
+    from hand_sog_tracker.synth.sequence import default_intrinsics
+
+    pf = np.array(validation.per_frame, dtype=float).reshape(-1, 2 * len(PER_FRAME_COLUMNS))
+    d = pf[:, 1::2] - pf[:, 0::2]
+    out = {
+        "hold_sim": float(np.mean(d[:, 4])),
+        "hold_col": float(np.mean(d[:, 5])),
+        "hold_sil": float(np.mean(d[:, 6])),
+        "hold_sal": float(np.mean(d[:, 7])),
+        "hold_score": float(np.mean(d[:, 0])),
+        "hold_score_worst": float(np.min(d[:, 0])),
+        "hold_tip": float(np.nanmean(d[:, 1])) if np.isfinite(d[:, 1]).any() else float("nan"),
+        "hold_objective": float(np.mean(d[:, 2])),
+        "hold_coverage": float(np.mean(d[:, 3])),
+        "hold_score_se": float(np.std(d[:, 0], ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan"),
+        "hold_tip_se": float(np.nanstd(d[:, 1], ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan"),
+        "size_change": float(np.max(np.abs(np.log(shape.as_array() / default.shape.as_array())))),
+    }
+    rt = np.array(validation.retrack_frames, dtype=float).reshape(-1, 2 * len(RETRACK_COLUMNS))
+    both = np.isfinite(rt[:, 0]) & np.isfinite(rt[:, 1])
+    out["hre_frames"] = float(both.sum())
+    for k, name in enumerate(RETRACK_COLUMNS):
+        diff = rt[both, 2 * k + 1] - rt[both, 2 * k]
+        out["hre_" + name] = float(np.nanmean(diff)) if np.isfinite(diff).any() else float("nan")
+        n = int(np.isfinite(diff).sum())
+        out["hre_" + name + "_se"] = float(np.nanstd(diff, ddof=1) / np.sqrt(n)) if n > 1 else float("nan")
+    out["per_frame"] = validation.per_frame  # type: ignore[assignment]
+    out["retrack_frames"] = validation.retrack_frames  # type: ignore[assignment]
+    config, intr = TrackerConfig(), default_intrinsics()
+    if os.environ.get("CALIBRATION_BENCHMARK_NO_RETRACK"):
+        return out
+    a = retrack(rest, intr, config, default)
+    b = retrack(rest, intr, config, default.scaled(shape))
+    both = np.isfinite(a[:, 0]) & np.isfinite(b[:, 0])
+    out["re_frames"] = float(both.sum())
+    for k, name in enumerate(RETRACK_COLUMNS):
+        diff = (b[both, k] - a[both, k])
+        out["re_" + name] = float(np.nanmean(diff)) if np.isfinite(diff).any() else float("nan")
+    return out
 
 
 def summarise(results: Sequence[HandResult]) -> RendererSummary:
@@ -473,6 +547,81 @@ def format_notes(s: RendererSummary) -> str:
     )
 
 
+#: Candidate predictors of the change in fingertip error (fitted - default) that
+#: :func:`predictor_correlations` reports (keys of :attr:`HandResult.evidence`): the guard's
+#: held-out refit (score, detection distance, tracking objective and its collision term,
+#: coverage), its re-track from each model's own previous pose (``hre_``), a fresh tracker
+#: re-tracking every history frame not fitted on (``re_``), and the size of the change.
+PREDICTORS = (
+    "hold_score", "hold_score_worst", "hold_tip", "hold_objective", "hold_col", "hold_coverage",
+    "hre_score", "hre_tip_mm", "re_score", "re_tip_mm", "re_energy", "re_confidence", "size_change",
+)
+#: Size bins of :func:`size_table`: the larger of |length - 1| and |width - 1| of the true factors.
+SIZE_BINS = ((0.0, 0.04), (0.04, 0.08), (0.08, 0.12), (0.12, 1.0))
+
+
+def _verdict(r: HandResult) -> str:
+    if r.accepted:
+        return "accepted"
+    if r.reason.startswith("the current model already fits"):
+        return "already fits"
+    return "refused" if r.fitted is not None else "failed"
+
+
+def size_table(results: Sequence[HandResult]) -> list[str]:
+    """Markdown rows: per renderer and size bin, the verdicts and the change of the mean
+    fingertip error (mm; fitted - default) where accepted and if every fit were used."""
+    lines = [
+        "| renderer | size (larger of length, width off 1.0) | hands | accepted | already fits | refused or failed "
+        "| change where accepted (mean; worst) | if every fit were used (mean; worst) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for renderer in sorted({r.renderer for r in results}) + ["all"]:
+        for lo, hi in (*SIZE_BINS, (0.0, 1.0)):
+            sel = [
+                r for r in results
+                if renderer in ("all", r.renderer) and lo <= max(abs(r.truth[0] - 1), abs(r.truth[1] - 1)) < hi
+            ]
+            if not sel:
+                continue
+            verdicts = [_verdict(r) for r in sel]
+            acc = [r.tip_fitted_mm - r.tip_default_mm for r, v in zip(sel, verdicts) if v == "accepted"]
+            every = [r.tip_fitted_mm - r.tip_default_mm for r in sel if np.isfinite(r.tip_fitted_mm)]
+            name = f"{100 * lo:.0f}-{100 * hi:.0f}%" if hi < 1 else f">= {100 * lo:.0f}%"
+            name = "all" if (lo, hi) == (0.0, 1.0) else name
+            a = f"{np.mean(acc):+.2f}; {max(acc):+.2f}" if acc else "-"
+            e = f"{np.mean(every):+.2f}; {max(every):+.2f}" if every else "-"
+            lines.append(
+                f"| {renderer} | {name} | {len(sel)} | {verdicts.count('accepted')} | "
+                f"{verdicts.count('already fits')} | {verdicts.count('refused') + verdicts.count('failed')} | "
+                f"{a} | {e} |"
+            )
+    return lines
+
+
+def predictor_correlations(results: Sequence[HandResult]) -> dict[str, tuple[float, float, int]]:
+    """Each of :data:`PREDICTORS`: (Pearson r, Spearman rho, hands) with the change in fingertip
+    error of the fitted model (fitted - default, mm) over the hands with a fit and the number."""
+    out = {}
+    rows = [r for r in results if r.evidence and np.isfinite(r.tip_fitted_mm)]
+    d = np.array([r.tip_fitted_mm - r.tip_default_mm for r in rows])
+    for key in PREDICTORS:
+        x = np.array([float(r.evidence.get(key, np.nan)) for r in rows])
+        ok = np.isfinite(x)
+        if ok.sum() < 3 or np.std(x[ok]) == 0:
+            continue
+
+        def rank(v: np.ndarray) -> np.ndarray:
+            return np.argsort(np.argsort(v)).astype(float)
+
+        out[key] = (
+            float(np.corrcoef(x[ok], d[ok])[0, 1]),
+            float(np.corrcoef(rank(x[ok]), rank(d[ok]))[0, 1]),
+            int(ok.sum()),
+        )
+    return out
+
+
 def run_calibration_benchmark(
     renderers: Sequence[str] = RENDERERS,
     split: str = "test",
@@ -480,12 +629,13 @@ def run_calibration_benchmark(
     track: bool = True,
     first_seed: int | None = None,
     log: Any = None,
+    motion: str = "moving",
 ) -> dict[str, Any]:
     """Run the benchmark; returns ``{"split", "seeds", "hands": [HandResult dicts],
     "summary": {renderer: RendererSummary dict}}``.
 
     ``first_seed`` overrides the split's first seed; ``log`` (a file) gets each hand's line as
-    it is done.
+    it is done; ``motion``: ``moving``, ``static`` or ``alternate`` (odd seeds static).
     """
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
@@ -495,13 +645,126 @@ def run_calibration_benchmark(
     for renderer in renderers:
         results = []
         for seed in seeds:
-            r = run_hand(renderer, seed, track=track)
+            m = ("static" if seed % 2 else "moving") if motion == "alternate" else motion
+            r = run_hand(renderer, seed, track=track, motion=m)
             results.append(r)
             out["hands"].append(asdict(r) | {"within_5pct": r.within_5pct})
             if log is not None:
                 print(format_hand(r), file=log, flush=True)
         out["summary"][renderer] = asdict(summarise(results))
     return out
+
+
+@dataclass(frozen=True)
+class BagCheck:
+    """What ``~/calibrate`` would do on a bag (:func:`check_bag`).
+
+    Attributes
+    ----------
+    bag : str
+    stamp_ns : int
+        Stamp of the frame after which the fit ran (the newest frame of its history).
+    verdict : str
+        ``accepted``, ``already fits``, ``refused`` or ``failed``.
+    message : str
+        The fit's and the guard's numbers, as the service would answer.
+    shape : dict or None
+        The fitted factors (also for a refused fit; None when the fit failed).
+    fit_s : float
+        Wall time of the fit and its guard (s).
+    tip_default_mm, tip_fitted_mm : float
+        Mean fingertip error (mm) over the bag's frames after the fit, tracked by a fresh
+        tracker with the current and with the fitted model (NaN: no ground truth or no fit).
+    """
+
+    bag: str
+    stamp_ns: int
+    verdict: str
+    message: str
+    shape: dict[str, float] | None
+    fit_s: float
+    tip_default_mm: float = float("nan")
+    tip_fitted_mm: float = float("nan")
+
+
+def check_bag(bag: str | Path, at_s: float | None = None, model_path: str | Path | None = None) -> BagCheck:
+    """Fit, guard and report as ``~/calibrate`` would on a recorded bag, without a node.
+
+    The bag's depth frames are tracked in order with the model of ``model_path`` (default:
+    the default model) and kept in the history as the node keeps them
+    (:class:`~hand_sog_tracker.core.autocalibration.FrameHistory`); after the first frame
+    stamped ``at_s`` seconds after the first one (default: as soon as the history is full, when
+    the automatic fit would run) the fit and held-out frames are chosen as ``~/calibrate``
+    chooses them and the fit runs with its guard.  With ground-truth fingertips in the bag the
+    rest of the bag is tracked again with each model (fresh trackers) and the errors reported.
+    """
+    from hand_sog_tracker.core.autocalibration import FrameHistory, choose_fit_frames
+    from hand_sog_tracker.core.calibration import CalibrationRejected, calibrate
+    from hand_sog_tracker.core.hand_model import default_hand_model
+    from hand_sog_tracker.core.model_io import load_hand_shape
+    from hand_sog_tracker.core.tracker import Tracker
+    from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
+    from hand_sog_tracker.errors import CalibrationError
+    from hand_sog_tracker.tools.bagio import DepthBagReader
+    from hand_sog_tracker.tools.metrics import fingertip_errors_mm, summarize_errors
+
+    config = TrackerConfig()
+    model = default_hand_model(config.right_hand)
+    if model_path is not None:
+        shape, right = load_hand_shape(model_path)
+        model = default_hand_model(right).scaled(shape)
+    tracker = Tracker(config, model)
+    history = FrameHistory()
+    chosen = None
+    first_ns: int | None = None
+    rest: list[Any] = []
+    stamp = 0
+    with DepthBagReader(bag, require_truth=False) as reader:
+        for f in reader.frames():
+            if f.depth_mm is None or f.intrinsics is None:
+                continue
+            if chosen is not None:
+                rest.append(f)
+                continue
+            first_ns = f.stamp_ns if first_ns is None else first_ns
+            out = tracker.process(f.depth_mm, f.intrinsics)
+            history.remember(f.depth_mm, f.intrinsics, out.pose if out.status is TrackerStatus.TRACKING else None,
+                             f.stamp_ns)
+            due = (f.stamp_ns - first_ns) * 1e-9 >= at_s if at_s is not None else len(history) >= history.size
+            if due:
+                chosen, stamp = choose_fit_frames(history.frames()), f.stamp_ns
+    if chosen is None or not chosen.usable:
+        n = 0 if chosen is None else len(chosen.fit)
+        return BagCheck(str(bag), stamp, "failed",
+                        f"no fit: {len(history)} frames in the history, {n} with an open hand to fit on", None, 0.0)
+    args, kwargs = chosen.calibrate_args(config, model)
+    t0 = time.perf_counter()
+    fitted = None
+    try:
+        res = calibrate(*args, **kwargs)
+        verdict, shape, fitted = "accepted", res.shape, res.model
+        message = f"{res.shape.describe()}; {res.validation.describe() if res.validation else ''}"
+    except CalibrationRejected as err:
+        verdict = "already fits" if err.validation.already_fits else "refused"
+        shape, message = err.shape, str(err)
+        fitted = model.scaled(err.shape)
+    except CalibrationError as err:
+        verdict, shape, message = "failed", None, str(err)
+    seconds = time.perf_counter() - t0
+    tips = [float("nan"), float("nan")]
+    truth = [f for f in rest if f.truth_mm is not None]
+    if truth and fitted is not None:
+        for k, m in enumerate((model, fitted)):
+            t = Tracker(config, m)
+            rows = []
+            for f in rest:
+                out = t.process(f.depth_mm, f.intrinsics)
+                if f.truth_mm is not None:
+                    ok = out.fingertips_mm is not None
+                    rows.append(fingertip_errors_mm(out.fingertips_mm, f.truth_mm) if ok else np.full(5, np.nan))
+            tips[k] = summarize_errors(np.array(rows)).mean_mm
+    return BagCheck(str(bag), int(stamp), verdict, message, None if shape is None else shape.as_dict(), seconds,
+                    tips[0], tips[1])
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -516,14 +779,39 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="seeds 9000-9011 (test, not tuned on) or 2000-2011 (dev)")
     parser.add_argument("--hands", type=int, default=12, metavar="N", help="hands (consecutive seeds), default 12")
     parser.add_argument("--no-track", action="store_true", help="skip tracking with the default and fitted model")
+    parser.add_argument("--motion", choices=("moving", "static", "alternate"), default="moving",
+                        help="the hands move (abdadd), are held still, or alternate (odd seeds still)")
+    parser.add_argument("--by-size", action="store_true",
+                        help="also the verdicts by size bin and the predictors' correlations with the change")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write every number to this JSON file")
+    parser.add_argument("--bag", type=Path, action="append", metavar="BAG",
+                        help="instead of the renders: fit, guard and report what ~/calibrate would do on this bag "
+                        "(repeatable); with ground truth also how the rest of the bag tracks with each model")
+    parser.add_argument("--at", type=float, metavar="S",
+                        help="with --bag: fit after this many seconds of the bag (default: when the history is full)")
+    parser.add_argument("--model", type=Path, metavar="FILE",
+                        help="with --bag: the current model (a saved hand_model.yaml; default: the default model)")
     args = parser.parse_args(argv)
+    if args.bag:
+        checks = []
+        for bag in args.bag:
+            c = check_bag(bag, args.at, args.model)
+            checks.append(asdict(c))
+            change = ""
+            if np.isfinite(c.tip_default_mm):
+                change = f"; rest of the bag: {c.tip_default_mm:.2f} mm (current) -> {c.tip_fitted_mm:.2f} mm (fitted)"
+            print(f"{bag}: {c.verdict} ({c.fit_s:.2f} s): {c.message}{change}", flush=True)
+        if args.json is not None:
+            args.json.write_text(json.dumps(checks, indent=1, default=float) + "\n")
+        return 0
     if args.hands < 1:
         parser.error("--hands must be at least 1")
     renderers = RENDERERS if args.renderer == "both" else (args.renderer,)
     seeds = SPLITS[args.split]
     print(f"split {args.split}: seeds {seeds}-{seeds + args.hands - 1}, {args.hands} hands, 320x240", flush=True)
-    out = run_calibration_benchmark(renderers, args.split, args.hands, track=not args.no_track, log=sys.stdout)
+    out = run_calibration_benchmark(
+        renderers, args.split, args.hands, track=not args.no_track, log=sys.stdout, motion=args.motion
+    )
     print("| renderer | accepted | max factor error of accepted fits (length, width, thickness) | all three "
           "within 5% | mean fingertip error, default -> calibrated | accepted and worse | fit time (CPU) |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
@@ -531,6 +819,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(format_summary(RendererSummary(**out["summary"][renderer])))
     for renderer in renderers:
         print(format_notes(RendererSummary(**out["summary"][renderer])))
+    if args.by_size and not args.no_track:
+        results = [HandResult(**{k: v for k, v in h.items() if k != "within_5pct"}) for h in out["hands"]]
+        print("\n".join(size_table(results)))
+        for key, (r, rho, n) in predictor_correlations(results).items():
+            print(f"{key}: r {r:+.2f}, rho {rho:+.2f} ({n} hands)")
     if args.json is not None:
         args.json.write_text(json.dumps(out, indent=1, default=float) + "\n")
         print(f"wrote {args.json}")

@@ -90,27 +90,30 @@ def _calibrate_model(
     return res.model, info
 
 
-def auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> dict[str, Any]:
+def auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> tuple[dict[str, Any], HandModel | None]:
     """Run one automatic fit in place (``frames``: a due
-    :class:`~hand_sog_tracker.core.autocalibration.FitFrames`); switch the tracker's model if the
-    guard accepts the fit and it is :func:`usable_automatically`.  Returns what happened (for the
-    evaluation's ``auto_calibration``: ``accepted`` by the guard, ``used``)."""
-    from hand_sog_tracker.core.calibration import calibrate
+    :class:`~hand_sog_tracker.core.autocalibration.FitFrames`).  Returns what happened (for the
+    evaluation's ``auto_calibration``: ``accepted`` by the guard, ``used``, ``already_fits``) and
+    the model to switch to (None: the guard refused the fit or it is not
+    :func:`usable_automatically`)."""
+    from hand_sog_tracker.core.calibration import CalibrationRejected, calibrate
 
     args, kwargs = frames.calibrate_args(config, tracker.model, automatic=True)  # type: ignore[attr-defined]
     t0 = time.perf_counter()
     info: dict[str, Any] = {"frames": len(frames.fit), "holdout_frames": len(frames.holdout)}
+    model = None
     try:
         res = calibrate(*args, **kwargs)
-    except CalibrationError as err:  # (also CalibrationRejected: the guard refused the fit)
-        info.update(accepted=False, reason=str(err))
+    except CalibrationRejected as err:
+        info.update(accepted=False, already_fits=err.validation.already_fits, reason=str(err))
+    except CalibrationError as err:
+        info.update(accepted=False, already_fits=False, reason=str(err))
     else:
         used = usable_automatically(res.shape)
-        if used:
-            tracker.set_model(res.model)  # type: ignore[attr-defined]
+        model = res.model if used else None
         info.update(accepted=True, used=used, shape=res.shape.as_dict())
     info["seconds"] = time.perf_counter() - t0
-    return info
+    return info, model
 
 
 def auto_step(
@@ -124,14 +127,19 @@ def auto_step(
     config: TrackerConfig,
 ) -> dict[str, Any] | None:
     """Remember a frame's tracked ``pose`` (26,) (None: no hand) in ``history`` and run the
-    automatic fit in place when ``auto`` says it is due: what :func:`auto_fit` says, or None."""
+    automatic fit in place when ``auto`` says it is due: what :func:`auto_fit` says, or None.
+    An accepted fit's model is switched to on the frame
+    :meth:`~hand_sog_tracker.core.autocalibration.AutoCalibration.take` names, as in the node."""
+    model = auto.take(stamp_ns)
+    if model is not None:
+        tracker.set_model(model)  # type: ignore[attr-defined]
     history.remember(depth_mm, intrinsics, pose, stamp_ns)
     due = auto.due(history, stamp_ns)
     if due is None:
         return None
     auto.started(stamp_ns)
-    info = auto_fit(tracker, due, config)
-    auto.finished(bool(info["accepted"]))
+    info, fitted = auto_fit(tracker, due, config)
+    auto.finished(bool(info["accepted"] or info["already_fits"]), fitted)
     return info
 
 

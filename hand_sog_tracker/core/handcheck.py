@@ -1,0 +1,479 @@
+"""Is it a hand?  Evidence from one frame's depth against the tracked model (issue 46).
+
+One job: the per-frame hand check and the gate that acts on it; kept together because the
+gate's threshold is the check's confidence scale.
+
+The tracker fits its model to whatever lies near the last hand: a forearm at the image
+border, a head, a cup.  :func:`check_hand` compares the fitted model with the depth image on a
+coarse pixel grid (about 160 px wide) and measures what a hand gives and those do not:
+
+* **model on data** (``on``): of the cores of the model's projected Gaussians (each a disc of
+  ``ON_CORE`` times its skin radius, with its front surface depth: the model's spheres overflow
+  a flat palm or finger seen edge-on), the share whose pixels hold data at the model's depth
+  (within ``DEPTH_TOL_MM``).  Pixels whose data lie in front of the model are *occluded*
+  (an object in the hand, another finger) and count neither way; pixels with no data, data
+  behind the model or outside the image count against.
+* **data explained** (``explained``): of the foreground data around the model (within
+  ``MARGIN_MM`` of its silhouette, on the hand side of the wrist plane, not behind the nearest
+  model surface by more than ``DEPTH_TOL_MM``: a table or a wall behind the hand is background),
+  the share the silhouette covers.  A head, a torso or a table edge the model sits on leaves
+  much of it unexplained; a hand does not.
+* **fingers on data** (``fingers_on``): the same share per finger (thumb .. little), averaged
+  over the five.  The palm alone lying on a forearm stump, its fingers in the air, gives a high
+  ``on`` but a low ``fingers_on``.
+* **outline** (``outline``): in a ring just outside the silhouette (hand side of the wrist), the
+  share where the depth steps back by more than ``EDGE_MM`` from the data of the nearest model
+  pixel, or has none: a hand's outline is a depth edge, also on a table; a model lying on a
+  head, a box or a table top has the same surface on both sides of its outline.
+* **finger ends** (``ends``): past each fingertip, along the finger in the image, the data must
+  end or step back by more than ``EDGE_MM`` (a finger-like extremity): a model finger lying on
+  a forearm, a head or a box runs into more surface there.  Fingers seen end-on are left out.
+
+The confidence is the product of the five, each mapped linearly onto [0, 1]: ``on`` from
+``ON_LOW`` to ``ON_HIGH``, ``fingers_on`` from ``FINGERS_LOW`` to ``FINGERS_HIGH``,
+``explained`` from ``EXPLAINED_LOW`` to ``EXPLAINED_HIGH``, ``outline`` from ``OUTLINE_LOW`` to
+``OUTLINE_HIGH``, ``ends`` from ``ENDS_LOW`` to 1 (no finger checked: 1).  A product, because
+each failure alone means "no hand": a model on a head or among cups lies on data but explains
+little of it and has no outline, a model on a forearm stump explains it but its fingers hang off
+it, a model flat on a table top does both but has no outline.
+
+Per finger: the share of that finger's
+silhouette on data (occluded pixels count against: a finger the data cannot show is reported
+with a low confidence).
+
+:class:`HandGate` applies it: below its threshold the frame is "no hand" (no pose is reported);
+below ``RESET_BELOW``, or after ``RESET_FRAMES`` frames in a row below the threshold, the
+tracker is reset, so that the next frame searches the whole image afresh instead of keeping a
+wrong lock.  A new track is reported only from its first frame with a finger seen to end
+(``ends`` at least ``ENDS_CONFIRM``; until then its confidence is multiplied by the ``ends``
+ramp, a frame with no finger seen counting as none ending): a model curled into a fist fits a head or a ball as well
+as a fist, and the fingers are what a hand has and they do not (a fist that enters the view is
+reported once it opens a finger; a tracked hand that closes into a fist stays reported).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Final, Protocol
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.core.hand_model import HandModel
+from hand_sog_tracker.core.types import Intrinsics, TrackResult
+
+__all__ = [
+    "DEPTH_TOL_MM",
+    "MARGIN_MM",
+    "HAND_THRESHOLD",
+    "HandEvidence",
+    "HandDecision",
+    "check_hand",
+    "HandGate",
+    "CheckedTracker",
+]
+
+DEPTH_TOL_MM: Final = 20.0  #: data within this of the model's front surface lie on it (chosen here)
+MARGIN_MM: Final = 35.0  #: foreground data this close to the silhouette must be explained (chosen here)
+ON_CORE: Final = 0.6  #: ``on`` looks at discs of this share of each Gaussian's radius (chosen here)
+WRIST_MARGIN_MM: Final = 10.0  #: data beyond the wrist plane by more than this are the forearm
+OUTLINE_RING_PX: Final = (1.5, 3.5)  #: the outline ring, grid pixels outside the silhouette
+EDGE_MM: Final = 10.0  #: a step back of more than this is an edge (chosen here)
+END_GAP_MM: Final = 25.0  #: finger-end samples this far (and 1.5 times) past the tip's skin (chosen here)
+END_STRAIGHT_COS: Final = 0.5  #: fingers whose distal and proximal bones are nearer than 60 deg are checked
+ON_LOW, ON_HIGH = 0.60, 0.85  #: ``on`` mapped onto 0 .. 1 (chosen on scenes_dev)
+FINGERS_LOW, FINGERS_HIGH = 0.35, 0.65  #: ``fingers_on`` mapped onto 0 .. 1 (chosen on scenes_dev)
+OUTLINE_LOW, OUTLINE_HIGH = 0.2, 0.6  #: ``outline`` mapped onto 0 .. 1 (chosen on scenes_dev)
+EXPLAINED_LOW, EXPLAINED_HIGH = 0.70, 0.92  #: ``explained`` mapped onto 0 .. 1 (chosen on scenes_dev)
+ENDS_LOW: Final = 0.3  #: share of ending fingers mapped onto 0 (chosen on scenes_dev)
+#: Default threshold of :class:`HandGate` (and of the node's ``hand_threshold``).
+HAND_THRESHOLD: Final = 0.2
+#: Default ``reset_frames`` of :class:`HandGate` (0.1 s at 30 Hz; chosen on scenes_dev).
+RESET_FRAMES: Final = 3
+#: A new track is reported from its first frame with at least this share of finger ends.
+ENDS_CONFIRM: Final = 0.5
+#: A tracked frame below this confidence resets the tracker at once (one evidence failed
+#: outright: the model is on something else).
+RESET_BELOW: Final = 0.05
+_GRID_WIDTH = 160  #: the check's pixel grid is about this wide
+
+
+@dataclass(frozen=True)
+class HandEvidence:
+    """The measured evidence of :func:`check_hand` (all in [0, 1], NaN when not measured).
+
+    Attributes
+    ----------
+    on : float
+        Share of the model's visible silhouette lying on data.
+    explained : float
+        Share of the foreground data around the model covered by its silhouette.
+    fingers_on : float
+        Mean over the five fingers of the share of each finger's visible silhouette on data.
+    ends : float
+        Share of the checked fingers whose data end past the fingertip (NaN: none checked).
+    in_view : float
+        Share of the model's silhouette inside the image.
+    outline : float
+        Share of the ring just outside the silhouette (hand side of the wrist) where the depth
+        steps back from the model's data or has none: the hand's outline is a depth edge.
+    """
+
+    on: float
+    explained: float
+    fingers_on: float
+    ends: float
+    in_view: float
+    outline: float
+
+
+@dataclass(frozen=True, eq=False)
+class HandDecision:
+    """The hand decision of one frame.
+
+    Attributes
+    ----------
+    present : bool
+        A hand is reported (tracked and its confidence at least the threshold).
+    confidence : float
+        In [0, 1]; 0 when nothing was tracked.
+    fingers : array, shape (5,)
+        Per finger (thumb .. little) in [0, 1]: how much of it the data show.
+    evidence : HandEvidence or None
+        None when nothing was tracked.
+    """
+
+    present: bool
+    confidence: float
+    fingers: NDArray[np.float64] = field(default_factory=lambda: np.zeros(5))
+    evidence: HandEvidence | None = None
+
+
+def _ramp(x: float, lo: float, hi: float) -> float:
+    return float(min(max((x - lo) / (hi - lo), 0.0), 1.0))
+
+
+def check_hand(
+    depth_mm: NDArray,
+    intr: Intrinsics,
+    model: HandModel,
+    result: TrackResult,
+) -> HandDecision:
+    """Check that the tracked model of ``result`` sits on a hand in ``depth_mm``.
+
+    Parameters
+    ----------
+    depth_mm : array, shape (H, W)
+        The frame's depth, mm (0, NaN invalid), at the resolution of ``intr``.
+    intr : Intrinsics
+    model : HandModel
+        The model ``result`` was tracked with (its ``g_chain`` orders ``result.gaussians_mm``).
+    result : TrackResult
+        The tracker's result; without a pose the decision is "no hand", confidence 0.
+
+    Returns
+    -------
+    HandDecision
+        ``present`` is left False; :class:`HandGate` sets it against its threshold.
+    """
+    if result.pose is None or result.gaussians_mm is None or result.skeleton_mm is None:
+        return HandDecision(False, 0.0)
+    s = max(1, int(round(intr.width / _GRID_WIDTH)))
+    depth = np.asarray(depth_mm, dtype=np.float32)[::s, ::s]
+    depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+    gh, gw = depth.shape
+    fx, fy, cx, cy = intr.fx / s, intr.fy / s, intr.cx / s, intr.cy / s
+    C = np.asarray(result.gaussians_mm, dtype=np.float64)
+    r = np.asarray(model.g_sigmas, dtype=np.float64)
+    chain = np.asarray(model.g_chain)
+    z = np.maximum(C[:, 2], 50.0)
+    u = fx * C[:, 0] / z + cx
+    v = fy * C[:, 1] / z + cy
+    rp = fx * r / z
+    z_mid = float(np.median(z))
+    pad = int(math.ceil(fx * MARGIN_MM / z_mid)) + 1
+    # The grid box around the model (may extend past the image: those pixels are off the data).
+    u0, u1 = int(math.floor((u - rp).min())) - pad, int(math.ceil((u + rp).max())) + pad + 1
+    v0, v1 = int(math.floor((v - rp).min())) - pad, int(math.ceil((v + rp).max())) + pad + 1
+    if u1 - u0 > 4 * gw or v1 - v0 > 4 * gh:  # (a degenerate pose: nothing sensible to check)
+        return HandDecision(False, 0.0, evidence=HandEvidence(0.0, 0.0, 0.0, math.nan, 0.0, 0.0))
+    uu = np.arange(u0, u1, dtype=np.float64)
+    vv = np.arange(v0, v1, dtype=np.float64)
+    bh, bw = vv.size, uu.size
+    # Model front depth (inf: off the model) and the Gaussian that makes it.
+    front = np.full((bh, bw), np.inf)
+    owner = np.full((bh, bw), -1, dtype=np.int64)
+    core = np.zeros((bh, bw), dtype=bool)
+    for i in range(C.shape[0]):
+        a0, a1 = max(int(u[i] - rp[i]) - u0, 0), min(int(u[i] + rp[i]) + 2 - u0, bw)
+        b0, b1 = max(int(v[i] - rp[i]) - v0, 0), min(int(v[i] + rp[i]) + 2 - v0, bh)
+        if a0 >= a1 or b0 >= b1:
+            continue
+        du = (uu[a0:a1] - u[i])[None, :] * (z[i] / fx)
+        dv = (vv[b0:b1] - v[i])[:, None] * (z[i] / fy)
+        d2 = r[i] * r[i] - du * du - dv * dv
+        zf = np.where(d2 >= 0, C[i, 2] - np.sqrt(np.maximum(d2, 0.0)), np.inf)
+        view, own = front[b0:b1, a0:a1], owner[b0:b1, a0:a1]
+        closer = zf < view
+        view[closer] = zf[closer]
+        own[closer] = i
+        core[b0:b1, a0:a1] |= d2 >= (1.0 - ON_CORE * ON_CORE) * r[i] * r[i]
+    on_model = np.isfinite(front)
+    # The data in the box (0 outside the image).
+    data = np.zeros((bh, bw), dtype=np.float32)
+    iu0, iu1, iv0, iv1 = max(u0, 0), min(u1, gw), max(v0, 0), min(v1, gh)
+    if iu0 < iu1 and iv0 < iv1:
+        data[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = depth[iv0:iv1, iu0:iu1]
+    inside = np.zeros((bh, bw), dtype=bool)
+    inside[max(iv0 - v0, 0) : max(iv1 - v0, 0), max(iu0 - u0, 0) : max(iu1 - u0, 0)] = True
+    valid = data > 0
+    diff = np.where(valid, data - np.where(on_model, front, 0.0), np.inf)
+    on = core & valid & (np.abs(diff) <= DEPTH_TOL_MM)
+    occluded = core & valid & (diff < -DEPTH_TOL_MM)
+    off = core & ~on & ~occluded
+    n_on, n_off = int(np.count_nonzero(on)), int(np.count_nonzero(off))
+    on_share = n_on / max(n_on + n_off, 1)
+    in_view = float(np.count_nonzero(on_model & inside)) / max(int(np.count_nonzero(on_model)), 1)
+
+    # Foreground data near the model on the hand side of the wrist plane, not behind it.
+    k = 2 * pad + 1
+    near_front = cv2.erode(np.where(on_model, front, np.inf).astype(np.float32), np.ones((k, k), np.uint8))
+    axis = _hand_axis(result.pose)
+    zs = np.where(valid, data, 0.0)
+    px = ((uu[None, :] - cx) / fx) * zs
+    py = ((vv[:, None] - cy) / fy) * zs
+    along = (px - result.pose[0]) * axis[0] + (py - result.pose[1]) * axis[1] + (zs - result.pose[2]) * axis[2]
+    fg = valid & np.isfinite(near_front) & (data <= near_front + DEPTH_TOL_MM)
+    fg &= (data >= near_front - 3.0 * MARGIN_MM) & (along > -WRIST_MARGIN_MM)
+    covered = cv2.dilate(on_model.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    n_fg = int(np.count_nonzero(fg))
+    explained = float(np.count_nonzero(fg & covered)) / max(n_fg, 1) if n_fg else 0.0
+
+    outline = _outline(data, valid, inside, on_model, (uu, vv), (fx, fy, cx, cy), result.pose, axis)
+    ends = _finger_ends(depth, result, model, (fx, fy, cx, cy), on_model, (u0, v0))
+    fingers = np.zeros(5)  # per finger: on / all (occluded counts against: not shown)
+    visible_on = np.zeros(5)  # per finger: on / (on + off)
+    own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
+    for c in range(5):
+        mine = (own_chain == c) & core
+        n = int(np.count_nonzero(mine))
+        n_c_on = int(np.count_nonzero(mine & on))
+        fingers[c] = n_c_on / n if n else 0.0
+        n_c_off = int(np.count_nonzero(mine & off))
+        visible_on[c] = n_c_on / max(n_c_on + n_c_off, 1)
+    fingers_on = float(visible_on.mean())
+    e_factor = 1.0 if math.isnan(ends) else _ramp(ends, ENDS_LOW, 1.0)
+    confidence = (
+        _ramp(on_share, ON_LOW, ON_HIGH)
+        * _ramp(fingers_on, FINGERS_LOW, FINGERS_HIGH)
+        * _ramp(explained, EXPLAINED_LOW, EXPLAINED_HIGH)
+        * _ramp(outline, OUTLINE_LOW, OUTLINE_HIGH)
+        * e_factor
+    )
+    fingers *= confidence > 0  # (no finger of a frame that is no hand)
+    return HandDecision(
+        False, confidence, fingers, HandEvidence(on_share, explained, fingers_on, ends, in_view, outline)
+    )
+
+
+def _outline(
+    data: NDArray[np.float32],
+    valid: NDArray[np.bool_],
+    inside: NDArray[np.bool_],
+    on_model: NDArray[np.bool_],
+    grid: tuple[NDArray[np.float64], NDArray[np.float64]],
+    k: tuple[float, float, float, float],
+    theta: NDArray[np.float64],
+    axis: NDArray[np.float64],
+) -> float:
+    """Share of the outline ring (``OUTLINE_RING_PX`` outside the silhouette) that is a depth
+    edge: no data, or data more than ``EDGE_MM`` behind the data of the nearest model pixel."""
+    if not on_model.any():
+        return 0.0
+    dist, labels = cv2.distanceTransformWithLabels(
+        (~on_model).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    lut = np.zeros(int(labels.max()) + 1, dtype=np.int64)
+    model_flat = np.flatnonzero(on_model)
+    lut[labels.ravel()[model_flat]] = model_flat
+    ring = (dist > OUTLINE_RING_PX[0]) & (dist <= OUTLINE_RING_PX[1]) & inside
+    ring_idx = np.flatnonzero(ring)
+    near = lut[labels.ravel()[ring_idx]]
+    inner = data.ravel()[near]
+    ok = valid.ravel()[near]
+    ring_idx, near, inner = ring_idx[ok], near[ok], inner[ok]
+    if ring_idx.size == 0:
+        return 0.0
+    fx, fy, cx, cy = k
+    uu, vv = grid
+    w = on_model.shape[1]
+    pu, pv = uu[ring_idx % w], vv[ring_idx // w]
+    p = np.stack([(pu - cx) / fx * inner, (pv - cy) / fy * inner, inner.astype(np.float64)], 1)
+    hand_side = (p - theta[:3]) @ axis > -WRIST_MARGIN_MM
+    d = data.ravel()[ring_idx]
+    has = valid.ravel()[ring_idx]
+    edge = ~has | (d > inner + EDGE_MM)
+    occluder = has & (d < inner - DEPTH_TOL_MM)
+    count = hand_side & ~occluder
+    n = int(np.count_nonzero(count))
+    return float(np.count_nonzero(edge & count)) / n if n else 0.0
+
+
+def _hand_axis(theta: NDArray[np.float64]) -> NDArray[np.float64]:
+    from hand_sog_tracker.core.kinematics import global_rotation
+
+    return global_rotation(theta)[:, 1]
+
+
+def _finger_ends(
+    depth: NDArray[np.float32],
+    result: TrackResult,
+    model: HandModel,
+    k: tuple[float, float, float, float],
+    on_model: NDArray[np.bool_],
+    origin: tuple[int, int],
+) -> float:
+    """Share of the extended fingers seen from the side whose data end past the tip (NaN:
+    none checked).  ``on_model``: the model's silhouette on the grid box at ``origin`` (u0, v0)."""
+    fx, fy, cx, cy = k
+    assert result.skeleton_mm is not None and result.fingertips_mm is not None
+    sk = np.asarray(result.skeleton_mm)
+    tips = np.asarray(result.fingertips_mm)
+    gh, gw = depth.shape
+    bh, bw = on_model.shape
+    checked = ended = 0
+    for c in range(5):
+        tip = tips[c]
+        d = tip - sk[4 * c + 3]
+        base = sk[4 * c + 2] - sk[4 * c + 1]
+        n, nb = float(np.linalg.norm(d)), float(np.linalg.norm(base))
+        if n < 1e-6 or nb < 1e-6 or (d @ base) / (n * nb) < END_STRAIGHT_COS:
+            continue  # a curled finger ends against the palm
+        d /= n
+        lateral = math.hypot(d[0], d[1])
+        if lateral < 0.6:  # end-on: the end is not seen against the image
+            continue
+        dxy = np.array([d[0], d[1], 0.0]) / lateral
+        fg = samples = 0
+        for gap in (END_GAP_MM, 1.5 * END_GAP_MM):
+            p = tip + (float(model.tip_radii[c]) + gap) * dxy
+            iu, iv = int(round(fx * p[0] / p[2] + cx)), int(round(fy * p[1] / p[2] + cy))
+            if not (0 <= iu < gw and 0 <= iv < gh):
+                continue
+            bu, bv = iu - origin[0], iv - origin[1]
+            if 0 <= bu < bw and 0 <= bv < bh and on_model[bv, bu]:
+                continue  # another part of the model lies there (a crossing thumb)
+            dz = float(depth[iv, iu])
+            surface = tip[2] - float(model.tip_radii[c])
+            if 0 < dz < surface - DEPTH_TOL_MM:
+                continue  # something in front of the finger: cannot tell
+            samples += 1
+            fg += 0 < dz <= surface + EDGE_MM
+        if samples == 0:
+            continue
+        checked += 1
+        ended += fg == 0
+    return ended / checked if checked else math.nan
+
+
+class _Resettable(Protocol):
+    def reset(self) -> None: ...
+
+
+class HandGate:
+    """Decide per frame whether a hand is reported; reset the tracker when it is no hand.
+
+    A tracked frame below the threshold is reported as "no hand" at once.  The tracker is
+    reset (the next frame searches the whole image afresh instead of keeping a wrong lock) at
+    once when the confidence is below ``RESET_BELOW``, and after ``reset_frames`` frames in a
+    row below the threshold otherwise: resetting on every unsure frame made good but unsure
+    tracks start over (on the back of the hand, scenes_dev, the frames within 20 mm fell from
+    56% to 29%).
+
+    Parameters
+    ----------
+    threshold : float
+        Confidence at or above which the tracked hand is reported (in [0, 1]).
+    reset_frames : int
+        Low frames in a row that reset the tracker (>= 1).
+    confirm_ends : bool
+        A new track waits for a finger end (see the module docstring); False reports it from
+        its first sure frame (a fist then is reported at once, a head fitted by a fist too).
+    """
+
+    def __init__(
+        self, threshold: float = HAND_THRESHOLD, reset_frames: int = RESET_FRAMES, confirm_ends: bool = True
+    ) -> None:
+        if not (0.0 <= threshold <= 1.0):
+            raise ValueError(f"threshold must be in [0, 1], got {threshold!r}")
+        if reset_frames < 1:
+            raise ValueError(f"reset_frames must be >= 1, got {reset_frames!r}")
+        self.threshold = float(threshold)
+        self.reset_frames = int(reset_frames)
+        self._low = 0
+        self.confirm_ends = bool(confirm_ends)
+        self._confirmed = False  # the current track has shown a finger end
+
+    def decide(
+        self, tracker: _Resettable, depth_mm: NDArray, intr: Intrinsics, model: HandModel, result: TrackResult
+    ) -> HandDecision:
+        """The decision of ``result`` (see :func:`check_hand`); resets ``tracker`` as the class
+        docstring says."""
+        dec = check_hand(depth_mm, intr, model, result)
+        if result.pose is None:
+            self._low = 0
+            self._confirmed = False
+            return dec
+        ends = math.nan if dec.evidence is None else dec.evidence.ends
+        conf = dec.confidence
+        if not self.confirm_ends:
+            self._confirmed = True
+        if not self._confirmed:  # a new track: no finger seen to end counts as none ending
+            conf *= _ramp(0.0 if math.isnan(ends) else ends, ENDS_LOW, 1.0)
+        sure = conf >= self.threshold
+        if sure and not self._confirmed and ends >= ENDS_CONFIRM:  # (NaN: no finger seen)
+            self._confirmed = True
+        present = sure and self._confirmed
+        # (the resets go by the evidence alone: a fist that waits for a finger keeps its track)
+        self._low = 0 if dec.confidence >= self.threshold else self._low + 1
+        if self._low >= self.reset_frames or dec.confidence < RESET_BELOW:
+            tracker.reset()
+            self._low = 0
+            self._confirmed = False
+        return HandDecision(present, conf, dec.fingers * (conf > 0), dec.evidence)
+
+
+class CheckedTracker:
+    """A :class:`~hand_sog_tracker.core.tracker.Tracker` whose results pass :class:`HandGate`, as
+    in the node: a frame that is no hand comes back with status ``NO_HAND`` and no pose.
+
+    Every other attribute is the wrapped tracker's (``model``, ``set_model``, ``reset`` ...).
+    :attr:`last_decision` is the last frame's :class:`HandDecision`.
+    """
+
+    def __init__(self, tracker: object, gate: HandGate | None = None) -> None:
+        self._tracker = tracker
+        self._gate = gate or HandGate()
+        self.last_decision: HandDecision | None = None
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._tracker, name)
+
+    def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
+        """Track the frame (see ``Tracker.process``) and gate its result."""
+        from dataclasses import replace
+
+        from hand_sog_tracker.core.types import TrackerStatus
+
+        t = self._tracker
+        res = t.process(depth_mm, intrinsics)  # type: ignore[attr-defined]
+        dec = self._gate.decide(t, depth_mm, intrinsics, t.model, res)  # type: ignore[arg-type, attr-defined]
+        self.last_decision = dec
+        if res.pose is not None and not dec.present:
+            res = replace(
+                res, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,
+                gaussians_mm=None, gaussian_radii_mm=None,
+            )
+        return res

@@ -1,0 +1,157 @@
+"""The hand check (issue 46): a hand passes, a head, a forearm stump and a table do not."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
+from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, CheckedTracker, HandGate, check_hand
+from hand_sog_tracker.core.kinematics import gaussian_centres, skeleton_points
+from hand_sog_tracker.core.types import TrackerStatus, TrackResult
+from hand_sog_tracker.synth.raster import rasterise
+from hand_sog_tracker.synth.render import RenderOptions, render_depth
+from hand_sog_tracker.synth.scenes import _cylinder, _ellipsoid
+from helpers import INTR
+
+MODEL = default_hand_model()
+
+
+def _result(theta: np.ndarray) -> TrackResult:
+    c = gaussian_centres(MODEL, theta)
+    return TrackResult(
+        status=TrackerStatus.TRACKING, pose=theta.copy(), fingertips_mm=c[MODEL.tip_index],
+        skeleton_mm=skeleton_points(MODEL, theta), confidence=1.0, energy=0.0, n_image_gaussians=1,
+        gaussians_mm=c, gaussian_radii_mm=MODEL.g_sigmas.copy(),
+    )
+
+
+def _mesh_depth(*meshes: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    verts, tris, n = [], [], 0
+    for v, t in meshes:
+        verts.append(v)
+        tris.append(t + n)
+        n += v.shape[0]
+    z, _ = rasterise(np.concatenate(verts), np.concatenate(tris), INTR)
+    return np.where(np.isfinite(z), z, 0.0).astype(np.float32)
+
+
+THETA = rest_pose((0.0, 60.0, 420.0))
+
+
+def test_a_hand_under_its_model_passes_with_every_finger_shown() -> None:
+    rng = np.random.default_rng(3)
+    depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), rng)
+    dec = check_hand(depth, INTR, MODEL, _result(THETA))
+    assert dec.confidence >= 0.9
+    assert dec.evidence is not None and dec.evidence.on > 0.85 and dec.evidence.explained > 0.9
+    assert np.all(dec.fingers > 0.6)
+
+
+def test_a_hand_resting_on_a_wall_passes() -> None:
+    """The wall 25 mm behind the hand's centre (the back of the hand on it) is background."""
+    rng = np.random.default_rng(5)
+    depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=445.0), rng)
+    dec = check_hand(depth, INTR, MODEL, _result(THETA))
+    assert dec.confidence >= 0.9, dec.evidence
+
+
+def test_a_head_a_forearm_stump_and_a_wall_are_no_hand() -> None:
+    res = _result(THETA)
+    palm = THETA[:3] + np.array([0.0, -50.0, 0.0])
+    head = _mesh_depth(_ellipsoid(palm + [0.0, 0.0, 60.0], (75.0, 95.0, 85.0)))
+    # A forearm ending under the knuckles: the fingers hang in the air.
+    stump = _mesh_depth(_cylinder(THETA[:3] + [0.0, 30.0, 28.0], 30.0, 250.0, np.eye(3)))
+    wall = np.full((INTR.height, INTR.width), 432.0, dtype=np.float32)
+    for depth in (head, stump, wall):
+        dec = check_hand(depth, INTR, MODEL, res)
+        assert dec.confidence < HAND_THRESHOLD, dec.evidence
+
+
+def test_hidden_fingers_get_a_low_confidence() -> None:
+    """A box in front of the index and middle fingers: those two are reported as not shown."""
+    rng = np.random.default_rng(4)
+    depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=0.0, background_mm=None), rng)
+    tips = _result(THETA).fingertips_mm
+    mid = 0.5 * (tips[1] + tips[2])
+    u = int(INTR.fx * mid[0] / mid[2] + INTR.cx)
+    v = int(INTR.fy * mid[1] / mid[2] + INTR.cy)
+    depth[max(v - 12, 0) : v + 40, u - 14 : u + 12] = 300.0  # nearer than the hand: occluding
+    dec = check_hand(depth, INTR, MODEL, _result(THETA))
+    assert dec.fingers[[1, 2]].max() < dec.fingers[[0, 3, 4]].min()
+
+
+def test_nothing_tracked_is_no_hand_with_zero_confidence() -> None:
+    empty = TrackResult(TrackerStatus.NO_HAND, None, None, None, 0.0, 0.0, 0)
+    dec = check_hand(np.zeros((INTR.height, INTR.width), np.float32), INTR, MODEL, empty)
+    assert not dec.present and dec.confidence == 0.0 and dec.evidence is None
+
+
+class _Counting:
+    resets = 0
+
+    def reset(self) -> None:
+        self.resets += 1
+
+
+def test_the_gate_resets_at_once_on_no_hand_and_after_reset_frames_when_unsure(monkeypatch) -> None:
+    import hand_sog_tracker.core.handcheck as hc
+
+    conf = [0.0]
+    ev = hc.HandEvidence(1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+    monkeypatch.setattr(hc, "check_hand", lambda *a: hc.HandDecision(False, conf[0], np.ones(5), ev))
+    t = _Counting()
+    gate = HandGate(threshold=0.5, reset_frames=3)
+    wall = np.zeros((INTR.height, INTR.width), np.float32)
+    assert not gate.decide(t, wall, INTR, MODEL, _result(THETA)).present and t.resets == 1  # no hand: at once
+    conf[0] = 0.3  # unsure: reported as no hand, reset on the third frame in a row
+    decisions = [gate.decide(t, wall, INTR, MODEL, _result(THETA)) for _ in range(3)]
+    assert not any(d.present for d in decisions) and t.resets == 2
+    conf[0] = 0.6
+    assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present and t.resets == 2
+    with pytest.raises(ValueError):
+        HandGate(threshold=1.5)
+
+
+def test_a_new_track_is_reported_from_its_first_frame_with_a_finger_end(monkeypatch) -> None:
+    """A model curled into a fist fits a head: a new track waits for a finger seen to end."""
+    import hand_sog_tracker.core.handcheck as hc
+
+    ends = [math.nan]
+    monkeypatch.setattr(
+        hc, "check_hand",
+        lambda *a: hc.HandDecision(False, 0.9, np.ones(5), hc.HandEvidence(1.0, 1.0, 1.0, ends[0], 1.0, 1.0)),
+    )
+    gate, t = HandGate(), _Counting()
+    wall = np.zeros((INTR.height, INTR.width), np.float32)
+    assert not gate.decide(t, wall, INTR, MODEL, _result(THETA)).present  # no finger seen yet
+    ends[0] = 1.0
+    assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present
+    ends[0] = math.nan  # the hand closes: still the same track
+    assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present
+    gate.decide(t, wall, INTR, MODEL, TrackResult(TrackerStatus.LOST, None, None, None, 0.0, 0.0, 0))
+    assert not gate.decide(t, wall, INTR, MODEL, _result(THETA)).present  # a new track: again
+    assert HandGate(confirm_ends=False).decide(t, wall, INTR, MODEL, _result(THETA)).present
+
+
+def test_checked_tracker_drops_the_pose_of_a_frame_that_is_no_hand() -> None:
+    class Fake:
+        model = MODEL
+
+        def __init__(self) -> None:
+            self.reset_calls = 0
+
+        def process(self, depth, intr):
+            return _result(THETA)
+
+        def reset(self) -> None:
+            self.reset_calls += 1
+
+    ct = CheckedTracker(Fake(), HandGate(reset_frames=1))
+    wall = np.full((INTR.height, INTR.width), 432.0, dtype=np.float32)
+    res = ct.process(wall, INTR)
+    assert res.pose is None and res.status is TrackerStatus.NO_HAND and ct.reset_calls == 1
+    assert ct.last_decision is not None and not ct.last_decision.present
+    assert not math.isnan(ct.last_decision.confidence)
