@@ -57,11 +57,11 @@ html_title = f"hand_sog_tracker {release}"
 suppress_warnings = ["ref.python", "myst.header"]
 
 
-_ABS = re.compile(r"(?<![|`\w])\|([\w.]+)\|(?![|`\w])")
+_ABS = re.compile(r"(?<![|`\w])\|([\w.]+(?: [-+*/] [\w.]+)*)\|(?![|`\w])")
 
 
 def _absolute_values(app, what, name, obj, options, lines: list[str]) -> None:
-    """``|error|`` in a docstring is an absolute value, not a reST substitution."""
+    """``|error|`` or ``|length - 1|`` in a docstring is an absolute value, not a reST substitution."""
     lines[:] = [_ABS.sub(r"``|\1|``", line) for line in lines]
 
 
