@@ -435,9 +435,8 @@ def _salt(d: np.ndarray) -> np.ndarray:
 kind("values", "every third row Inf (32FC1)", "track")(_tracked(lambda d, s: image(_rows_inf(d.copy()), s, "32FC1")))
 kind("values", "5% NaN pixels (32FC1)", "track")(_tracked(lambda d, s: image(_nan_some(d.copy()), s, "32FC1")))
 kind("values", "2% salt noise", "track")(_tracked(lambda d, s: image(_salt(d.copy()), s)))
-NOT_A_HAND = "needs the hand-or-not gate (branch handcheck): the tracker fits a hand to any blob"
-kind("values", "flat wall at 500 mm", "no_pose", xfail=NOT_A_HAND)(_depth(lambda d: np.full_like(d, 500.0)))
-kind("values", "uniform noise 200-1500 mm", "no_pose", xfail=NOT_A_HAND)(
+kind("values", "flat wall at 500 mm", "no_pose")(_depth(lambda d: np.full_like(d, 500.0)))
+kind("values", "uniform noise 200-1500 mm", "no_pose")(
     _depth(lambda d: np.random.default_rng(4).uniform(200, 1500, d.shape)))
 
 
@@ -453,7 +452,7 @@ def _noise_patch(b: Bench):
     return out, [], []
 
 
-kind("values", "120x120 noise patch while tracking", "no_pose", xfail=NOT_A_HAND)(_noise_patch)
+kind("values", "120x120 noise patch while tracking", "no_pose")(_noise_patch)
 
 # -- stamps, frame ids, rates ---------------------------------------------------------------
 

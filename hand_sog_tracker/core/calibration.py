@@ -73,7 +73,7 @@ scored again.  Any evidence worse beyond its noise, or one frame losing more tha
 current model already fits" (nothing to do).  Either way :class:`CalibrationRejected` is raised
 (with the numbers) and the caller keeps (and does not save) the current model.  None of this
 has fingertip truth: the measurements that chose the rules, the predictors tried and the hands
-whose true shape tracks worse than the default model are in ``doc/notes/calib.md``.
+whose true shape tracks worse than the default model are in ``doc/design/calibration_guard.md``.
 
 Thickness.  The fitted depth and sigma are at most :data:`MAX_THICKNESS_PER_WIDTH` times the
 fitted width (:func:`_bounded_thickness`): fingers thicker relative to the palm than the
@@ -1045,7 +1045,7 @@ def _bounded_thickness(shape: HandShape) -> HandShape:
 
     Fingers thicker relative to the palm than the default model's crowd each other: the
     collision term then pushes them apart and the tracker follows the hand worse, with the
-    hand's true thickness too (doc/notes/calib.md).
+    hand's true thickness too (doc/design/calibration_guard.md).
     """
     top = MAX_THICKNESS_PER_WIDTH * shape.width
     if shape.sigma <= top and shape.depth <= top:
