@@ -210,39 +210,20 @@ INIT_SEARCH = InitSearch()
 
 @dataclass(frozen=True, eq=False)
 class InitFinalists:
-    """Outcome of the first initialisation stage, waiting for the second.
+    """Outcome of the initialisation's search, for its finish.
 
     Attributes
     ----------
     poses : list of arrays, shape (26,)
         Finalist poses, best first.
-    model : HandModel
-        The model they were fitted with (a model change discards them).
-    config : TrackerConfig
-        The configuration they were fitted with (a change discards them).
-    pre : Preprocessed
-        The frame they were fitted to (the second stage runs on it when no newer frame
-        comes first).
     end_mm : float
         The depth (mm) where the search's window ended at the latest, a little behind the hand
         blob (:attr:`HandBlob.far_mm`): what lies farther was cut off as a body or a wall, and
-        the second stage's window ends there too.
-    rest : callable or None
-        The search's last step when it was left to the second stage (the curled-finger
-        combinations, on the first stage's frame and data): returns the finalist poses, and
-        ``poses`` is empty until then.  None: ``poses`` are final.
+        the finish's window ends there too.
     """
 
     poses: list[NDArray[np.float64]]
-    model: HandModel
-    config: TrackerConfig
-    pre: Preprocessed
     end_mm: float = np.inf
-    rest: Callable[[], list[NDArray[np.float64]]] | None = None
-
-    def final_poses(self) -> list[NDArray[np.float64]]:
-        """The finalist poses, after the search's last step when it was left for later."""
-        return self.poses if self.rest is None else self.rest()
 
 
 @dataclass(frozen=True, eq=False)

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,8 +54,6 @@ from hand_sog_tracker.core.kinematics import (
 from hand_sog_tracker.core.optimizer import OptimizeResult, Steps, StepSizes, maximise, maximise_steps, run
 from hand_sog_tracker.core.restarts import (
     ASSIGN_LAMBDA_MM,
-    RESTART_ITERATIONS,
-    SHIFT_CHUNK,
     RestartStrategies,
     ShiftCandidate,
 )
@@ -351,39 +348,6 @@ class Tracker(RestartStrategies):
         self._curl_wait = 0  # rounds of the restarts to skip the curl restarts
         self._shift_pending: ShiftCandidate | None = None
 
-    #: Spread the initialisation over two frames (issue 14): the frame that finds the hand
-    #: runs the search and returns no pose, the next one (or :meth:`finish_initialisation`)
-    #: finishes it and starts the track.  Off: both stages run on the same frame.
-    split_initialisation: bool = False
-    #: Finalists of the first initialisation stage while the second is pending.
-    _pending: InitFinalists | None = None
-    #: Shortest wall time (s) between two frames that run the restarts, or None (the default:
-    #: every frame as scheduled, results independent of timing).  The restarts are optional
-    #: work of 5-20 ms; the node sets this for cameras faster than it can track with them
-    #: every frame, so that it keeps up and runs them a few times a second.  The frames in
-    #: between still run the scheduled finger shift (:meth:`_scheduled_restarts`, about 1 ms
-    #: on the frames that have a candidate), so that its schedule counts camera frames.
-    restart_interval_s: float | None = None
-    _last_restarts_s: float = -np.inf
-    #: Run a tracked frame's restarts after its result instead of before (issue 14): the
-    #: result of :meth:`process` is the frame's fit, and the restarts run on
-    #: :meth:`finish_frame` (or at the start of the next :meth:`process`); a candidate that wins
-    #: there continues the track from the next frame on.  The node sets it: it answers a frame
-    #: before the restarts (up to 5-20 ms on the frames where they fire; the lateral restarts of
-    #: a new track, after its first answer, about 35 ms); off (the default), a frame's result
-    #: includes its restarts.
-    defer_restarts: bool = False
-    #: Asked before and after every iteration of an answer's refinement (:meth:`_refined`,
-    #: about 0.45 ms each); once it returns True the frame answers with its fit unrefined.
-    #: The node sets it to "a newer image waits" (issue 14: at 100 Hz the refinement's 2-2.5
-    #: ms on frames with a curled finger would otherwise cost answered frames); None (the
-    #: default): always refined, results independent of timing.
-    refine_stop: Callable[[], bool] | None = None
-    #: (the restarts' steps, not started yet; the fit of their frame; the pose before it, None
-    #: on the frame a track starts on) of the frame whose restarts are due.
-    _deferred: tuple[Steps[OptimizeResult], OptimizeResult, NDArray[np.float64] | None] | None = None
-    #: Restarts that :meth:`finish_frame` paused: the same three.
-    _running: tuple[Steps[OptimizeResult], OptimizeResult, NDArray[np.float64] | None] | None = None
     #: (model, low, high) of :meth:`_maximise`: the joint limits as bounds (26,) each, read-only.
     _bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
     #: (tracking model, its :meth:`HandModel.with_joint_gaussians`) of :meth:`_refined`.
@@ -417,49 +381,6 @@ class Tracker(RestartStrategies):
         self._model = model.mirrored(self._config.right_hand)
         self._sizes = None
         self._shift_pending = None
-        self._deferred = None
-        self._running = None
-
-    def finish_frame(self, stop: Callable[[], bool] | None = None) -> bool:
-        """Run the restarts that :attr:`defer_restarts` left for after the last frame's result.
-
-        Returns whether a restart won on the frame they belong to: the track then continues
-        from its pose.  Nothing to do (False) when none are due.  ``stop``: asked after every
-        optimiser iteration of the restarts (about 0.3 ms); once it returns True they pause,
-        and the next call goes on with them (e.g. the node when a newer image waits: the
-        restarts of one frame can take 10-60 ms, issue 14).  While they are paused the frames
-        in between run no restarts of their own (their scheduled finger shift waits; the
-        schedule counts them); when they end after the track has moved on, a winner is
-        handed to the next frame as a finger shift candidate that is nearly done
-        (:class:`~hand_sog_tracker.core.restarts.ShiftCandidate`): its wrist moved as the
-        track's, refined ``SHIFT_CHUNK`` iterations on that frame and judged there.
-        """
-        deferred, self._deferred = self._deferred, None
-        if deferred is not None:
-            if self._running is None:
-                self._running = deferred
-            else:
-                deferred[0].close()  # (never started: its frame runs no restarts of its own)
-                self._frame_count += 1  # (the schedule of the shift candidates goes on)
-        if self._running is None:
-            return False
-        steps, res, p1 = self._running
-        while True:
-            if stop is not None and stop():
-                return False
-            try:
-                next(steps)
-            except StopIteration as done:
-                best: OptimizeResult = done.value
-                break
-        self._running = None
-        if best is res or self._prev is None:
-            return False
-        if self._prev[0] is res.x:
-            self._prev = (best.x, best.x if p1 is None else p1)
-            return True
-        self._shift_pending = ShiftCandidate(best.x, best.steps, RESTART_ITERATIONS - SHIFT_CHUNK, res.x)
-        return False
 
     def set_config(self, config: TrackerConfig) -> None:
         """Change the configuration; a handedness change also resets the track."""
@@ -475,9 +396,6 @@ class Tracker(RestartStrategies):
         self._prev = None
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
-        self._pending = None
-        self._deferred = None
-        self._running = None
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
         """Track the hand in one depth frame.
@@ -494,8 +412,6 @@ class Tracker(RestartStrategies):
         DepthImageError, IntrinsicsError
             When the frame cannot be used; the track is left untouched.
         """
-        if self._deferred is not None:  # (the last frame's restarts, unless the caller ran them)
-            self.finish_frame()
         t0 = time.perf_counter()
         cfg = self._config
         pre = preprocess(depth_mm, intrinsics, cfg)  # raises before any change of this frame's state
@@ -505,10 +421,9 @@ class Tracker(RestartStrategies):
         else:
             self._steps = None  # a new track starts with fresh step lengths
             self._shift_pending = None
-            self._running = None  # (restarts paused on the lost track's last frame)
             self._restart_wait = 0
             self._curl_wait = 0
-            if self._sizes is not None and self._pending is None:
+            if self._sizes is not None:
                 self._model = self._sizes[0]  # (a new track on the default model: its size is chosen again)
             result = self._initialise(pre)
         t2 = time.perf_counter()
@@ -597,15 +512,8 @@ class Tracker(RestartStrategies):
             extra_iterations=EXTRA_ITERATIONS, extra_gain=EXTRA_GAIN,
         )
         self._steps = res.steps if WARM_GROW > 0 else None
-        now = time.perf_counter()
-        restarts = self._running is None and (
-            self.restart_interval_s is None or now - self._last_restarts_s >= self.restart_interval_s
-        )
-        if restarts:
-            self._last_restarts_s = now
         fit = res
-        if not self.defer_restarts:
-            res = run(self._restarts(obj, res, data, det) if restarts else self._scheduled_restarts(obj, res, det))
+        res = run(self._restarts(obj, res, data, det))
         centres = gaussian_centres(self._model, res.x)
         conf = coverage(self._model, res.x, data, centres, obj.support(res.x))
         if conf < cfg.lost_confidence:
@@ -619,14 +527,9 @@ class Tracker(RestartStrategies):
             return self._result(None, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3})
         self._prev = (res.x, p1)
         self._status = TrackerStatus.TRACKING
-        if self.defer_restarts:
-            steps = self._restarts(obj, res, data, det) if restarts else self._scheduled_restarts(obj, res, det)
-            self._deferred = (steps, res, p1)
         answer = self._refined(obj, res, p1)
         if res is not fit:
-            # A restart won before the answer: the next frame's refinement starts from its fit's
-            # pose, as with deferred restarts, where the restart wins after the answer (the
-            # answers do not depend on the deferral).
+            # A restart won: the next frame's refinement starts from its fit's pose.
             self._refine_last = None
         if answer is not res.x:
             centres = gaussian_centres(self._model, answer)
@@ -647,9 +550,6 @@ class Tracker(RestartStrategies):
         last, self._refine_last = self._refine_last, None
         if iterations <= 0 or np.max(x[FINGER_PIP]) <= REFINE_CURL_RAD:
             return x
-        stop = self.refine_stop
-        if stop is not None and stop():
-            return x
         joint = self._joint_model
         if joint is None or joint[0] is not self._model:
             joint = self._joint_model = (self._model, self._model.with_joint_gaussians())
@@ -663,15 +563,9 @@ class Tracker(RestartStrategies):
             lo, hi = self._limits()
             x0 = np.minimum(np.maximum(x + (last[1] - last[0]), lo), hi)
             steps *= REFINE_WARM_STEPS
-        fit = self._fit(refine, x0, iterations=iterations, initial_steps=steps)
-        while True:
-            try:
-                next(fit)
-            except StopIteration as done:
-                self._refine_last = (x, done.value.x)
-                return done.value.x
-            if stop is not None and stop():
-                return x
+        fit = self._maximise(refine, x0, iterations=iterations, initial_steps=steps)
+        self._refine_last = (x, fit.x)
+        return fit.x
 
     def _maximise(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> OptimizeResult:
         """:func:`maximise` with the joint angles projected into the model's limits."""
@@ -694,47 +588,11 @@ class Tracker(RestartStrategies):
             cached = self._bounds = (m, lo, hi)
         return cached[1:]
 
-    @property
-    def initialising(self) -> bool:
-        """Whether the first initialisation stage has run and the second is pending.
-
-        Only with :attr:`split_initialisation`: the next :meth:`process` (or
-        :meth:`finish_initialisation`) completes it.
-        """
-        return self._pending is not None
-
-    def finish_initialisation(self) -> TrackResult | None:
-        """Run the pending second initialisation stage on the frame the first one saw.
-
-        For a caller that has time before the next frame (e.g. the node when no newer image
-        is waiting, or a single image): the track then starts on this frame.  Returns None
-        when nothing is pending.
-        """
-        if self._pending is None:
-            return None
-        t0 = time.perf_counter()
-        pending, self._pending = self._pending, None
-        result = self._init_finish(pending.pre, pending)
-        result.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
-        return result
-
     def _initialise(self, pre: Preprocessed) -> TrackResult:
-        """Find the hand when there is no track (first frame, after a loss): two stages.
-
-        The search (:meth:`_init_search`) and the finish (:meth:`_init_finish`) each cost
-        about one tracked frame's budget (issue 14).  Without :attr:`split_initialisation`
-        both run on this frame; with it the search runs now and returns no pose, and the
-        next frame (or :meth:`finish_initialisation`) finishes from the finalists.
-        """
-        pending, self._pending = self._pending, None
-        if pending is not None and pending.model is self._model and pending.config == self._config:
-            return self._init_finish(pre, pending)
+        """Find the hand when there is no track (first frame, after a loss): the search
+        (:meth:`_init_search`) and its finish (:meth:`_init_finish`) on this frame."""
         found = self._init_search(pre)
         if found is None:
-            self._status = TrackerStatus.NO_HAND
-            return self._result(None, 0.0, 0.0, 0, {})
-        if self.split_initialisation:
-            self._pending = found
             self._status = TrackerStatus.NO_HAND
             return self._result(None, 0.0, 0.0, 0, {})
         return self._init_finish(pre, found)
@@ -846,18 +704,7 @@ class Tracker(RestartStrategies):
             sides = {_back_toward(x) for x in poses}
             return poses + [x for _, _, x in ranked if _back_toward(x) not in sides][:1]
 
-        # With a split initialisation the combinations (about 15 ms) are left to the second
-        # stage, on this frame's data: the first stage stays within its budget, the finalists
-        # are the same.
-        later = self.split_initialisation and scored[0][0] < eff.combination_below
-        return InitFinalists(
-            poses=[] if later else finalists(),
-            model=self._model,
-            config=cfg,
-            pre=pre,
-            end_mm=blob.far_mm + BLOB_BEHIND_MM,
-            rest=finalists if later else None,
-        )
+        return InitFinalists(poses=finalists(), end_mm=blob.far_mm + BLOB_BEHIND_MM)
 
     def _screened(self, starts: list[NDArray[np.float64]], parts: list[ImageSoG], n: int) -> set[int]:
         """Indices of the ``n`` start poses (26,) of ``starts`` with the palm toward the camera
@@ -888,7 +735,7 @@ class Tracker(RestartStrategies):
         with open fingers.
         """
         cfg = self._config
-        poses = found.final_poses()
+        poses = found.poses
         tq = time.perf_counter()
         data, det, sil = self._data_near(pre, poses[0], detect=True, end_mm=found.end_mm)
         timings = {"quadtree": (time.perf_counter() - tq) * 1e3}
@@ -913,15 +760,12 @@ class Tracker(RestartStrategies):
         _, res, data, obj = best
         res = run(self._finger_restarts(obj, res, data))
         res = run(self._shift_restarts(obj, res, det, force=True))
-        if not self.defer_restarts:
-            res = run(self._lateral_restarts(obj, res, det))
+        res = run(self._lateral_restarts(obj, res, det))
         conf = coverage(self._model, res.x, data)
         if conf < cfg.lost_confidence:
             self._status = TrackerStatus.NO_HAND
             return self._result(None, conf, res.fun, data.n, timings)
         self._prev = (res.x, res.x)
-        if self.defer_restarts:
-            self._deferred = (self._lateral_restarts(obj, res, det), res, None)
         self._low_frames = 0
         self._status = TrackerStatus.TRACKING
         return self._result(res.x, conf, res.fun, data.n, timings)

@@ -28,9 +28,10 @@ Every output is stamped with the input image's header (stamp and frame_id).
 Real time: the subscriptions use sensor-data QoS with depth 1 (overridable via
 ``qos_overrides.*`` parameters), so DDS keeps only the newest image while a
 frame is being processed and there is never a backlog.  The image callback
-takes a CameraInfo waiting in its subscription and tracks the image at once; an image
-that arrives meanwhile is taken from the subscription by the tracking itself (a frame
-that finds the hand is answered on the next one).  Frames that are never processed are counted: ``dropped``
+takes a CameraInfo waiting in its subscription and tracks the image at once, with the
+core tracker's whole search (the same answers as ``evaluate_bag``'s core mode; an image
+re-sent with the stamp of the last one gets the same answer again).  A machine that cannot
+keep up drops whole frames, never part of a frame's search.  Frames that are never processed are counted: ``dropped``
 (received but replaced by a newer one before processing) and ``missed`` (replaced inside
 DDS, so never received; estimated
 from gaps in the image stamps against the shortest stamp interval seen).
@@ -138,27 +139,6 @@ COMPRESSED_TOPIC = COMPRESSED_DEPTH_TOPIC
 WARN_THROTTLE_S = 2.0
 #: A gap between two received images longer than this is a pause, not missed frames.
 MAX_GAP_S = 1.0
-#: Cameras faster than this (Hz) get the tracker's restarts at most every
-#: ``FAST_CAMERA_RESTART_INTERVAL_S`` (a frame whose restarts an unexplained detection or a
-#: dangling finger sets off takes 5-20 ms more; at 30 Hz the node keeps up without the limit).
-#: The scheduled finger shift (about 1 ms on 4 frames in 12) still runs on every frame
-#: (``Tracker.restart_interval_s``).
-FAST_CAMERA_HZ = 45.0
-FAST_CAMERA_RESTART_INTERVAL_S = 0.2
-#: Images tracked in a row in one executor callback: an image that arrived while the last one
-#: was tracked (its restarts pause for it) is tracked at once, without the executor's round
-#: trip (0.5-1 ms added to one frame in five at 100 Hz, issue 14); after this many the
-#: executor runs its other callbacks first.
-DIRECT_FRAMES = 4
-#: When the hand was found on an image and no newer image has arrived (a single image, a
-#: slow stream), the new track is refined on the same image this many more times before the
-#: answer is published, as the tracker would be on a static scene; a newer image stops it.
-#: Each pass costs one tracked frame (4-25 ms on the labelled real frames, 40-180 ms for all
-#: nine; the first passes are dearer while restarts still fire).  With 3 passes the labelled
-#: real frames scored 7.6 mm mean and 33 of 40 fingertips within 15 mm, with 9: 6.7 mm and 35
-#: (shifted by a pixel or 3 mm in depth, 96 runs: 16.7 -> 15.6 mm); a finger-shift candidate
-#: needs 4 passes to be judged.  (Chosen here, issue 11.)
-IDLE_REFINE_PASSES = 9
 _NUMBERS = re.compile(r"\d+(\.\d+)?")
 
 
@@ -253,11 +233,13 @@ class TrackerNode(CalibrationService, Node):
         self._intrinsics_problem = ""
         # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).
         user_model = self._initial_model()
+        # The node runs the core tracker as evaluate_bag's core mode does: every frame's whole
+        # search, nothing timed by the wall clock (issue 45).  A frame that arrives meanwhile
+        # replaces the one waiting in the depth-1 subscription: whole frames are dropped.
         self._tracker = Tracker(self._settings.tracker, user_model)
-        self._tracker.split_initialisation = True  # issue 14: see _process
-        self._tracker.defer_restarts = True  # issue 14: a frame is answered before its restarts
-        # ... and unrefined once a newer image waits (issue 14, Tracker.refine_stop).
-        self._tracker.refine_stop = self._image_waiting
+        # (stamp, result, depth, intrinsics) of the last processed frame: an image re-sent with
+        # its stamp is answered again, not tracked twice.
+        self._last_answer: tuple[int, TrackResult, NDArray[np.float32], Intrinsics] | None = None
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
         self._markers_shown = False
@@ -317,8 +299,6 @@ class TrackerNode(CalibrationService, Node):
         self._calib_wake = self.create_guard_condition(lambda: None)
         self._fit_worker = FitWorker()  # the fits' child process, started with tracking
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
-        # Wakes the executor to track an image the tracking took from the subscription.
-        self._frame_ready = self.create_guard_condition(self._track_pending)
         self.get_logger().info(
             f"tracking the {'right' if self._settings.tracker.right_hand else 'left'} hand from "
             f"{self._image_sub.topic_name} + {self._info_sub.topic_name}"
@@ -386,17 +366,15 @@ class TrackerNode(CalibrationService, Node):
 
     # -- input ------------------------------------------------------------------
     def _on_image_message(self, msg: Image | CompressedImage) -> None:
-        """The image subscription's callback: track the image now (issue 14).
+        """The image subscription's callback: track the image now.
 
         A CameraInfo waiting in its subscription is taken first (it may belong to this image).
-        Tracking in this callback, not in one the executor runs next, saves an executor round
-        trip per frame; an image that arrives meanwhile waits in the subscription (depth 1:
-        the newest) and is taken by the tracking itself (:meth:`_image_waiting`) or by the
-        executor afterwards.
+        An image that arrives meanwhile waits in the subscription (depth 1: the newest; older
+        ones are dropped whole, counted as ``missed``) for the executor's next turn.
         """
         self._on_image(msg)
         self._take_waiting(self._info_sub, self._on_camera_info)
-        self._track_pending()
+        self._process_pending()
 
     def _on_image(self, msg: Image | CompressedImage) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -409,18 +387,6 @@ class TrackerNode(CalibrationService, Node):
         )
         self._window.received += 1
         self._pending = msg
-
-    def _track_pending(self) -> None:
-        """Track the pending image, and an image that the tracking took from the subscription
-        meanwhile (the restarts pause for it) right after it, up to ``DIRECT_FRAMES`` in a
-        row; one after those is tracked when the executor has done its other work
-        (:attr:`_frame_ready`: services, parameters and timers get their turn)."""
-        for _ in range(DIRECT_FRAMES):
-            self._process_pending()
-            if self._pending is None:
-                return
-            self._take_waiting(self._info_sub, self._on_camera_info)
-        self._frame_ready.trigger()
 
     def _missed_before(self, stamp: int) -> int:
         """Frames the camera must have sent between the last received image and this one.
@@ -596,28 +562,18 @@ class TrackerNode(CalibrationService, Node):
         if not np.any(depth > 0.0):
             self._warn("depth image has no valid pixels (all 0, NaN or Inf)")
 
-        fast = self._period_ns is not None and self._period_ns * 1e-9 * FAST_CAMERA_HZ < 1.0
-        self._tracker.restart_interval_s = FAST_CAMERA_RESTART_INTERVAL_S if fast else None
+        last = self._last_answer
         try:
-            result = self._tracker.process(depth, intr)
-            # -- initialisation over two frames (issue 14) -----------------------------------
-            # A frame that finds the hand only runs the search and returns no pose; a newer
-            # image finishes it (tracked from the second frame on).  When none is waiting (a
-            # single image, a slow stream), this frame is finished and answered now.
-            if self._tracker.initialising and not self._image_waiting():
-                result = self._tracker.finish_initialisation() or result
-                # Still nothing newer (a single image, a slow stream): refine the new track on
-                # this image, as the tracker would on a static scene, before answering.
-                for _ in range(IDLE_REFINE_PASSES):
-                    if result.pose is None or self._image_waiting():
-                        break
-                    result = self._tracker.process(depth, intr)
-            # ---------------------------------------------------------------------------------
+            if last is not None and last[0] == stamp and last[3] == intr and np.array_equal(last[2], depth):
+                result = last[1]  # (the same image again: the same answer)
+            else:
+                result = self._tracker.process(depth, intr)
         except HandSogError as err:
             self._reject(f"tracker rejected the frame: {err}")
             self._warn(f"tracker rejected the frame: {err}")
             return None
 
+        self._last_answer = (stamp, result, depth, intr)
         self._frame_id = header.frame_id
         self._publish_result(header, result, depth, intr)
         answered_at = time.perf_counter()
@@ -632,23 +588,15 @@ class TrackerNode(CalibrationService, Node):
         )
         self._window.processed += 1
         self._window.latency_ms += latency_ms
-        # This frame's restarts, after its answer (defer_restarts); they pause as soon as a
-        # newer image waits and go on after it (issue 14: the detection restarts of one frame
-        # can take 60 ms; cut after 10 ms, they held up the next frame by up to 8 ms).
-        self._tracker.finish_frame(self._image_waiting)
         return answered_at
-
-    def _image_waiting(self) -> bool:
-        """Whether a newer image than the one being processed has arrived."""
-        return self._pending is not None or self._take_waiting(self._image_sub, self._on_image)
 
     @staticmethod
     def _take_waiting(sub: Subscription, callback: Callable[[Any], None]) -> bool:
         """Hand a message waiting in ``sub`` to ``callback``; whether there was one.
 
         The single-threaded executor runs one callback at a time, so a message that arrived
-        while a frame was processed is still in its subscription (issue 14); the executor
-        takes from it the same way and finds it empty afterwards.
+        while a frame was processed is still in its subscription; the executor takes from it
+        the same way and finds it empty afterwards.
         """
         try:
             with sub.handle:
@@ -662,6 +610,7 @@ class TrackerNode(CalibrationService, Node):
 
     def _reset_track(self, header: Header) -> None:
         self._tracker.reset()
+        self._last_answer = None
         if self._markers_shown:
             self._marker_pub.publish(delete_all_markers(header))
             self._markers_shown = False
