@@ -113,6 +113,7 @@ from hand_sog_tracker.core.hand_model import (
 from hand_sog_tracker.core.kinematics import CentresPullback, centres_with_pullback, gaussian_centres
 from hand_sog_tracker.core.silhouette import Silhouette, run_or_defer, silhouette_term
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
+from hand_sog_tracker.errors import InputError
 
 __all__ = [
     "EnergyTerms",
@@ -509,6 +510,16 @@ def contact_shares(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     return share
 
 
+def _check_poses(thetas: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Validate a batch of poses and return it as float64, shape (B, 26)."""
+    arr = np.asarray(thetas, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != N_PARAMS:
+        raise InputError(f"poses must have shape (B, {N_PARAMS}), got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise InputError("poses contain NaN or Inf")
+    return arr
+
+
 @lru_cache(maxsize=1)
 def _smooth_scale() -> NDArray[np.float64]:
     s = np.ones(N_PARAMS)
@@ -617,6 +628,21 @@ class Objective:
         """Return ``E(theta)`` and, with ``gradient``, ``dE/dtheta`` of shape (26,)."""
         values, grad = self._evaluate(theta, gradient, False)
         return values[0], grad
+
+    def batch(
+        self, thetas: NDArray[np.float64], gradient: bool = True
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """``E`` at every pose of ``thetas`` (B, 26) and, with ``gradient``, ``dE/dtheta``
+        (B, 26): pose by pose what :meth:`__call__` returns (the gradient None without
+        ``gradient``)."""
+        thetas = _check_poses(thetas)
+        values = np.empty(thetas.shape[0])
+        grads = np.empty(thetas.shape) if gradient else None
+        for b, theta in enumerate(thetas):
+            values[b], g = self(np.ascontiguousarray(theta), gradient)
+            if grads is not None:
+                grads[b] = g
+        return values, grads
 
     def value_then_gradient(
         self, theta: NDArray[np.float64]

@@ -18,11 +18,15 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.hand_model import FIRST_JOINT, JOINTS, N_PARAMS
 
-__all__ = ["OptimizeResult", "StepSizes", "Steps", "maximise", "maximise_steps", "run"]
+__all__ = ["OptimizeResult", "StepSizes", "Steps", "maximise", "maximise_batch", "maximise_steps", "run"]
 
 #: Objective signature: ``fun(theta (26,), gradient=True) -> (value, gradient (26,) or None)``;
 #: with ``gradient=False`` only the value is needed (``None`` may be returned for the gradient).
 ObjectiveFn = Callable[..., tuple[float, NDArray[np.float64] | None]]
+#: Batch objective signature: ``fun(thetas (B, 26), gradient=True) -> (values (B,), gradients
+#: (B, 26) or None)``, pose by pose what an :data:`ObjectiveFn` returns
+#: (:meth:`~hand_sog_tracker.core.energy.Objective.batch`).
+BatchObjectiveFn = Callable[..., tuple[NDArray[np.float64], NDArray[np.float64] | None]]
 
 _T = TypeVar("_T")
 #: A computation that can be paused: a generator that yields (nothing) between two steps of
@@ -251,3 +255,128 @@ def maximise_steps(
         history=np.asarray(history),
         steps=step,
     )
+
+
+def maximise_batch(
+    fun_batch: BatchObjectiveFn,
+    x0: NDArray[np.float64],
+    iterations: int = 10,
+    steps: StepSizes = StepSizes(),
+    active: NDArray[np.bool_] | None = None,
+    initial_scale: float = 1.0,
+    bounds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    initial_steps: NDArray[np.float64] | None = None,
+) -> list[OptimizeResult]:
+    """Maximise from every start pose of ``x0`` (B, 26) in lockstep: one call of ``fun_batch``
+    per iteration evaluates all candidates still running.
+
+    Each candidate has its own step lengths, sign memory, best-so-far and early stop, and runs
+    the very iterates :func:`maximise` would run from its start (without ``extra_iterations``):
+    its result does not depend on the other candidates.  A candidate whose steps became
+    negligible stops and is left out of the later calls.
+
+    Parameters
+    ----------
+    fun_batch : callable
+        ``fun_batch(thetas (k, 26), gradient=True) -> (values (k,), gradients (k, 26))`` for
+        any ``k <= B`` (see :data:`BatchObjectiveFn`); the last iterations' poses are evaluated
+        with ``gradient=False``.
+    x0 : array, shape (B, 26)
+        Start poses.
+    iterations, steps, initial_scale
+        As in :func:`maximise_steps`.
+    active : bool array, shape (26,) or (B, 26), optional
+        Parameters allowed to move, for all candidates or per candidate (default: all).
+    bounds : (low, high) arrays, shape (26,) or (B, 26) each, optional
+        Every iterate is projected into ``[low, high]`` (``x0`` too).
+    initial_steps : array, shape (26,) or (B, 26), optional
+        Start step lengths (mm / rad); override ``steps.initial`` and ``initial_scale``.
+
+    Returns
+    -------
+    list of OptimizeResult, one per candidate, in the order of ``x0``.
+    """
+    x = np.array(x0, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != N_PARAMS:
+        raise ValueError(f"x0 must have shape (B, {N_PARAMS}), got {x.shape}")
+    B = x.shape[0]
+    shape = (B, N_PARAMS)
+    if initial_steps is not None:
+        step = np.array(np.broadcast_to(initial_steps, shape), dtype=np.float64)
+    else:
+        step = np.tile(steps.expand(steps.initial) * initial_scale, (B, 1))
+    lo, hi = _limits_of(steps)
+    mask = None if active is None else np.broadcast_to(np.asarray(active, bool), shape)
+    lo_settled = np.broadcast_to(lo * 1.0001, shape)
+    if mask is not None:  # inactive parameters count as settled
+        lo_settled = np.where(mask, lo_settled, np.inf)
+    if bounds is not None:
+        low = np.broadcast_to(np.asarray(bounds[0], dtype=np.float64), shape)
+        high = np.broadcast_to(np.asarray(bounds[1], dtype=np.float64), shape)
+        x = np.minimum(np.maximum(x, low), high)
+    val, grad = fun_batch(x)
+    assert grad is not None
+    val = np.array(val, dtype=np.float64)
+    grad = np.array(grad, dtype=np.float64)
+    best_x, best_val = x.copy(), val.copy()
+    history = np.full((iterations + 1, B), np.nan)
+    history[0] = val
+    prev_sign = np.zeros(shape)
+    nit = np.zeros(B, dtype=np.int64)
+    status = np.zeros(B, dtype=np.int64)
+    run_ = np.arange(B)  # the candidates still running
+    for it in range(1, iterations + 1):
+        if not run_.size:
+            break
+        nit[run_] = it
+        every = run_.size == B  # (typical: whole arrays, no gathers)
+        sel = slice(None) if every else run_
+        sign = np.sign(grad[sel])
+        if mask is not None:
+            sign *= mask[sel]
+        agree = sign * prev_sign[sel]
+        grows, shrinks = agree > 0, agree < 0
+        st = step[sel] if not every else step
+        np.minimum(st * steps.grow, hi, out=st, where=grows)
+        np.maximum(st * steps.shrink, lo, out=st, where=shrinks)
+        np.copyto(sign, 0.0, where=shrinks)
+        xs = x[sel] + st * sign
+        if bounds is not None:
+            np.maximum(xs, low[sel], out=xs)
+            np.minimum(xs, high[sel], out=xs)
+        if not every:
+            step[run_] = st
+        prev_sign[sel] = sign
+        x[sel] = xs
+        if it < iterations:
+            v, g = fun_batch(xs)
+            assert g is not None
+            grad[sel] = g
+        else:  # the last iterate: only its value is used
+            v = fun_batch(xs, gradient=False)[0]
+        history[it, run_] = v
+        better = v > best_val[run_]
+        if better.any():
+            up = run_[better]
+            best_x[up] = xs[better]
+            best_val[up] = v[better]
+        settled = np.logical_and.reduce(st <= lo_settled[sel], axis=1)
+        if settled.any():
+            status[run_[settled]] = 1
+            run_ = run_[~settled]
+    results = []
+    for b in range(B):
+        done = int(status[b]) == 1
+        results.append(
+            OptimizeResult(
+                x=best_x[b].copy(),
+                fun=float(best_val[b]),
+                nit=int(nit[b]),
+                success=bool(best_val[b] >= history[0, b]),
+                status=int(status[b]),
+                message="step lengths became negligible" if done else "iterations exhausted",
+                history=history[: nit[b] + 1, b].copy(),
+                steps=step[b].copy(),
+            )
+        )
+    return results
