@@ -75,3 +75,28 @@ def test_compare_gives_the_settings_to_this_tree_only(monkeypatch: pytest.Monkey
     assert len(this) == len(other) == 2
     assert all("--set=iterations=2" in args for args in this)
     assert not any(a.startswith("--set") for args in other for a in args)
+
+
+def test_batch_rows_time_the_batched_objective_against_one_pose_calls(capsys: pytest.CaptureFixture[str]) -> None:
+    from test_core_energy import data_near
+
+    from hand_sog_tracker.core.energy import Objective
+    from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
+    from hand_sog_tracker.core.types import TrackerConfig
+
+    model = default_hand_model()
+    pose = rest_pose((0.0, 60.0, 400.0))
+    obj = Objective(model, data_near(model, pose, np.random.default_rng(0)), TrackerConfig())
+    stage: dict[str, list[float]] = {}
+    benchmark._time_batches(obj, pose, stage)
+    for B in benchmark.BATCH_SIZES:
+        for key in (f"energy_batch_{B}", f"energy_singles_{B}"):
+            assert len(stage[key]) == benchmark.BATCH_ROUNDS and min(stage[key]) > 0, key
+            assert key in benchmark.STAGE_LABELS
+    r = {"motion": "m", "resolution": "r", "frames_timed": 0, "frames_tracking": 0, "iterations": 0,
+         "stages_ms": {k: benchmark._stats(v) for k, v in stage.items()}, "fps": 0.0, "peak_rss_mb": 0.0,
+         "rss_growth_mb": 0.0}
+    benchmark._print_table(r)
+    rows = [line.split() for line in capsys.readouterr().out.splitlines() if line.split()[:1] == ["32"]]
+    per_call, per_pose, singles, ratio = (float(x) for x in rows[-1][1:])
+    assert per_pose == pytest.approx(per_call / 32, abs=2e-3) and ratio == pytest.approx(per_call / singles, abs=0.01)

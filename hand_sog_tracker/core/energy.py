@@ -110,10 +110,15 @@ from hand_sog_tracker.core.hand_model import (
     HandModel,
     rest_pose,
 )
-from hand_sog_tracker.core.kinematics import CentresPullback, centres_with_pullback, gaussian_centres
+from hand_sog_tracker.core.kinematics import (
+    CentresPullback,
+    centres_batch,
+    centres_with_pullback,
+    check_poses,
+    gaussian_centres,
+)
 from hand_sog_tracker.core.silhouette import Silhouette, run_or_defer, silhouette_term
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
-from hand_sog_tracker.errors import InputError
 
 __all__ = [
     "EnergyTerms",
@@ -375,6 +380,33 @@ def _data_constants(data: ImageSoG, m: int) -> tuple:
     return const
 
 
+class _Rows:
+    """The model Gaussians' constants and buffers of :meth:`Objective._data_terms` (and the
+    collision term's scatter) for one pose or a batch of B poses, whose B m model Gaussians
+    stand pose after pose (a plain class with slots; see :meth:`Objective._layout`).
+
+    ``rows`` (11, B m) per model Gaussian values (rows 2 and 8 constant), ``tests`` (2, B m,
+    n) and ``neg`` (B m, n) the candidate tests' buffers, ``row_starts`` (B m + 1,) the flat
+    index of each row's first pair, ``col_of`` (B m n,) the image Gaussian of every flat
+    index, in the pose's block (``b n + q``), ``per_q`` (4, B n) and ``sat_k`` (B n,) the
+    image Gaussians' values (once per pose), ``sigmas``, ``shf``, ``two_sh``, ``four_sh2``
+    and ``visibility`` (B m,) the model Gaussians' (``visibility`` None: all 1),
+    ``col_scatter`` the collision gradient's flat indices into (B m 3,).
+    """
+
+    __slots__ = (
+        "B", "batch", "rows", "tests", "neg", "row_starts", "col_of", "per_q", "sat_k", "sigmas", "shf",
+        "two_sh", "four_sh2", "visibility", "col_scatter",
+    )
+
+    def __init__(self, B: int, batch: bool, *arrays: NDArray | None) -> None:
+        self.B, self.batch = B, batch
+        (
+            self.rows, self.tests, self.neg, self.row_starts, self.col_of, self.per_q, self.sat_k, self.sigmas,
+            self.shf, self.two_sh, self.four_sh2, self.visibility, self.col_scatter,
+        ) = arrays
+
+
 #: Slack (px^2 and mm^2) of the expanded-square candidate tests in :func:`gaussian_support`:
 #: far above their rounding (below 1e-7 for images up to 4096 px and depths up to 10 m), so
 #: that every pair the exact tests pass is a candidate.
@@ -510,14 +542,14 @@ def contact_shares(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     return share
 
 
-def _check_poses(thetas: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Validate a batch of poses and return it as float64, shape (B, 26)."""
-    arr = np.asarray(thetas, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != N_PARAMS:
-        raise InputError(f"poses must have shape (B, {N_PARAMS}), got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise InputError("poses contain NaN or Inf")
-    return arr
+def _per_pose(value: NDArray[np.float64]) -> float | NDArray[np.float64]:
+    """A term's value as a float for one pose (a 0-d result), else the (B,) values."""
+    return float(value) if value.ndim == 0 else value
+
+
+def _squares(x: NDArray[np.float64]) -> float | NDArray[np.float64]:
+    """Sum of squares of ``x`` (k,) as a float, or along the last axis of ``x`` (B, k)."""
+    return float(x @ x) if x.ndim == 1 else _sum(x * x, axis=-1)
 
 
 @lru_cache(maxsize=1)
@@ -606,12 +638,19 @@ class Objective:
         unlimited = np.full(N_PARAMS - model.limits_low.size, np.inf)
         self._limits_low = np.concatenate([-unlimited, model.limits_low])  # (26,) rad
         self._limits_high = np.concatenate([unlimited, model.limits_high])
-        self._rows = np.empty((11, model.n_gaussians))
-        self._rows[2] = 1.0
-        self._rows[8] = self._two_sh
+        rows = np.empty((11, model.n_gaussians))
+        rows[2] = 1.0
+        rows[8] = self._two_sh
         # The candidate tests of all pairs and their outcome (filled by every evaluation).
-        self._tests = np.empty((2, model.n_gaussians, data.n))
-        self._neg = np.empty((model.n_gaussians, data.n), dtype=bool)
+        tests = np.empty((2, model.n_gaussians, data.n))
+        neg = np.empty((model.n_gaussians, data.n), dtype=bool)
+        self._one = _Rows(
+            1, False, rows, tests, neg, self._row_starts, self._col_of, self._per_q, self._sat,
+            model.g_sigmas, self._shf, self._two_sh, self._four_sh2, self._visibility, self._const.scatter,
+        )
+        # The batches' layouts by their number of poses, and the buffers they share (see _layout).
+        self._batches: dict[int, _Rows] = {}
+        self._batch_buffers: tuple[int, tuple[NDArray, ...]] = (0, ())
         # (targets, their constants or None) of the last targets seen by _salient.
         self._sal: tuple[object, tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None] = (
             _UNSET, None
@@ -633,16 +672,17 @@ class Objective:
         self, thetas: NDArray[np.float64], gradient: bool = True
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """``E`` at every pose of ``thetas`` (B, 26) and, with ``gradient``, ``dE/dtheta``
-        (B, 26): pose by pose what :meth:`__call__` returns (the gradient None without
-        ``gradient``)."""
-        thetas = _check_poses(thetas)
-        values = np.empty(thetas.shape[0])
-        grads = np.empty(thetas.shape) if gradient else None
-        for b, theta in enumerate(thetas):
-            values[b], g = self(np.ascontiguousarray(theta), gradient)
-            if grads is not None:
-                grads[b] = g
-        return values, grads
+        (B, 26): pose by pose what :meth:`__call__` returns, up to rounding (the gradient None
+        without ``gradient``).
+
+        One evaluation with a leading batch axis through every term: the kinematics, the data
+        terms (the B m model Gaussians against the data as the m of one pose), collision,
+        silhouette, salient and the pose terms, so that B poses cost about the per-call cost of
+        one evaluation plus B times its arithmetic.
+        """
+        thetas = check_poses(thetas)
+        values, grads = self._evaluate(thetas, gradient, False)
+        return values[0], grads
 
     def value_then_gradient(
         self, theta: NDArray[np.float64]
@@ -680,6 +720,7 @@ class Objective:
         other = Objective(self.model, self.data, config, self.previous, targets, self.silhouette)
         other.contact, other._col_free = self.contact, self._col_free
         other.visible_from, other._visibility = self.visible_from, self._visibility
+        other._one.visibility = self._visibility
         return other
 
     def support(self, theta: NDArray[np.float64]) -> NDArray[np.float64] | None:
@@ -700,6 +741,48 @@ class Objective:
         support /= 2 * np.pi**2 * sp * sp
         return np.minimum(support, 1.0, out=support)
 
+    def _layout(self, B: int) -> _Rows:
+        """The :class:`_Rows` of a batch of ``B`` poses (cached per ``B``).
+
+        Made once for the largest batch so far; a smaller batch's layout is the first B m rows
+        (B m n pairs, B n image Gaussians) of it, as views: a batch that shrinks from call to
+        call (:func:`~hand_sog_tracker.core.optimizer.maximise_batch` leaves settled
+        candidates out) makes no new arrays.
+        """
+        hit = self._batches.get(B)
+        if hit is not None:
+            return hit
+        m, n = self.model.n_gaussians, self.data.n
+        cap, full = self._batch_buffers
+        if B > cap:
+            self._batches.clear()
+            cap = B
+            col_of = np.empty((cap, m, n), dtype=np.int64)
+            col_of[:] = (n * np.arange(cap))[:, None, None] + np.arange(n)
+            rows = np.empty((11, cap * m))
+            rows[2] = 1.0
+            rows[8] = np.tile(self._two_sh, cap)
+            c = self._const
+            # The collision gradient's scatter, pose after pose (each pose's i's, then its j's).
+            offsets = 3 * m * np.arange(cap)[:, None, None, None]
+            scatter = (np.stack([c.gather_i, c.gather_j]) + offsets).reshape(-1)
+            vis = None if self._visibility is None else np.tile(self._visibility, cap)
+            full = (
+                rows, np.empty(2 * cap * m * n), np.empty(cap * m * n, dtype=bool), np.arange(cap * m + 1) * n,
+                col_of.reshape(-1), np.tile(self._per_q, (1, cap)), np.tile(self._sat, cap),
+                np.tile(self.model.g_sigmas, cap), np.tile(self._shf, cap), np.tile(self._two_sh, cap),
+                np.tile(self._four_sh2, cap), vis, scatter,
+            )
+            self._batch_buffers = (cap, full)
+        rows, tests, neg, row_starts, col_of, per_q, sat_k, sigmas, shf, two_sh, four_sh2, vis, scatter = full
+        k = B * m
+        lay = self._batches[B] = _Rows(
+            B, True, rows[:, :k], tests[: 2 * k * n].reshape(2, k, n), neg[: k * n].reshape(k, n),
+            row_starts[: k + 1], col_of[: k * n], per_q[:, : B * n], sat_k[: B * n], sigmas[:k], shf[:k],
+            two_sh[:k], four_sh2[:k], None if vis is None else vis[:k], scatter[: scatter.size // cap * B],
+        )
+        return lay
+
     def _evaluate(
         self,
         theta: NDArray[np.float64],
@@ -709,6 +792,10 @@ class Objective:
     ) -> tuple[tuple[float, ...], NDArray[np.float64] | Callable[[], NDArray[np.float64]] | None]:
         """``(total, sim, col, dan, lim, smo, ord, sal, sil, cpl, curl)`` and the gradient (or None).
 
+        ``theta``: one pose (26,) (floats and a gradient (26,)) or a batch (B, 26) (from
+        :meth:`batch`: the total (B,), the terms (B,) arrays or 0.0 for a term 0 at every pose,
+        the gradient (B, 26); not with ``later``).
+
         The shared body of :meth:`__call__` (the optimiser's path: no :class:`EnergyTerms`),
         :meth:`evaluate` and :meth:`value_then_gradient`.  Without ``terms`` (only the total
         and the gradient are read) a term whose weight is 0 is not evaluated (reported as 0):
@@ -716,24 +803,32 @@ class Objective:
         ``later`` (an empty list) the terms append their gradients' functions there and the
         function that finishes the gradient is returned in its place.
         """
-        self._support_key = theta.tobytes()
+        batch = theta.ndim == 2
+        self._support_key = b"" if batch else theta.tobytes()
         self._support_src = None
         self._evaluations += 1
         cfg = self.config
-        if later is not None:
+        if batch:  # P (B, m, 3), the data terms' rows (B m, 3) (views)
+            P, pullback = centres_batch(self.model, theta, gradient)
+            g3 = np.zeros(P.shape) if gradient else None
+            lay: _Rows | None = self._layout(theta.shape[0])
+            P_rows, g3_rows = P.reshape(-1, 3), None if g3 is None else g3.reshape(-1, 3)
+        elif later is not None:
             P, pullback, g3 = gaussian_centres(self.model, theta), None, None
         elif gradient:
             P, pullback = centres_with_pullback(self.model, theta)
             g3 = np.zeros(P.shape)
         else:
             P, pullback, g3 = gaussian_centres(self.model, theta), None, None
+        if not batch:
+            lay, P_rows, g3_rows = None, P, g3
         # The model Gaussians' depths and projections (fx x / z, fy y / z), shared by the data
         # and silhouette terms.
-        z = np.maximum(P[:, 2], 1.0)
-        proj = np.multiply(self._fxy, P[:, :2].T)
+        z = np.maximum(P_rows[:, 2], 1.0)
+        proj = np.multiply(self._fxy, P_rows[:, :2].T)
         proj /= z
-        sim, dan = self._data_terms(P, g3, cfg.w_dan, z, proj, later)
-        col = self._collision(P, g3, cfg.w_col, later)
+        sim, dan = self._data_terms(P_rows, g3_rows, cfg.w_dan, z, proj, later, lay)
+        col = self._collision(P, g3, cfg.w_col, later, lay)
         lim, g_lim = self._limits(theta)
         if terms or cfg.w_smo != 0.0:
             smo, g_smo = self._smoothness(theta)
@@ -771,6 +866,8 @@ class Objective:
             - cfg.w_sal * sal
             - cfg.w_sil * sil
         )
+        if batch:  # (every term 0: a scalar total)
+            total = np.broadcast_to(total, theta.shape[:1]).copy()
         values = (total, sim, col, dan, lim, smo, ordv, sal, sil, cpl, curl)
         if later is not None:
             stamp = self._evaluations
@@ -820,8 +917,14 @@ class Objective:
         z: NDArray[np.float64] | None = None,
         proj: NDArray[np.float64] | None = None,
         later: list[Backward] | None = None,
-    ) -> tuple[float, float]:
+        lay: _Rows | None = None,
+    ) -> tuple[float | NDArray[np.float64], float | NDArray[np.float64]]:
         """``E_sim`` and ``E_dan``; adds ``dE/dP`` (with signs and weights) into ``g3``.
+
+        ``lay``: the layout of a batch of B poses (:meth:`_layout`), whose B m model
+        Gaussians ``P`` (B m, 3) holds pose after pose; then both are (B,) arrays.  Every step
+        below runs on the B m rows as on the m rows of one pose; only the image Gaussians'
+        saturation (per pose and image Gaussian) and the two sums are taken per pose.
 
         ``z``, ``proj``: ``max(P_z, 1)`` (m,) mm and ``(fx x / z, fy y / z)`` (2, m) px when
         already computed (the same operations as here: the same bits).  ``later``: instead of
@@ -854,16 +957,17 @@ class Objective:
         # (rows 3-9 are read per pair: contiguous rows, strided columns would slow down exp),
         # 10 sp.  Rows 2 and 8 are constant.  u, v as one (2, m) array: NumPy's per-call cost
         # dominates at this size.
-        rows = self._rows
+        L = self._one if lay is None else lay
+        rows = L.rows
         uv, dp, sp_sq, sp = rows[3:5], rows[5], rows[6], rows[10]
         u, v = uv
         np.add(proj, self._cxy, out=uv)  # u = fx x / z + cx, v = fy y / z + cy
-        np.subtract(z, self.model.g_sigmas, out=dp)
-        np.divide(self._shf, z, out=sp)
+        np.subtract(z, L.sigmas, out=dp)
+        np.divide(L.shf, z, out=sp)
         np.multiply(sp, sp, out=sp_sq)
         np.multiply(_TWO_PI, sp_sq, out=rows[7])
-        if self._visibility is not None:  # (a factor of every overlap of the Gaussian: D)
-            rows[7] *= self._visibility
+        if L.visibility is not None:  # (a factor of every overlap of the Gaussian: D)
+            rows[7] *= L.visibility
         scale = z / self._f  # mm per px at the model's depth
         np.multiply(scale, scale, out=rows[9])
         # rows 0-1: u^2 + v^2 - 36 sp^2, dp^2 - (2 sigma_h)^2
@@ -871,20 +975,20 @@ class Objective:
         np.add(uv2[0], uv2[1], out=rows[0])
         rows[0] -= 36.0 * sp * sp
         np.multiply(dp, dp, out=rows[1])
-        rows[1] -= self._four_sh2
-        tests = np.matmul(rows[:6].T, self._cand, out=self._tests)  # (2, m, n): < 0: pass
+        rows[1] -= L.four_sh2
+        tests = np.matmul(rows[:6].T, self._cand, out=L.tests)  # (2, m, n): < 0: pass
         # Both tests pass (< 0) exactly when the larger does: one comparison of (m, n) values.
         worst = np.maximum(tests[0], tests[1], out=tests[0])
-        flat = np.less(worst, 0.0, out=self._neg).ravel().nonzero()[0]
+        flat = np.less(worst, 0.0, out=L.neg).ravel().nonzero()[0]
         # Pairs per model Gaussian (the pairs come sorted by it): where each row's run starts.
-        bounds = flat.searchsorted(self._row_starts)
+        bounds = flat.searchsorted(L.row_starts)
         per_row = bounds[1:] - bounds[:-1]
-        qi = self._col_of.take(flat)
+        qi = L.col_of.take(flat)  # (in a batch: its pose's block of image Gaussians, b n + q)
         # Rows 3-9 of each pair's model Gaussian: its values repeated over its run (one call
         # instead of a gather per value); its data Gaussian's values, one gather.
         per_p = rows[3:10].repeat(per_row, axis=1)
         sp_sq_p, tpsp_p, two_sh_p, scale2_p = per_p[3:]
-        per_q = self._per_q.take(qi, axis=1)  # mu_u, mu_v, depth, sigma^2
+        per_q = L.per_q.take(qi, axis=1)  # mu_u, mu_v, depth, sigma^2
         diffs = np.subtract(per_p[:3], per_q[:3], out=per_q[:3])
         du, dv, dd = diffs  # u - mu_u, v - mu_v, dp - depth
         # Per pair, in place where a value is not needed again (the same operations, fewer
@@ -904,15 +1008,19 @@ class Objective:
         delta_D /= two_sh_p
         np.subtract(1.0, delta_D, out=delta_D)  # Delta = 1 - |dd| / (2 sigma_h) ...
         delta_D *= D  # ... times D
-        self._support_src = (delta_D, bounds, z)
+        if not L.batch:
+            self._support_src = (delta_D, bounds, z)
         inv_norm = 1.0 / data.norm
         # Saturated per image Gaussian (module docstring): S_q, then G k_q (1 - exp(-S_q / k_q)).
-        k = self._sat
-        sat = _accumulate(qi, delta_D, n)
+        k = L.sat_k
+        sat = _accumulate(qi, delta_D, k.size)
         sat /= k
         np.negative(sat, out=sat)
         np.expm1(sat, out=sat)  # exp(-S_q / k_q) - 1 (exact for small overlaps)
-        sim = float(_sum(k * sat) * (-SIM_GAIN * inv_norm))
+        if L.batch:
+            sim: float | NDArray[np.float64] = _sum((k * sat).reshape(L.B, n), axis=1) * (-SIM_GAIN * inv_norm)
+        else:
+            sim = float(_sum(k * sat) * (-SIM_GAIN * inv_norm))
         sat += 1.0  # exp(-S_q / k_q): dE_sim/dS_q in units of G / norm
         # Dangling Gaussians (eq. 7): distance from each model Gaussian to the data,
         # occlusion-aware (see the module docstring), dmin its minimum over the data:
@@ -938,7 +1046,7 @@ class Objective:
             if flat.size:
                 settled[nz] = np.logical_or.reduceat(near_c, starts)
         U = (~settled).nonzero()[0]
-        dan = 0.0
+        dan: float | NDArray[np.float64] = np.zeros(L.B) if L.batch else 0.0
         sel = U[:0]
         if U.size:
             # (Per element the same operations as on the pairs; the rows' values in one gather,
@@ -971,7 +1079,10 @@ class Objective:
             r2_r = r2_U[sel]
             er = np.exp(-0.5 * r2_r / s2r)
             per_row_dan = _sum(phi * (1.0 - er), axis=1) / n
-            dan = float(_sum(wdang_r * per_row_dan))
+            if L.batch:
+                dan = _accumulate(drows // self.model.n_gaussians, wdang_r * per_row_dan, L.B)
+            else:
+                dan = float(_sum(wdang_r * per_row_dan))
         if g3 is None and later is None:
             return sim, dan
 
@@ -1005,7 +1116,7 @@ class Objective:
             # g[0:2] = -dE/d(u, v), then dE/dsp, dE/dp, and the explicit z-dependence of the
             # dangle distances (rows 2-4 replaced in place by what they are made of).
             g[2] = 2.0 * g[2] / sp + sp * g[3]
-            g[3] = g[4] / self._two_sh * -inv_norm
+            g[3] = g[4] / L.two_sh * -inv_norm
             dangling = drows.size > 0 and w_dan > 0
             if dangling:
                 g[4] = 0.0
@@ -1043,7 +1154,7 @@ class Objective:
             # Through u = fx x / z + cx, v = fy y / z + cy, sp = sh f / z, dp = z - sh.
             t_uv = g[:2] * self._fxy / z  # (2, m): dE/d(x, y) at fixed z, negated
             g3[:, :2] -= t_uv.T
-            g_z = (t_uv[0] * P[:, 0] + t_uv[1] * P[:, 1] - g[2] * self._shf / z) / z + g[3]
+            g_z = (t_uv[0] * P[:, 0] + t_uv[1] * P[:, 1] - g[2] * L.shf / z) / z + g[3]
             if dangling:  # (else g[4] is 0: g3, zeros before this first term, gets the same bits)
                 g_z += g[4]
             g3[:, 2] += g_z
@@ -1057,27 +1168,32 @@ class Objective:
         g3: NDArray[np.float64] | None,
         w_col: float,
         later: list[Backward] | None = None,
-    ) -> float:
+        lay: _Rows | None = None,
+    ) -> float | NDArray[np.float64]:
         """``E_col`` (eq. 6); adds ``-w_col dE_col/dP`` into ``g3`` (or appends the function
-        that does to ``later``)."""
+        that does to ``later``).  ``P``, ``g3``: (m, 3), or (B, m, 3) with the batch's layout
+        ``lay`` (then ``E_col`` is (B,))."""
         c = self._const
-        # The pairs' differences as rows x, y, z (3, pairs): every step below runs along
+        # The pairs' differences as rows x, y, z (..., 3, pairs): every step below runs along
         # contiguous rows.  (In place where a value is not needed again: the same operations,
         # fewer temporaries.)
-        flat = P.reshape(-1)
-        diff = flat.take(c.gather_i)
-        diff -= flat.take(c.gather_j)
+        flat = P.reshape(P.shape[:-2] + (-1,))
+        diff = flat.take(c.gather_i, axis=-1)
+        diff -= flat.take(c.gather_j, axis=-1)
         sq = diff * diff
-        r2 = sq[0] + sq[1]
-        r2 += sq[2]  # = sq.sum(0), several times cheaper
+        r2 = sq[..., 0, :] + sq[..., 1, :]
+        r2 += sq[..., 2, :]  # = sq.sum(-2), several times cheaper
         D = np.multiply(r2, -0.5, out=r2)
         D /= c.pair_s2
         np.exp(D, out=D)
         D *= c.pair_amp  # pair_amp exp(-0.5 r2 / s2)
         over = np.subtract(D, self._col_free)  # the overlap beyond the free share: counts if > 0
-        col = float(_sum(np.maximum(over, 0.0, out=over)) / c.norm_h)
+        col = _sum(np.maximum(over, 0.0, out=over), axis=-1) / c.norm_h
+        if lay is None:
+            col = float(col)
         if (g3 is None and later is None) or w_col <= 0:
             return col
+        scatter = c.scatter if lay is None else lay.col_scatter
 
         def backward(g3: NDArray[np.float64]) -> None:
             D2 = np.multiply(D, w_col / c.norm_h, out=D)
@@ -1087,17 +1203,20 @@ class Objective:
             # product (+ g at each pair's i, - g at its j) as one bincount.  (Every centre
             # coordinate sums its pairs in the same order as with the pairs' rows (pairs, 3):
             # the i's in pair order, then the j's.)
-            weights = np.empty((2,) + diff.shape)
-            np.multiply(D2, diff, out=weights[0])
-            np.negative(weights[0], out=weights[1])
-            g3 += np.bincount(c.scatter, weights=weights.reshape(-1), minlength=3 * P.shape[0]).reshape(-1, 3)
+            # (In a batch, pose after pose: each pose's i's, then its j's.)
+            weights = np.empty(diff.shape[:-2] + (2,) + diff.shape[-2:])
+            np.multiply(D2[..., None, :], diff, out=weights[..., 0, :, :])
+            np.negative(weights[..., 0, :, :], out=weights[..., 1, :, :])
+            g3 += np.bincount(scatter, weights=weights.reshape(-1), minlength=g3.size).reshape(g3.shape)
 
         run_or_defer(backward, g3, later)
         return col
 
-    def _limits(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
+    def _limits(self, theta: NDArray[np.float64]) -> tuple[float | NDArray[np.float64], NDArray[np.float64] | None]:
         """``E_lim`` (eq. 8) and its gradient, shape (26,), or None for a zero gradient (every
-        joint within its limits, as the tracker's projected iterates always are)."""
+        joint within its limits, as the tracker's projected iterates always are).  For poses
+        (B, 26) (this and the other pose terms): the values (B,) (0.0: 0 at every pose) and
+        the gradients (B, 26)."""
         # (Within the limits when clipping changes no bit: two calls instead of four.  A pose
         # with a zero of the other sign at a limit of 0 takes the exact path below: the same
         # E_lim = 0, a zero gradient.)
@@ -1109,55 +1228,56 @@ class Objective:
         lo = np.minimum(theta - self._limits_low, 0.0)
         hi = np.maximum(theta - self._limits_high, 0.0)
         g = 2.0 * (lo + hi)
-        return float(_sum((lo * lo)[JOINTS]) + _sum((hi * hi)[JOINTS])), g
+        return _per_pose(_sum((lo * lo)[..., JOINTS], axis=-1) + _sum((hi * hi)[..., JOINTS], axis=-1)), g
 
     @staticmethod
     def _coupling(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
         """``E_cpl`` and its gradient, shape (26,) (None when ``E_cpl`` is 0: a zero gradient):
         each finger's DIP flexed beyond :data:`COUPLING_DIP_PIP` times its PIP flexion costs."""
-        excess = theta[FINGER_DIP] - COUPLING_DIP_PIP * theta[FINGER_PIP]  # (4,) rad
+        excess = theta[..., FINGER_DIP] - COUPLING_DIP_PIP * theta[..., FINGER_PIP]  # (..., 4) rad
         if not (excess > 0.0).any():
             return 0.0, None
         np.maximum(excess, 0.0, out=excess)
-        g = np.zeros(N_PARAMS)
-        g[FINGER_DIP] = 2.0 * excess
-        g[FINGER_PIP] = (-2.0 * COUPLING_DIP_PIP) * excess
-        return float(excess @ excess), g
+        g = np.zeros(theta.shape)
+        g[..., FINGER_DIP] = 2.0 * excess
+        g[..., FINGER_PIP] = (-2.0 * COUPLING_DIP_PIP) * excess
+        return _squares(excess), g
 
     @staticmethod
     def _curl(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
         """``E_curl`` and its gradient, shape (26,) (None when ``E_curl`` is 0: a zero
         gradient): each finger's PIP + DIP flexion beyond :data:`CURL_MAX_RAD` costs."""
-        excess = theta[FINGER_PIP] + theta[FINGER_DIP]  # (4,) rad
+        excess = theta[..., FINGER_PIP] + theta[..., FINGER_DIP]  # (..., 4) rad
         excess -= CURL_MAX_RAD
         if not (excess > 0.0).any():
             return 0.0, None
         np.maximum(excess, 0.0, out=excess)
-        g = np.zeros(N_PARAMS)
-        g[FINGER_PIP] = g[FINGER_DIP] = 2.0 * excess
-        return float(excess @ excess), g
+        g = np.zeros(theta.shape)
+        g[..., FINGER_PIP] = g[..., FINGER_DIP] = 2.0 * excess
+        return _squares(excess), g
 
     def _order(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64] | None]:
         """``E_ord`` and its gradient, shape (26,) (None when ``E_ord`` is 0: a zero
         gradient): neighbouring fingers may not cross."""
-        abd = theta[FINGER_ABD]  # MCP abduction of index .. little, shape (4,)
+        abd = theta[..., FINGER_ABD]  # MCP abduction of index .. little, shape (..., 4)
         a = self._const.fan + abd
-        # Every gap at least ORDER_MIN_GAP_RAD (typical): E_ord = 0.  (The gaps as below, by
-        # Python floats: the same IEEE differences; fl(gap - c) < 0 exactly when gap < c.)
-        a0, a1, a2, a3 = a.tolist()
-        if a1 - a0 >= ORDER_MIN_GAP_RAD and a2 - a1 >= ORDER_MIN_GAP_RAD and a3 - a2 >= ORDER_MIN_GAP_RAD:
-            return 0.0, None
-        gap = a[1:] - a[:-1]  # (3,), as np.diff
+        if a.ndim == 1:
+            # Every gap at least ORDER_MIN_GAP_RAD (typical): E_ord = 0.  (The gaps as below, by
+            # Python floats: the same IEEE differences; fl(gap - c) < 0 exactly when gap < c.)
+            a0, a1, a2, a3 = a.tolist()
+            if a1 - a0 >= ORDER_MIN_GAP_RAD and a2 - a1 >= ORDER_MIN_GAP_RAD and a3 - a2 >= ORDER_MIN_GAP_RAD:
+                return 0.0, None
+        gap = a[..., 1:] - a[..., :-1]  # (..., 3), as np.diff
         short = np.minimum(gap - ORDER_MIN_GAP_RAD, 0.0)
         if not short.any():
             return 0.0, None
-        g = np.zeros(N_PARAMS)
+        g = np.zeros(theta.shape)
         # d/d abd_{c+1} of short^2 is 2 short, d/d abd_c is -2 short.
-        g_abd = np.zeros(4)
-        g_abd[1:] += 2.0 * short
-        g_abd[:-1] -= 2.0 * short
-        g[FINGER_ABD] = g_abd
-        return float(_sum(short * short)), g
+        g_abd = np.zeros(a.shape)
+        g_abd[..., 1:] += 2.0 * short
+        g_abd[..., :-1] -= 2.0 * short
+        g[..., FINGER_ABD] = g_abd
+        return _per_pose(_sum(short * short, axis=-1)), g
 
     def _salient(
         self,
@@ -1165,9 +1285,10 @@ class Objective:
         g3: NDArray[np.float64] | None,
         w_sal: float,
         later: list[Backward] | None = None,
-    ) -> float:
+    ) -> float | NDArray[np.float64]:
         """``E_sal``; adds ``-w_sal dE_sal/dP`` into ``g3`` at the fingertip Gaussians (or
-        appends the function that does to ``later``)."""
+        appends the function that does to ``later``).  ``P``, ``g3``: (m, 3) or (B, m, 3)
+        (then ``E_sal`` is (B,))."""
         t = self.targets
         key, const = self._sal
         if t is not key:  # the targets' constants, once per targets object
@@ -1178,24 +1299,24 @@ class Objective:
         if const is None or w_sal <= 0:
             return 0.0
         tips, points, w = const
-        diff = P[tips] - points  # (tips: a slice of evenly spaced indices, else an index array)
+        diff = P[..., tips, :] - points  # (tips: a slice of evenly spaced indices, else an index array)
         sq = diff * diff
-        root = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2] + SALIENT_SOFT_MM**2)
-        val = float(_sum(w * (root - SALIENT_SOFT_MM)))
+        root = np.sqrt(sq[..., 0] + sq[..., 1] + sq[..., 2] + SALIENT_SOFT_MM**2)
+        val = _per_pose(_sum(w * (root - SALIENT_SOFT_MM), axis=-1))
         if g3 is None and later is None:
             return val
 
         def backward(g3: NDArray[np.float64]) -> None:
-            g3[tips] -= w_sal * (w / root)[:, None] * diff  # (a slice: in place, no scatter)
+            g3[..., tips, :] -= w_sal * (w / root)[..., None] * diff  # (a slice: in place, no scatter)
 
         run_or_defer(backward, g3, later)
         return val
 
-    def _smoothness(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        """``E_smo`` (eq. 9) and its gradient, shape (26,)."""
+    def _smoothness(self, theta: NDArray[np.float64]) -> tuple[float | NDArray[np.float64], NDArray[np.float64]]:
+        """``E_smo`` (eq. 9) and its gradient, shape (26,) (for poses (B, 26): (B,), (B, 26))."""
         if self.previous is None:
-            return 0.0, np.zeros(N_PARAMS)
+            return 0.0, np.zeros(theta.shape)
         p1, p2 = self.previous
         s = _smooth_scale()
         r = s * (0.5 * (p2 + theta) - p1)
-        return float(_sum(r * r)), r * s
+        return _per_pose(_sum(r * r, axis=-1)), r * s

@@ -24,8 +24,10 @@ from hand_sog_tracker.errors import InputError
 __all__ = [
     "ChainFrames",
     "CentresPullback",
+    "centres_batch",
     "centres_with_pullback",
     "check_pose",
+    "check_poses",
     "global_rotation",
     "chain_frames",
     "attached_points",
@@ -49,6 +51,16 @@ def check_pose(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     return arr
 
 
+def check_poses(thetas: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Validate a batch of pose vectors and return it as float64, shape (B, 26)."""
+    arr = np.asarray(thetas, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != N_PARAMS:
+        raise InputError(f"poses must have shape (B, {N_PARAMS}), got {arr.shape}")
+    if not math.isfinite(np.add.reduce(arr, axis=None)) and not np.all(np.isfinite(arr)):
+        raise InputError("poses contain NaN or Inf")
+    return arr
+
+
 def _cross(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     """Row-wise cross product of (k, 3) arrays (np.cross has a large fixed overhead)."""
     out = np.empty(np.broadcast_shapes(a.shape, b.shape))
@@ -59,60 +71,75 @@ def _cross(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64
 
 
 def global_rotation(theta: NDArray[np.float64], derivatives: bool = False):
-    """Global rotation ``R = Rz(rz) @ Rx(rx) @ Ry(ry)`` of a pose.
+    """Global rotation ``R = Rz(rz) @ Rx(rx) @ Ry(ry)`` of a pose (or of poses).
 
     The per-frame form of :func:`hand_sog_tracker.core.rotations.matrices_from_euler`
-    (scalar ``math`` calls, one array build: it runs for every objective evaluation).
+    (for one pose scalar ``math`` calls and one array build: it runs for every objective
+    evaluation; for poses (..., 26) the same expressions on arrays, the same bits pose by pose).
 
     Parameters
     ----------
-    theta : array, shape (26,)
+    theta : array, shape (26,) or (..., 26)
     derivatives : bool
         Also return ``dR/d(rx, ry, rz)``.
 
     Returns
     -------
-    R : array, shape (3, 3)
-    dR : array, shape (3, 3, 3), only with ``derivatives``; ``dR[k]`` is the
-        derivative with respect to ``theta[3 + k]``.
+    R : array, shape (3, 3) or (..., 3, 3)
+    dR : array, shape (3, 3, 3) or (..., 3, 3, 3), only with ``derivatives``; ``dR[..., k, :, :]``
+        is the derivative with respect to ``theta[..., 3 + k]``.
     """
-    cx, sx = math.cos(theta[3]), math.sin(theta[3])
-    cy, sy = math.cos(theta[4]), math.sin(theta[4])
-    cz, sz = math.cos(theta[5]), math.sin(theta[5])
+    lead = theta.shape[:-1]
+    if lead:  # (the constant entries as arrays too: one array build of equal shapes)
+        c, s = np.cos(theta[..., 3:6]), np.sin(theta[..., 3:6])
+        cx, cy, cz = c[..., 0], c[..., 1], c[..., 2]
+        sx, sy, sz = s[..., 0], s[..., 1], s[..., 2]
+        one, zero = np.ones(lead), np.zeros(lead)
+    else:
+        cx, sx = math.cos(theta[3]), math.sin(theta[3])
+        cy, sy = math.cos(theta[4]), math.sin(theta[4])
+        cz, sz = math.cos(theta[5]), math.sin(theta[5])
+        one, zero = 1.0, 0.0
+    # (Building small arrays dominates the cost; a flat tuple converts several times faster
+    # than a nested one.)
+    Rxyz = _entries(
+        (one, zero, zero, zero, cx, -sx, zero, sx, cx,
+         cy, zero, sy, zero, one, zero, -sy, zero, cy,
+         cz, -sz, zero, sz, cz, zero, zero, zero, one),
+        lead,
+    )
+    R = (Rxyz[..., 2, :, :] @ Rxyz[..., 0, :, :]) @ Rxyz[..., 1, :, :]  # Rz Rx Ry
     if not derivatives:
-        Rx, Ry, Rz = np.array(
-            (1.0, 0.0, 0.0, 0.0, cx, -sx, 0.0, sx, cx,
-             cy, 0.0, sy, 0.0, 1.0, 0.0, -sy, 0.0, cy,
-             cz, -sz, 0.0, sz, cz, 0.0, 0.0, 0.0, 1.0)
-        ).reshape(3, 3, 3)
-        return (Rz @ Rx) @ Ry
-    # R from the same matrix products as without derivatives (bit-identical); dR in closed
-    # form, one array build (building small arrays dominates the cost; a flat tuple converts
-    # several times faster than a nested one).
-    Rx, Ry, Rz = np.array(
-        (1.0, 0.0, 0.0, 0.0, cx, -sx, 0.0, sx, cx,
-         cy, 0.0, sy, 0.0, 1.0, 0.0, -sy, 0.0, cy,
-         cz, -sz, 0.0, sz, cz, 0.0, 0.0, 0.0, 1.0)
-    ).reshape(3, 3, 3)
-    R = (Rz @ Rx) @ Ry
+        return R
+    # dR in closed form, one array build.
     sxsy, sxcy = sx * sy, sx * cy
-    dR = np.array(
+    dR = _entries(
         (
             # d/drx = Rz dRx Ry
             -sz * cx * sy, sz * sx, sz * cx * cy,
             cz * cx * sy, -cz * sx, -cz * cx * cy,
             sxsy, cx, -sxcy,
             # d/dry = Rz Rx dRy
-            -cz * sy - sz * sxcy, 0.0, cz * cy - sz * sxsy,
-            -sz * sy + cz * sxcy, 0.0, sz * cy + cz * sxsy,
-            -cx * cy, 0.0, -cx * sy,
+            -cz * sy - sz * sxcy, zero, cz * cy - sz * sxsy,
+            -sz * sy + cz * sxcy, zero, sz * cy + cz * sxsy,
+            -cx * cy, zero, -cx * sy,
             # d/drz = dRz Rx Ry
             -sz * cy - cz * sxsy, -cz * cx, -sz * sy + cz * sxcy,
             cz * cy - sz * sxsy, -sz * cx, cz * sy + sz * sxcy,
-            0.0, 0.0, 0.0,
-        )
-    ).reshape(3, 3, 3)
+            zero, zero, zero,
+        ),
+        lead,
+    )
     return R, dR
+
+
+def _entries(values: tuple, lead: tuple[int, ...]) -> NDArray[np.float64]:
+    """27 entries (floats, or arrays of shape ``lead``) as matrices (*lead, 3, 3, 3)."""
+    if not lead:
+        return np.array(values).reshape(3, 3, 3)
+    # (C-contiguous whatever the batch's size: a matrix product's rounding may depend on the
+    # memory layout of its operands, and a pose's result must not depend on its batch)
+    return np.ascontiguousarray(np.moveaxis(np.array(values), 0, -1)).reshape(lead + (3, 3, 3))
 
 
 @dataclass(frozen=True)
@@ -149,9 +176,9 @@ def chain_frames(model: HandModel, theta: NDArray[np.float64]) -> ChainFrames:
 def _frames(
     mk: _ModelKinematics, theta: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """The segments' axes (5, 3, 3, 3) (chain, segment, axis x / y / z, coordinate: the
-    rotations of :class:`ChainFrames` transposed), the origins (5, 4, 3) and the first
-    segments' x axes (5, 3) of all chains.
+    """The segments' axes (..., 5, 3, 3, 3) (chain, segment, axis x / y / z, coordinate: the
+    rotations of :class:`ChainFrames` transposed), the origins (..., 5, 4, 3) and the first
+    segments' x axes (..., 5, 3) of all chains, for a pose (26,) or poses (..., 26).
 
     In a chain of base ``B = (bx, by, bz)``, segment ``s`` has the axes ``bx``,
     ``y_s = c_s by + s_s bz`` and ``z_s = c_s bz - s_s by`` (``c_s, s_s``: cosine and sine
@@ -160,29 +187,31 @@ def _frames(
     differences are computed as sums with a negated factor (``a - b`` and ``a + (-b)`` are the
     same IEEE operation, and ``x (-y) = -(x y)`` exactly): every product and sum of a kind is
     then one NumPy call over all chains (a few dozen calls on tiny arrays cost more than their
-    arithmetic).
+    arithmetic), and over all poses of a batch (the leading axes: elementwise, the same bits
+    pose by pose).
     """
+    lead = theta.shape[:-1]
     # Each chain's abduction, then its flexions summed along the chain (phi): one cos and
-    # one sin for all 20 angles, as trig[0] and trig[1].
-    ang = theta.take(mk.angle_idx)  # (5, 4)
-    np.add.accumulate(ang[:, 1:], axis=1, out=ang[:, 1:])  # (= np.cumsum, without its wrapper)
-    trig = np.empty((2, 5, 4))
-    np.cos(ang, out=trig[0])
-    np.sin(ang, out=trig[1])
-    # base[k] = ca r0_mix[0, k] + sa r0_mix[1, k]: bx, -by, (unused), by; then base[2] = bz.
-    prod = trig[:, None, :, :1] * mk.r0_mix  # (2, 4, 5, 3)
-    base = np.add(prod[0], prod[1], out=prod[0])
-    base[2] = mk.r0z
-    # pairs[a, c, 0, b] (a: cos / sin of phi, b: y / z): (by, bz) and (bz, -by) of chain c.
-    pairs = base.take(_PAIR_ROWS, axis=0).transpose(0, 2, 1, 3)[:, :, None]  # (2, 5, 1, 2, 3)
-    prod2 = trig[:, :, 1:, None, None] * pairs  # (2, 5, 3, 2, 3)
-    axes = np.empty((5, 3, 3, 3))
-    np.add(prod2[0], prod2[1], out=axes[:, :, 1:])  # y_s, z_s
-    bx = base[0]
-    axes[:, :, 0] = bx[:, None, :]
-    o = np.empty((5, 4, 3))
-    o[:, 0] = mk.bases
-    tail = np.add.accumulate(axes[:, :, 1] * mk.lengths3, axis=1, out=o[:, 1:])  # (= cumsum, cheaper)
+    # one sin for all 20 angles, as trig[..., 0, :, :] and trig[..., 1, :, :].
+    ang = theta.take(mk.angle_idx, axis=-1)  # (..., 5, 4)
+    np.add.accumulate(ang[..., 1:], axis=-1, out=ang[..., 1:])  # (= np.cumsum, without its wrapper)
+    trig = np.empty(lead + (2, 5, 4))
+    np.cos(ang, out=trig[..., 0, :, :])
+    np.sin(ang, out=trig[..., 1, :, :])
+    # base[..., k, :, :] = ca r0_mix[0, k] + sa r0_mix[1, k]: bx, -by, (unused), by; then bz.
+    prod = trig[..., None, :, :1] * mk.r0_mix  # (..., 2, 4, 5, 3)
+    base = np.add(prod[..., 0, :, :, :], prod[..., 1, :, :, :], out=prod[..., 0, :, :, :])
+    base[..., 2, :, :] = mk.r0z
+    # pairs[.., a, c, 0, b] (a: cos / sin of phi, b: y / z): (by, bz) and (bz, -by) of chain c.
+    pairs = np.swapaxes(base.take(_PAIR_ROWS, axis=-3), -3, -2)[..., None, :, :]  # (..., 2, 5, 1, 2, 3)
+    prod2 = trig[..., 1:, None, None] * pairs  # (..., 2, 5, 3, 2, 3)
+    axes = np.empty(lead + (5, 3, 3, 3))
+    np.add(prod2[..., 0, :, :, :, :], prod2[..., 1, :, :, :, :], out=axes[..., 1:, :])  # y_s, z_s
+    bx = base[..., 0, :, :]
+    axes[..., 0, :] = bx[..., None, :]
+    o = np.empty(lead + (5, 4, 3))
+    o[..., 0, :] = mk.bases
+    tail = np.add.accumulate(axes[..., 1, :] * mk.lengths3, axis=-2, out=o[..., 1:, :])  # (= cumsum, cheaper)
     tail += mk.bases3
     return axes, o, bx
 
@@ -480,7 +509,8 @@ class CentresPullback:
 
     def __call__(self, g3: NDArray[np.float64]) -> NDArray[np.float64]:
         """``g3 (m, 3) -> J^T g3`` summed per parameter, shape (26,): the gradient of a
-        function of the centres, from its gradient ``g3`` with respect to the centres.
+        function of the centres, from its gradient ``g3`` with respect to the centres (for a
+        batch of poses, :func:`centres_batch`: ``g3 (B, m, 3) -> (B, 26)``).
 
         Equals ``np.einsum("mk,mkj->j", g3, J)`` with ``J`` of :func:`gaussian_centres` (up to
         float rounding) without building ``J``: for a joint with axis ``a`` and pivot ``o``,
@@ -489,25 +519,54 @@ class CentresPullback:
         """
         mk = self.mk
         p = self.p_hand
-        grad = np.empty(N_PARAMS)
-        grad[:3] = np.add.reduce(g3, axis=0)  # (= g3.sum(axis=0) without the method's Python layer)
+        lead = g3.shape[:-2]
+        grad = np.empty(lead + (N_PARAMS,))
+        grad[..., :3] = np.add.reduce(g3, axis=-2)  # (= g3.sum(axis=-2) without the method's Python layer)
         # Rotation columns: sum_i g3_i . dR_a M p_i = <dR_a, g3^T (p M^T)>.
-        grad[3:6] = self.dR.reshape(3, 9) @ (g3.T @ self.pm).reshape(9)
-        m = p.shape[0]
-        Q = np.empty((m, 12))
-        h = np.matmul(g3, self.G, out=Q[:, 9:])  # (m, 3), h_i = G^T g3_i (hand frame)
-        np.multiply(p[:, :, None], h[:, None, :], out=Q[:, :9].reshape(m, 3, 3))
-        T = mk.groups @ Q  # (20, 12): sum p h^T (9) and sum h (3) per joint
-        outer = T[:, :9].reshape(20, 3, 3) - self.org20.take(mk.pivot, axis=0)[:, :, None] * T[:, None, 9:]
-        outer = outer.reshape(20, 9)  # sum (p - o) h^T per joint
-        X = outer.take(_CROSS_A, axis=1) - outer.take(_CROSS_B, axis=1)  # sum (p - o) x h per joint
-        grad[FIRST_JOINT:] = np.einsum("ij,ij->i", self.axes, X)
+        gp = np.matmul(np.swapaxes(g3, -1, -2), self.pm)
+        if lead:
+            grad[..., 3:6] = np.matmul(self.dR.reshape(lead + (3, 9)), gp.reshape(lead + (9, 1)))[..., 0]
+        else:
+            grad[3:6] = self.dR.reshape(3, 9) @ gp.reshape(9)
+        m = p.shape[-2]
+        Q = np.empty(lead + (m, 12))
+        h = np.matmul(g3, self.G, out=Q[..., 9:])  # (..., m, 3), h_i = G^T g3_i (hand frame)
+        np.multiply(p[..., None], h[..., None, :], out=Q[..., :9].reshape(lead + (m, 3, 3)))
+        T = mk.groups @ Q  # (..., 20, 12): sum p h^T (9) and sum h (3) per joint
+        pivots = self.org20.take(mk.pivot, axis=-2)[..., None]
+        outer = T[..., :9].reshape(lead + (20, 3, 3)) - pivots * T[..., None, 9:]
+        outer = outer.reshape(lead + (20, 9))  # sum (p - o) h^T per joint
+        X = outer.take(_CROSS_A, axis=-1) - outer.take(_CROSS_B, axis=-1)  # sum (p - o) x h per joint
+        grad[..., FIRST_JOINT:] = np.einsum("...ij,...ij->...i", self.axes, X)
         return grad
 
 
 #: ``(p x h)_k = O[a_k] - O[b_k]`` for ``O = p h^T`` flattened (9,).
 _CROSS_A = np.array([5, 6, 1])
 _CROSS_B = np.array([7, 2, 3])
+
+
+def centres_batch(
+    model: HandModel, thetas: NDArray[np.float64], pullback: bool = True
+) -> tuple[NDArray[np.float64], CentresPullback | None]:
+    """Centres of the model Gaussians at every pose of ``thetas`` (B, 26), shape (B, m, 3) mm,
+    and (with ``pullback``) the :class:`CentresPullback` that maps ``dE/dP`` (B, m, 3) to
+    ``dE/dtheta`` (B, 26).
+
+    :func:`centres_with_pullback` with a leading batch axis through every step (the same
+    values up to rounding; nothing cached: a batch's poses are new poses).
+    """
+    mk = _model_kinematics(model)
+    p_hand, org20, bx = _centres_hand(mk, thetas)
+    R, dR = global_rotation(thetas, derivatives=True)
+    G = R if mk.right else R * mk.M
+    P = np.matmul(p_hand, np.swapaxes(G, -1, -2))
+    P += thetas[:, None, :3]
+    if not pullback:
+        return P, None
+    pm = p_hand if mk.right else p_hand * mk.M
+    axes = np.concatenate((bx, np.broadcast_to(mk.r0z, bx.shape)), axis=-2).take(mk.axis_row, axis=-2)
+    return P, CentresPullback(mk, p_hand, pm, G, dR, org20, axes)
 
 
 def centres_with_pullback(
@@ -610,16 +669,19 @@ def _hand_frame(
 def _centres_hand(
     mk: _ModelKinematics, theta: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Model Gaussian centres in the hand frame (m, 3), joint origins (20, 3), flexion axes (5, 3).
+    """Model Gaussian centres in the hand frame (..., m, 3), joint origins (..., 20, 3),
+    flexion axes (..., 5, 3) of a pose (26,) or poses (..., 26).
 
     The same arithmetic as :func:`attached_points` (bit-identical), with the model's index
     arrays cached.
     """
     axes, o, bx = _frames(mk, theta)
-    org20 = o.reshape(20, 3)
+    lead = theta.shape[:-1]
+    org20 = o.reshape(lead + (20, 3))
     # (The rotation of each Gaussian's segment, transposed: its axes as rows.)
-    local = np.einsum("kji,kj->ki", axes.reshape(15, 3, 3).take(mk.g_rot, axis=0), mk.g_offsets)
-    local += org20.take(mk.g_org, axis=0)
+    rot = axes.reshape(lead + (15, 3, 3)).take(mk.g_rot, axis=-3)
+    local = np.einsum("...kji,kj->...ki", rot, mk.g_offsets)
+    local += org20.take(mk.g_org, axis=-2)
     return np.where(mk.g_finger, local, mk.g_offsets), org20, bx
 
 

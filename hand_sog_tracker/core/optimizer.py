@@ -117,6 +117,40 @@ def _limits_of(steps: StepSizes) -> tuple[NDArray[np.float64], NDArray[np.float6
     return hit
 
 
+def _step(
+    x: NDArray[np.float64],
+    grad: NDArray[np.float64],
+    prev_sign: NDArray[np.float64],
+    step: NDArray[np.float64],
+    mask: NDArray[np.bool_] | None,
+    grow: float,
+    shrink: float,
+    lo: NDArray[np.float64],
+    hi: NDArray[np.float64],
+    low: NDArray[np.float64] | None,
+    high: NDArray[np.float64] | None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """One iRprop- step from ``x`` (26,) or (B, 26) along ``grad``: updates the step lengths
+    ``step`` in place (grown where the sign agrees with ``prev_sign``, shrunk within ``lo, hi``
+    where it flips, that parameter then skipped), returns the new ``x`` (projected into
+    ``low, high`` unless None) and the signs of this step (the next ``prev_sign``)."""
+    sign = np.sign(grad)
+    if mask is not None:
+        sign *= mask
+    agree = sign * prev_sign
+    grows, shrinks = agree > 0, agree < 0
+    # (In place where the step changes: the values of
+    # np.where(grows, np.minimum(step * grow, hi), step), then likewise for shrinks.)
+    np.minimum(step * grow, hi, out=step, where=grows)
+    np.maximum(step * shrink, lo, out=step, where=shrinks)
+    np.copyto(sign, 0.0, where=shrinks)  # (= sign[shrinks] = 0.0, cheaper)
+    x = x + step * sign
+    if low is not None and high is not None:
+        np.maximum(x, low, out=x)  # (x is a new array: clipped in place)
+        np.minimum(x, high, out=x)
+    return x, sign
+
+
 def maximise(
     fun: ObjectiveFn,
     x0: NDArray[np.float64],
@@ -209,21 +243,7 @@ def maximise_steps(
     status, nit, limit = 0, 0, iterations
     while nit < limit:
         nit += 1
-        sign = np.sign(grad)
-        if mask is not None:
-            sign *= mask
-        agree = sign * prev_sign
-        grows, shrinks = agree > 0, agree < 0
-        # (In place where the step changes: the values of
-        # np.where(grows, np.minimum(step * grow, hi), step), then likewise for shrinks.)
-        np.minimum(step * grow, hi, out=step, where=grows)
-        np.maximum(step * shrink, lo, out=step, where=shrinks)
-        np.copyto(sign, 0.0, where=shrinks)  # (= sign[shrinks] = 0.0, cheaper)
-        x = x + step * sign
-        if bounds is not None:
-            np.maximum(x, low, out=x)  # (x is a new array: clipped in place)
-            np.minimum(x, high, out=x)
-        prev_sign = sign
+        x, prev_sign = _step(x, grad, prev_sign, step, mask, grow, shrink, lo, hi, low, high)
         finish = None
         if nit == limit < iterations + extra_iterations and deferred is not None:
             # The last iterate unless the fit is still climbing: its gradient only then.
@@ -310,6 +330,7 @@ def maximise_batch(
     lo_settled = np.broadcast_to(lo * 1.0001, shape)
     if mask is not None:  # inactive parameters count as settled
         lo_settled = np.where(mask, lo_settled, np.inf)
+    low = high = None
     if bounds is not None:
         low = np.broadcast_to(np.asarray(bounds[0], dtype=np.float64), shape)
         high = np.broadcast_to(np.asarray(bounds[1], dtype=np.float64), shape)
@@ -331,19 +352,11 @@ def maximise_batch(
         nit[run_] = it
         every = run_.size == B  # (typical: whole arrays, no gathers)
         sel = slice(None) if every else run_
-        sign = np.sign(grad[sel])
-        if mask is not None:
-            sign *= mask[sel]
-        agree = sign * prev_sign[sel]
-        grows, shrinks = agree > 0, agree < 0
         st = step[sel] if not every else step
-        np.minimum(st * steps.grow, hi, out=st, where=grows)
-        np.maximum(st * steps.shrink, lo, out=st, where=shrinks)
-        np.copyto(sign, 0.0, where=shrinks)
-        xs = x[sel] + st * sign
-        if bounds is not None:
-            np.maximum(xs, low[sel], out=xs)
-            np.minimum(xs, high[sel], out=xs)
+        xs, sign = _step(
+            x[sel], grad[sel], prev_sign[sel], st, None if mask is None else mask[sel], steps.grow,
+            steps.shrink, lo, hi, None if low is None else low[sel], None if high is None else high[sel],
+        )
         if not every:
             step[run_] = st
         prev_sign[sel] = sign

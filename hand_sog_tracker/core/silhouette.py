@@ -256,14 +256,20 @@ def silhouette_term(
     weight: float,
     projected: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     later: list[Callable[[NDArray[np.float64]], None]] | None = None,
-) -> float:
+) -> float | NDArray[np.float64]:
     """``E_sil`` at the model Gaussian centres ``P`` (m, 3) mm; adds ``-weight dE/dP`` into ``g3``.
 
+    For a batch of poses, ``P`` and ``g3`` are (B, m, 3) and ``E_sil`` is (B,) (0.0 where it
+    is 0 at every pose): the B m Gaussians go through every step as the m of one pose.
     ``projected``: ``(z, q)`` when already computed with the silhouette's intrinsics, ``z =
-    max(P_z, 1)`` (m,) mm and ``q = (fx x / z, fy y / z)`` (2, m) px (the same operations as
-    here: the same bits).  ``later``: instead of adding into ``g3`` now, append the function
+    max(P_z, 1)`` (B m,) mm and ``q = (fx x / z, fy y / z)`` (2, B m) px (the same operations
+    as here: the same bits).  ``later``: instead of adding into ``g3`` now, append the function
     that does (a deferred gradient, :meth:`hand_sog_tracker.core.energy.Objective.value_then_gradient`).
     """
+    poses = P.shape[0] if P.ndim == 3 else 0
+    m = P.shape[-2]  # (per pose)
+    if poses:
+        P = P.reshape(-1, 3)
     intr = sil.intrinsics
     k_fxy, k_off, top, corners, row_len, flat_map = _term_constants(sil)
     # Map coordinates (cells, from the first cell's centre), u and v as the columns of one
@@ -304,16 +310,21 @@ def silhouette_term(
     f = math.sqrt(intr.fx * intr.fy)
     k = 1.0 / (f * SILHOUETTE_SCALE_MM)
     s = over * z * k  # (m,)
-    m = P.shape[0]
-    val = float(np.add.reduce(s * s) / m)  # (= (s * s).sum(), without the method's Python layer)
-    if (g3 is None and later is None) or weight <= 0 or val <= 0:
+    if poses:
+        val: float | NDArray[np.float64] = np.add.reduce((s * s).reshape(poses, m), axis=1) / m
+        positive = bool(np.logical_or.reduce(val > 0))
+    else:
+        val = float(np.add.reduce(s * s) / m)  # (= (s * s).sum(), without the method's Python layer)
+        positive = val > 0
+    if (g3 is None and later is None) or weight <= 0 or not positive:
         return val
 
     def backward(g3: NDArray[np.float64]) -> None:
+        g3 = g3.reshape(-1, 3)  # (a view: a batch's (B, m, 3) as its rows)
         # dD/du = (1 - b)(d01 - d00) + b (d11 - d10), dD/dv = (1 - a)(d10 - d00) + a (d11 - d01),
         # zero where the coordinate is clamped.  With steps[:, 0] = (d01 - d00, d11 - d10)
         # and steps[:, 1] = (d10 - d00, d11 - d01): dD = (1 - (b, a)) steps[.., 0] + (b, a) steps[.., 1].
-        steps = np.empty((m, 2, 2))
+        steps = np.empty((P.shape[0], 2, 2))
         np.subtract(d[:, :, 1], d[:, :, 0], out=steps[:, 0])
         np.subtract(d[:, 1, :], d[:, 0, :], out=steps[:, 1])
         dD = one_ab[:, ::-1] * steps[:, :, 0]

@@ -119,6 +119,32 @@ def _init_times(config: TrackerConfig, depth_frames: list, intr) -> tuple[list[f
     return out, after
 
 
+#: Batch sizes of the ``Objective.batch`` rows, and the rounds timed for each (issue 45).
+BATCH_SIZES = (1, 4, 8, 16, 32)
+BATCH_ROUNDS = 15
+
+
+def _time_batches(obj: Objective, pose: np.ndarray, stage: dict[str, list[float]]) -> None:
+    """Time ``obj.batch`` (value and gradient) of B poses near ``pose`` against B one-pose
+    calls on the same poses, for each of :data:`BATCH_SIZES`, alternating which goes first; new
+    poses every round (no call can reuse an earlier one's kinematics).  Adds the stages
+    ``energy_batch_B`` (ms per batch call) and ``energy_singles_B`` (ms of the B calls)."""
+    rng = np.random.default_rng(1)
+    for B in BATCH_SIZES:
+        for k in range(BATCH_ROUNDS):
+            thetas = pose + rng.normal(0.0, 1e-3, (B, pose.size))
+            singles = thetas + 1e-7  # (other poses than the batch's, as close)
+            for part in ((0, 1) if k % 2 == 0 else (1, 0)):
+                t0 = time.perf_counter()
+                if part == 0:
+                    obj.batch(thetas)
+                else:
+                    for theta in singles:
+                        obj(theta)
+                key = "energy_batch_" if part == 0 else "energy_singles_"
+                stage.setdefault(f"{key}{B}", []).append((time.perf_counter() - t0) * 1e3)
+
+
 def run_benchmark(
     motion: str,
     frames: int,
@@ -242,6 +268,8 @@ def run_benchmark(
             stage["model_update"].append((t1 - t0) * 1e3)
             stage["energy_gradient"].append((t2 - t1) * 1e3)
             stage["energy_gradient_tenth"].append((t3 - t2) * 1e3)
+        if hasattr(obj, "batch"):  # (absent from older trees)
+            _time_batches(obj, pose, stage)
     stage["initialise"], stage["initialise_after"] = _init_times(config, depth_frames, intr)
     n = max(len(stage["total"]), 1)
     return {
@@ -273,6 +301,12 @@ STAGE_LABELS = {
     "total": "total per frame",
     "initialise": "initialisation, per frame",
     "initialise_after": "  its restarts after the answer",
+    **{
+        key: label
+        for B in BATCH_SIZES
+        for key, label in ((f"energy_batch_{B}", f"Objective.batch of {B} (1 call)"),
+                           (f"energy_singles_{B}", f"  {B} one-pose calls"))
+    },
 }
 
 
@@ -290,6 +324,12 @@ def _print_table(r: dict[str, object]) -> None:
             print(f"  {label:<30}{st[key]['median']:>10.2f}{st[key]['p95']:>10.2f}{st[key]['max']:>10.2f}")
     print(f"  fps {r['fps']:.1f}   peak RSS {r['peak_rss_mb']:.1f} MiB   "
           f"RSS growth after first pass {r['rss_growth_mb']:.2f} MiB")
+    batches = [B for B in BATCH_SIZES if f"energy_batch_{B}" in st]
+    if batches:
+        print(f"  {'Objective.batch: poses':<30}{'ms/call':>10}{'ms/pose':>10}{'B calls ms':>12}{'ratio':>8}")
+        for B in batches:
+            one, many = st[f"energy_batch_{B}"]["median"], st[f"energy_singles_{B}"]["median"]
+            print(f"  {B:<30}{one:>10.3f}{one / B:>10.3f}{many:>12.3f}{one / many:>8.2f}")
 
 
 def _tree_root() -> Path:
