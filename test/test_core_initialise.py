@@ -23,8 +23,10 @@ from hand_sog_tracker.core.initialise import (
     finger_combinations,
 )
 from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
-from hand_sog_tracker.core.restarts import RESTART_ITERATIONS
-from hand_sog_tracker.core.tracker import Tracker, _balanced
+from hand_sog_tracker.core.search import SEARCH_ITERATIONS as RESTART_ITERATIONS
+from hand_sog_tracker.core.search import start as start_module
+from hand_sog_tracker.core.search.start import _balanced, _screened, hand_side
+from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
 
@@ -80,8 +82,8 @@ def test_the_start_poses_aligned_are_the_best_at_their_start_on_each_palm_side(f
     starts = initial_hypotheses(tracker.model, blob, config.init_hypotheses)
     roi, window = hand_roi(tracker.model, starts[0], INTR, config.roi_radius_mm)
     data = quadtree_sog(pre, config.quadtree_threshold_mm, roi, window, INIT_SEARCH.coarse_quad_px)
-    parts = [tracker._hand_side(data, x) for x in starts]
-    chosen = tracker._screened(starts, parts, 2)
+    parts = [hand_side(data, x) for x in starts]
+    chosen = _screened(tracker.model, config, starts, parts, 2)
     value = [Objective(tracker.model, part, config)(x, gradient=False)[0] for x, part in zip(starts, parts)]
     palm = [bool(global_rotation(x)[2, 2] > 0) for x in starts]
     for side in (True, False):
@@ -213,7 +215,7 @@ def test_a_hand_found_mid_motion_with_two_fingers_out_is_found_with_the_rest_cur
         return np.linalg.norm(result.fingertips_mm - frame.fingertips_mm, axis=1)
 
     assert found().max() < 20.0  # (3-11 mm)
-    monkeypatch.setattr(tracker_module, "INIT_SEARCH", replace(INIT_SEARCH, combination_below=-np.inf))
+    monkeypatch.setattr(start_module, "INIT_SEARCH", replace(INIT_SEARCH, combination_below=-np.inf))
     assert found().mean() > 50.0
 
 

@@ -13,15 +13,19 @@ from hand_sog_tracker.core.depth_sog import ImageSoG, preprocess
 from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, chain_slice, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
-from hand_sog_tracker.core.optimizer import OptimizeResult, run
-from hand_sog_tracker.core.restarts import (
+from hand_sog_tracker.core.optimizer import OptimizeResult
+from hand_sog_tracker.core.salient import Detections
+from hand_sog_tracker.core.search import TRACK_PROPOSALS, Frame, plain, search
+from hand_sog_tracker.core.search.candidates import (
+    CURL,
+    DETECTION,
     EDGE_ON_MARGIN,
     EDGE_ON_PALM_COS,
-    RESTART_ITERATIONS,
-    SHIFT_CHUNK,
-    SHIFT_EVERY,
+    SHIFT,
+    _joint_targets,
+    swap_pair,
 )
-from hand_sog_tracker.core.salient import Detections
+from hand_sog_tracker.core.search.score import lonely_detections
 from hand_sog_tracker.core.silhouette import Silhouette
 from hand_sog_tracker.core.tracker import REFINE_CURL_RAD, Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
@@ -397,17 +401,9 @@ def _counting_one_shifted() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
 
 
 
-def _count_maximise(tracker: Tracker) -> list[int]:
-    """Record the iterations of every fit ``tracker`` runs from now on (the list fills up)."""
-    calls: list[int] = []
-    fit = tracker._fit
-
-    def counted(obj_, x0, **kwargs):
-        calls.append(int(kwargs["iterations"]))
-        return fit(obj_, x0, **kwargs)
-
-    tracker._fit = counted  # type: ignore[method-assign]
-    return calls
+def _frame(tracker: Tracker, obj: Objective, res: OptimizeResult, data: ImageSoG, det: Detections) -> Frame:
+    """The search's view of a tracked frame fitted to ``res`` on ``obj``."""
+    return Frame(tracker.model, res, obj, plain(obj), data, det, tracker._limits())
 
 
 def _fit_wrong(
@@ -423,38 +419,24 @@ def _fit_wrong(
 
 
 
-def test_scheduled_shift_restart_is_spread_over_frames_and_undoes_a_shift_by_one() -> None:
+def test_the_shift_proposal_undoes_a_shift_by_one() -> None:
     # Counting "one": the index finger up, the others curled.  The track has every finger on
-    # its neighbour's articulation (the middle finger up on the index's data).  A scheduled
-    # shift candidate starts on a frame counted a multiple of SHIFT_EVERY, gets SHIFT_CHUNK
-    # iterations per frame (never a whole restart on one frame) and, after
-    # RESTART_ITERATIONS, replaces the fit because it explains the frame better.
+    # its neighbour's articulation (the middle finger up on the index's data).  The shift
+    # candidate, fitted on this very frame, replaces the fit: it explains the frame better.
     model = default_hand_model()
     truth, wrong = _counting_one_shifted()
     tracker = Tracker(TrackerConfig())
-    obj, res, _, det = _fit_wrong(tracker, truth, wrong)
-
-    calls = _count_maximise(tracker)
-    tracker._frame_count = SHIFT_EVERY  # the schedule's side +1: each finger takes the next one's
-    out = res
-    for frame in range(RESTART_ITERATIONS // SHIFT_CHUNK):
-        out = run(tracker._scheduled_shift(obj, res, det))
-        assert calls == [SHIFT_CHUNK] * (frame + 1)
-        if frame < RESTART_ITERATIONS // SHIFT_CHUNK - 1:
-            assert out is res and tracker._shift_pending is not None
-    assert tracker._shift_pending is None
+    obj, res, data, det = _fit_wrong(tracker, truth, wrong)
+    out, name = search(_frame(tracker, obj, res, data, det), (SHIFT,))
     err_wrong = np.linalg.norm(fingertips(tracker.model, res.x) - fingertips(model, truth), axis=1)
     err = np.linalg.norm(fingertips(tracker.model, out.x) - fingertips(model, truth), axis=1)
-    assert err_wrong[1:3].min() > 40.0 and err.max() < 15.0, (err_wrong.round(0), err.round(0))
-    # Off the schedule nothing runs.
-    tracker._frame_count = SHIFT_EVERY + 1
-    assert run(tracker._scheduled_shift(obj, res, det)) is res and len(calls) == RESTART_ITERATIONS // SHIFT_CHUNK
+    assert name == "shift" and err_wrong[1:3].min() > 40.0 and err.max() < 15.0, (err_wrong.round(0), err.round(0))
 
 
-def test_scheduled_shift_does_not_start_when_every_fingertip_is_seen_at_its_finger() -> None:
-    # An open hand, tracked at the truth: each fingertip has its own detection nearby, so no
-    # finger can be on its neighbour's place and the scheduled candidate is skipped.  Without
-    # one fingertip's detection the candidate starts as scheduled.
+def test_no_shift_is_proposed_when_every_fingertip_is_seen_at_its_finger() -> None:
+    # An open hand, fitted at the truth: each fingertip has its own detection nearby, so no
+    # finger can be on its neighbour's place.  Without one fingertip's detection a shift is
+    # proposed.
     intr = default_intrinsics()
     frame = next(iter(synthetic_sequence("fingerwave", 1, intrinsics=intr)))
     truth = frame.pose
@@ -464,16 +446,12 @@ def test_scheduled_shift_does_not_start_when_every_fingertip_is_seen_at_its_fing
     assert det.n >= 5
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(truth, det), silhouette=sil)
     res = tracker._maximise(obj, truth, iterations=7)
-    calls = _count_maximise(tracker)
-    tracker._frame_count = SHIFT_EVERY
-    assert run(tracker._scheduled_shift(obj, res, det)) is res
-    assert calls == [] and tracker._shift_pending is None
+    assert list(SHIFT.generate(_frame(tracker, obj, res, data, det))) == []
     # The detection nearest the middle fingertip removed: the middle finger has no detection.
     near = int(np.argmin(np.linalg.norm(det.points - fingertips(tracker.model, res.x)[2], axis=1)))
     keep = np.arange(det.n) != near
     fewer = Detections(det.points[keep], det.uv[keep], det.confidence[keep], det.end_on[keep])
-    assert run(tracker._scheduled_shift(obj, res, fewer)) is res
-    assert calls == [SHIFT_CHUNK] and tracker._shift_pending is not None
+    assert len(list(SHIFT.generate(_frame(tracker, obj, res, data, fewer)))) >= 1
 
 
 def test_a_new_track_of_a_small_hand_with_two_fingers_on_one_moves_sideways() -> None:
@@ -509,15 +487,15 @@ def test_the_joint_pull_sends_the_other_fingertips_to_their_own_detections() -> 
     # little finger has none.
     points = np.array([tips[0] + 2.0, tips[1], tips[3] - 3.0, lonely])
     det = Detections(points, np.zeros((4, 2)), np.array([0.9, 0.8, 0.7, 0.95]), np.array([False, True, False, False]))
-    targets = tracker._joint_targets(theta, det, 2, 3)
+    targets = _joint_targets(tracker.model, theta, det, 2, 3)
     np.testing.assert_array_equal(targets.points[[0, 2, 3]], points[[0, 3, 2]])
     np.testing.assert_array_equal(targets.weights, [0.9, 0.0, 1.0, 0.7, 0.0])
 
 
-def test_a_detection_restart_of_a_hand_seen_edge_on_wins_only_by_a_margin(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_detection_candidate_of_a_hand_seen_edge_on_needs_a_margin() -> None:
     """Issue 11: edge-on, the fingers overlap in the image and the score cannot tell them
-    apart; a detection restart's candidate then needs ``EDGE_ON_MARGIN`` more than the pose it
-    would replace.  (The score is stubbed: a candidate scores half the margin higher.)"""
+    apart; a detection candidate then needs ``EDGE_ON_MARGIN`` more than the pose it would
+    replace, facing the camera none."""
     tracker = Tracker()
     truth, data, det, _ = _fist_data(tracker)
     obj = Objective(tracker.model, data, tracker.config)
@@ -528,13 +506,10 @@ def test_a_detection_restart_of_a_hand_seen_edge_on_wins_only_by_a_margin(monkey
     side[3:6] = [0.0, np.radians(70.0), 0.0]  # (turned about the image's vertical axis)
     edge = dataclasses.replace(facing, x=side)
     assert abs(global_rotation(facing.x)[2, 2]) > 0.9 and abs(global_rotation(side)[2, 2]) < EDGE_ON_PALM_COS
-    for res in (facing, edge):
-        monkeypatch.setattr(
-            tracker, "_score", lambda plain, x, det, value=None, r=res: 0.5 if x is r.x else 0.5 + EDGE_ON_MARGIN / 2
-        )
-        assert tracker._lonely(res.x, det).size == 1
-        out = run(tracker._detection_restarts(obj, res, det))
-        assert (out is res) == (res is edge)
+    for res, margin in ((facing, 0.0), (edge, EDGE_ON_MARGIN)):
+        assert lonely_detections(tracker.model, res.x, det).size == 1
+        made = list(DETECTION.generate(_frame(tracker, obj, res, data, det)))
+        assert len(made) == 4 and all(c.margin == margin for c in made)  # two fingers, two pulls each
 
 
 def test_a_finger_leaning_on_its_curled_neighbours_place_swaps_with_it() -> None:
@@ -551,26 +526,26 @@ def test_a_finger_leaning_on_its_curled_neighbours_place_swaps_with_it() -> None
     # Every detection explained, as on the mesh renders where this happens (here a weak
     # detection halfway along the index is far from every model fingertip and would set off the
     # shift restarts instead).
-    det = det.subset(np.isin(np.arange(det.n), tracker._lonely(res.x, det), invert=True))
-    assert det.n >= 2 and tracker._lonely(res.x, det).size == 0
-    assert tracker._swap_pair(res.x) == (2, 1)
-    tracker._frame_count = 1  # (off the shift schedule)
-    out = run(tracker._restarts(obj, res, data, det))
+    det = det.subset(np.isin(np.arange(det.n), lonely_detections(tracker.model, res.x, det), invert=True))
+    assert det.n >= 2 and lonely_detections(tracker.model, res.x, det).size == 0
+    lim = tracker._limits()
+    assert swap_pair(res.x, lim) == (2, 1)
+    out, _ = search(_frame(tracker, obj, res, data, det), TRACK_PROPOSALS)
     true_tips = fingertips(model, truth)
     err_wrong = np.linalg.norm(fingertips(tracker.model, res.x) - true_tips, axis=1)
     err = np.linalg.norm(fingertips(tracker.model, out.x) - true_tips, axis=1)
     assert err_wrong[1:3].min() > 40.0 and err.max() < 15.0, (err_wrong.round(0), err.round(0))
     # At the truth no finger leans on a neighbour: nothing to swap.  Nor with the hand seen from
     # the side (neighbouring fingers overlap in the image) or the leaning finger itself curled.
-    assert tracker._swap_pair(truth) is None
+    assert swap_pair(truth, lim) is None
     side = res.x.copy()
     side[4] += np.pi / 2
-    assert abs(global_rotation(side)[2, 2]) < 0.5 and tracker._swap_pair(side) is None
+    assert abs(global_rotation(side)[2, 2]) < 0.5 and swap_pair(side, lim) is None
     bent = res.x.copy()
     bent[chain_slice(1).start], bent[chain_slice(1).start + 2] = 1.6, 1.9  # index: fully curled
-    assert tracker._swap_pair(bent) == (2, 1)
+    assert swap_pair(bent, lim) == (2, 1)
     bent[chain_slice(2).start], bent[chain_slice(2).start + 2] = 1.15, 1.15  # middle: curled
-    assert tracker._swap_pair(bent) is None
+    assert swap_pair(bent, lim) is None
 
 
 def test_an_open_finger_on_its_neighbours_data_is_curled_into_the_palm() -> None:
@@ -580,7 +555,6 @@ def test_an_open_finger_on_its_neighbours_data_is_curled_into_the_palm() -> None
     Gaussian lies on data; the middle fingertip has no detection of its own (the ring's took it).
     The restarts curl the ring finger into the palm; at the truth, and with the hand seen from
     the side, nothing is tried."""
-    from hand_sog_tracker.core.restarts import CURL_WAIT
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, mesh_fingertips, render_mesh_depth
     from hand_sog_tracker.synth.motions import default_start_pose
 
@@ -600,21 +574,17 @@ def test_an_open_finger_on_its_neighbours_data_is_curled_into_the_palm() -> None
     res = tracker._maximise(obj, wrong, iterations=21)
     err_wrong = np.linalg.norm(fingertips(tracker.model, res.x) - true_tips, axis=1)
     assert err_wrong[3] > 100.0, err_wrong.round(0)  # the fit alone keeps it open
-    tracker._frame_count = 1  # (off the shift schedule)
-    out = run(tracker._restarts(obj, res, data, det))
+    assert len(list(CURL.generate(_frame(tracker, obj, res, data, det)))) >= 1
+    out, _ = search(_frame(tracker, obj, res, data, det), TRACK_PROPOSALS)
     err = np.linalg.norm(fingertips(tracker.model, out.x) - true_tips, axis=1)
     assert err.max() < 12.0, (err_wrong.round(0), err.round(0))
-    assert tracker._curl_wait == CURL_WAIT
-    # Tried once, then not for CURL_WAIT rounds of the restarts.
-    assert run(tracker._curl_restarts(obj, res, det)) is res and tracker._curl_wait == CURL_WAIT - 1
     # At the truth: the open fingers have their detections, the curled ones are not tried.
-    tracker._curl_wait = 0
     fit = tracker._maximise(obj, truth, iterations=7)
-    assert run(tracker._curl_restarts(obj, fit, det)) is fit and tracker._curl_wait == 0
+    assert list(CURL.generate(_frame(tracker, obj, fit, data, det))) == []
     # The hand seen from the side: the depth cannot tell a curled finger from an open one.
     side = dataclasses.replace(res, x=res.x.copy())
     side.x[4] += np.pi / 2
-    assert run(tracker._curl_restarts(obj, side, det)) is side and tracker._curl_wait == 0
+    assert list(CURL.generate(_frame(tracker, obj, side, data, det))) == []
 
 
 def test_a_fist_fitted_from_its_true_pose_stays_closer_when_curled_fingers_may_touch() -> None:
