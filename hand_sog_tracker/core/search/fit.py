@@ -14,9 +14,6 @@ __all__ = ["SEARCH_ITERATIONS", "search"]
 
 #: Iterations each candidate gets (and each detection pull before it; chosen here, commit f16019d).
 SEARCH_ITERATIONS = 12
-import os
-
-_DEBUG = bool(os.environ.get('SEARCH_DEBUG'))
 
 
 def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult, str | None]:
