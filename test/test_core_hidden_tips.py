@@ -95,7 +95,8 @@ def _shift_sides(tracker: Tracker, fit: np.ndarray, det: Detections) -> list[int
 def test_the_shift_goes_to_the_side_the_detections_point_to(side: int) -> None:
     """The fingers of the fit sit one place over from the seen ones (finger counting: index,
     middle and ring extended where index and middle are).  The shift proposal takes the side
-    whose shifted pose meets the detections; without detections it tries both."""
+    whose shifted pose meets the detections; without detections none says where the fingers
+    are, and nothing is proposed."""
     tracker = Tracker()
     fit = rest_pose()
     for c in (3, 4):
@@ -105,5 +106,5 @@ def test_the_shift_goes_to_the_side_the_detections_point_to(side: int) -> None:
     seen = [0] + [c for c in range(1, 5) if truth[chain_slice(c)][2] < 0.5]  # thumb, extended fingers
     n = len(seen)
     det = Detections(fingertips(tracker.model, truth)[seen], np.zeros((n, 2)), np.ones(n), np.zeros(n, bool))
-    assert _shift_sides(tracker, fit, det) == [side]
-    assert _shift_sides(tracker, fit, Detections.empty()) == [1, -1]
+    assert side in _shift_sides(tracker, fit, det)  # (both when a detection is unexplained)
+    assert _shift_sides(tracker, fit, Detections.empty()) == []
