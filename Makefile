@@ -17,7 +17,10 @@ LOOPBACK_PROFILE := $(CURDIR)/hand_sog_tracker/data/fastdds_loopback.xml
 SOURCES := setup.py setup.cfg package.xml $(wildcard config/*.yaml) \
 	$(shell find hand_sog_tracker -name '*.py' -o -name '*.xml' 2>/dev/null)
 
-.PHONY: demo test venv clean
+DOCS_STAMP := $(VENV)/.docs-installed
+DOCS_OUT := doc/_build/html
+
+.PHONY: demo test docs venv clean
 
 venv: $(STAMP)
 
@@ -30,11 +33,20 @@ $(STAMP): $(SOURCES) | $(VENV_PY)
 
 demo: $(STAMP)
 	FASTRTPS_DEFAULT_PROFILES_FILE=$(LOOPBACK_PROFILE) ROS_DOMAIN_ID=$(DEMO_DOMAIN_ID) \
-		$(VENV)/bin/demo $(DEMO_BAG) --domain-id $(DEMO_DOMAIN_ID)
+		$(VENV)/bin/hand_sog_demo $(DEMO_BAG) --domain-id $(DEMO_DOMAIN_ID)
 
 test: $(STAMP)
 	FASTRTPS_DEFAULT_PROFILES_FILE=$(LOOPBACK_PROFILE) ROS_DOMAIN_ID=$(TEST_DOMAIN_ID) \
 		$(VENV_PY) -m pytest -q test
 
+# The documentation site (Sphinx + MyST, the layout rosdoc2 builds): warnings are errors.
+$(DOCS_STAMP): $(STAMP) setup.py
+	$(VENV_PY) -m pip install --quiet --disable-pip-version-check '.[docs]'
+	touch $@
+
+docs: $(DOCS_STAMP)
+	$(VENV_PY) -m sphinx -b html -W --keep-going -q doc $(DOCS_OUT)
+	@echo "documentation: $(DOCS_OUT)/index.html"
+
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info doc/_build

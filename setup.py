@@ -3,7 +3,9 @@
 * ``colcon build`` (ament_python) installs the console scripts into
   ``lib/hand_sog_tracker`` (see setup.cfg) so ``ros2 run hand_sog_tracker tracker_node`` works.
 * ``pip install .`` into a venv installs the same console scripts into the venv's ``bin/``
-  and pulls ROS 2 Jazzy's Python wheels (rclpy with Fast DDS, the common interfaces).
+  with the prefix ``hand_sog_`` (``hand_sog_tracker_node``, ``hand_sog_demo`` ...: names that
+  cannot collide with other commands on a PATH) and pulls ROS 2 Jazzy's Python wheels (rclpy
+  with Fast DDS, the common interfaces).
 """
 
 import os
@@ -12,7 +14,7 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "hand_sog_tracker"
-VERSION = "0.1.0"
+VERSION = "0.9.0"
 
 # In a sourced ROS 2 environment (colcon workspace) rclpy and the message packages come from the
 # ROS installation (see package.xml); only a plain pip install needs the wheels from PyPI.
@@ -20,6 +22,20 @@ _ROS_WHEELS = [] if os.environ.get("AMENT_PREFIX_PATH") else [
     "ros-jazzy-rclpy[fastrtps]",
     "ros-jazzy-common-interfaces",
 ]
+
+# The commands: ``ros2 run`` name -> entry point.  lib/hand_sog_tracker is the package's own
+# folder, so the short names stay there; on a PATH (pip) they carry the package's prefix.
+_SCRIPTS = {
+    "tracker_node": f"{PACKAGE}.ros.node:main",
+    "calibrate_hand": f"{PACKAGE}.ros.calibrate_client:main",
+    "evaluate_bag": f"{PACKAGE}.tools.evaluate_bag:main",
+    "replay_bag": f"{PACKAGE}.tools.replay_bag:main",
+    "make_sample_bags": f"{PACKAGE}.tools.make_sample_bags:main",
+    "benchmark": f"{PACKAGE}.tools.benchmark:main",
+    "calibration_benchmark": f"{PACKAGE}.tools.calibration_benchmark:main",
+    "demo": f"{PACKAGE}.tools.demo:main",
+}
+_SCRIPT_PREFIX = "" if os.environ.get("AMENT_PREFIX_PATH") else "hand_sog_"
 
 setup(
     name=PACKAGE,
@@ -41,18 +57,13 @@ setup(
         "opencv-python-headless",
         "rosbags",
     ],
-    extras_require={"plot": ["matplotlib"], "test": ["pytest", "matplotlib", "ruff"]},
+    extras_require={
+        "plot": ["matplotlib"],
+        "test": ["pytest", "matplotlib", "ruff"],
+        "docs": ["sphinx", "myst-parser", "sphinx-argparse"],  # make docs (doc/conf.py)
+    },
     zip_safe=False,
     entry_points={
-        "console_scripts": [
-            f"tracker_node = {PACKAGE}.ros.node:main",
-            f"calibrate_hand = {PACKAGE}.ros.calibrate_client:main",
-            f"evaluate_bag = {PACKAGE}.tools.evaluate_bag:main",
-            f"replay_bag = {PACKAGE}.tools.replay_bag:main",
-            f"make_sample_bags = {PACKAGE}.tools.make_sample_bags:main",
-            f"benchmark = {PACKAGE}.tools.benchmark:main",
-            f"calibration_benchmark = {PACKAGE}.tools.calibration_benchmark:main",
-            f"demo = {PACKAGE}.tools.demo:main",
-        ],
+        "console_scripts": [f"{_SCRIPT_PREFIX}{name} = {target}" for name, target in _SCRIPTS.items()],
     },
 )

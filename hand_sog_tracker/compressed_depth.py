@@ -53,6 +53,8 @@ from hand_sog_tracker.errors import DepthImageError
 
 __all__ = [
     "HEADER_SIZE",
+    "MAX_IMAGE_PIXELS",
+    "check_image_size",
     "INV_DEPTH",
     "DEFAULT_DEPTH_MAX_M",
     "DEFAULT_DEPTH_QUANTIZATION",
@@ -73,6 +75,9 @@ _UNDEFINED: Final[int] = -1
 #: Publisher defaults of ``depth_max`` (m) and ``depth_quantization``.
 DEFAULT_DEPTH_MAX_M: Final[float] = 10.0
 DEFAULT_DEPTH_QUANTIZATION: Final[float] = 100.0
+#: Default bound on the pixels of one input image (width x height), before any conversion or
+#: decoding allocates it: a 2560x1170 image passes, a corrupt 8192x8192 header does not.
+MAX_IMAGE_PIXELS: Final[int] = 3_000_000
 _HEADER = struct.Struct("<iff")
 _SIZE = struct.Struct("<II")
 
@@ -140,6 +145,18 @@ def _as_bytes(data: Any) -> bytes:
         raise DepthImageError(f"compressed depth data is not a byte sequence: {err}") from err
 
 
+def check_image_size(width: int, height: int, max_pixels: int | None, what: str = "depth image") -> None:
+    """Raise :class:`DepthImageError` unless ``width x height`` is a positive size of at most
+    ``max_pixels`` pixels (None: no bound); called before anything of that size is allocated."""
+    if width <= 0 or height <= 0:
+        raise DepthImageError(f"{what} has zero size ({width}x{height})")
+    if max_pixels is not None and width * height > max_pixels:
+        raise DepthImageError(
+            f"{what} is {width}x{height} = {width * height} pixels, more than max_image_pixels = "
+            f"{max_pixels}"
+        )
+
+
 # -- RVL -------------------------------------------------------------------------------------
 def rvl_encode(pixels: ArrayLike) -> bytes:
     """RVL-compress uint16 pixels (row-major) into words, as ``RvlCodec::CompressRVL``.
@@ -194,11 +211,16 @@ def rvl_decode(payload: bytes, n_pixels: int) -> NDArray[np.uint16]:
     Vectorised: the nibbles and variable-length codes are unpacked with NumPy, only the runs
     are walked in Python.
 
+    A stream is accepted only when it decodes to exactly ``n_pixels`` pixels and ends there:
+    what follows the last code is the zero padding of its last word (fewer than 8 nibbles).
+    How well it compresses is no criterion (a sparse image of long zero runs compresses to
+    almost nothing).
+
     Raises
     ------
     DepthImageError
-        The stream ends early (truncated), a run overshoots the image, or its length is not a
-        multiple of 4 bytes.
+        The stream ends early (truncated), a run overshoots the image, data follows the
+        image's last code, or its length is not a multiple of 4 bytes.
     """
     if len(payload) % 4:
         raise DepthImageError(f"RVL data length {len(payload)} is not a multiple of 4 bytes (truncated?)")
@@ -249,6 +271,13 @@ def rvl_decode(payload: bytes, n_pixels: int) -> NDArray[np.uint16]:
             run_lengths.append(nonzeros)
             k += nonzeros
             filled += nonzeros
+    # Ends where the data ends: after the last code only the zero padding of the last word.
+    rest = nibbles[int(ends[k - 1]) + 1 :]
+    if rest.size >= 8 or np.any(rest):
+        raise DepthImageError(
+            f"RVL data is corrupt: {rest.size} nibbles ({(rest.size + 7) // 8} words) follow the "
+            f"image's {n_pixels} pixels"
+        )
     if run_lengths:
         lens = np.array(run_lengths, dtype=np.int64)
         within = np.arange(int(lens.sum())) - np.repeat(np.cumsum(lens) - lens, lens)
@@ -274,7 +303,7 @@ def zero_invalid(mm: NDArray[np.float32]) -> NDArray[np.float32]:
     return mm
 
 
-def decode_compressed_depth(fmt: str, data: Any) -> NDArray[np.float32]:
+def decode_compressed_depth(fmt: str, data: Any, max_pixels: int | None = MAX_IMAGE_PIXELS) -> NDArray[np.float32]:
     """Depth in millimetres from a compressedDepth ``CompressedImage`` (``format``, ``data``).
 
     Parameters
@@ -283,6 +312,9 @@ def decode_compressed_depth(fmt: str, data: Any) -> NDArray[np.float32]:
         The message's ``format`` field.
     data : bytes-like
         The message's ``data`` field (bytes, array.array, list of ints or uint8 array).
+    max_pixels : int or None
+        Images declaring more pixels (PNG's IHDR, RVL's size prefix) are rejected before they
+        are decoded (None: no bound).
 
     Returns
     -------
@@ -294,7 +326,8 @@ def decode_compressed_depth(fmt: str, data: Any) -> NDArray[np.float32]:
     DepthImageError
         Unknown format, payload not longer than the 12-byte header, a header whose
         ``compressionFormat`` is not ``INV_DEPTH`` (0), a 32FC1 header with non-finite or zero
-        quantisation parameters, a PNG that does not decode to a single-channel 16-bit image,
+        quantisation parameters, a declared size of zero or above ``max_pixels``, a PNG whose
+        IHDR is not single-channel 16-bit or that does not decode to its declared size,
         corrupt or truncated RVL data.
     """
     spec = parse_format(fmt)
@@ -311,9 +344,9 @@ def decode_compressed_depth(fmt: str, data: Any) -> NDArray[np.float32]:
         )
     body = buf[HEADER_SIZE:]
     if spec.codec == "png":
-        q = _png_decode(body)
+        q = _png_decode(body, max_pixels)
     else:
-        q = _rvl_image(body)
+        q = _rvl_image(body, max_pixels)
     if spec.encoding == "16UC1":
         return q.astype(np.float32)
     if not (np.isfinite(quant_a) and np.isfinite(quant_b) and quant_a != 0.0):
@@ -328,33 +361,53 @@ def decode_compressed_depth(fmt: str, data: Any) -> NDArray[np.float32]:
     return zero_invalid(mm)
 
 
-def _png_decode(body: bytes) -> NDArray[np.uint16]:
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_IHDR = struct.Struct(">I4sIIBB")  # chunk length, b"IHDR", width, height, bit depth, colour type
+
+
+def _png_decode(body: bytes, max_pixels: int | None) -> NDArray[np.uint16]:
+    """A 16-bit grey PNG, its IHDR checked (size, depth, colour type) before it is decoded."""
     import cv2
 
-    if not body.startswith(b"\x89PNG\r\n\x1a\n"):
+    if not body.startswith(_PNG_SIGNATURE):
         raise DepthImageError("compressed depth payload is not a PNG (bad signature)")
+    if len(body) < len(_PNG_SIGNATURE) + _IHDR.size:
+        raise DepthImageError("compressed depth PNG is truncated (no complete IHDR chunk)")
+    length, kind, width, height, bits, colour = _IHDR.unpack_from(body, len(_PNG_SIGNATURE))
+    if kind != b"IHDR" or length != 13:
+        raise DepthImageError("compressed depth PNG is corrupt (its first chunk is not a 13-byte IHDR)")
+    check_image_size(width, height, max_pixels, "compressed depth PNG")
+    if bits != 16 or colour != 0:
+        raise DepthImageError(
+            f"compressed depth PNG must be single-channel 16-bit, its IHDR says bit depth {bits}, "
+            f"colour type {colour}"
+        )
     img = cv2.imdecode(np.frombuffer(body, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise DepthImageError("compressed depth PNG is corrupt or truncated (OpenCV could not decode it)")
-    if img.ndim != 2 or img.dtype != np.uint16:
+    if img.shape != (height, width) or img.dtype != np.uint16:
         raise DepthImageError(
-            f"compressed depth PNG must be single-channel 16-bit, got {img.dtype} with shape {img.shape}"
+            f"compressed depth PNG decoded to {img.dtype} with shape {img.shape}, its IHDR says "
+            f"uint16 {width}x{height}"
         )
     return img
 
 
-def _rvl_image(body: bytes) -> NDArray[np.uint16]:
+def _rvl_image(body: bytes, max_pixels: int | None) -> NDArray[np.uint16]:
+    """An RVL image, its size prefix checked before it is decoded (:func:`rvl_decode` verifies
+    the stream itself)."""
     if len(body) < _SIZE.size:
         raise DepthImageError("compressed depth RVL payload is shorter than its 8-byte size prefix")
     cols, rows = _SIZE.unpack_from(body, 0)
+    check_image_size(int(cols), int(rows), max_pixels, "compressed depth RVL image")
     n = int(cols) * int(rows)
     words = body[_SIZE.size :]
-    # Like the plugin: zero size, or more than 5 pixels per byte (RVL needs at least 4 bits per
-    # pixel except in long zero runs) is taken as a corrupt header.
-    if n == 0 or cols > 65535 or rows > 65535 or n > 5 * max(len(words), 1) + 64:
+    # No valid stream is longer than 11 bytes a pixel (a 6-nibble code per pixel and two
+    # 8-nibble run codes): more is not this image's stream, and its decoding would be costly.
+    if len(words) > 11 * n + 8:
         raise DepthImageError(
-            f"compressed depth RVL header reports an implausible size {cols}x{rows} for "
-            f"{len(words)} bytes of RVL data (corrupt or truncated?)"
+            f"compressed depth RVL data is {len(words)} bytes, longer than any RVL stream of a "
+            f"{cols}x{rows} image (corrupt header?)"
         )
     return rvl_decode(words, n).reshape(int(rows), int(cols))
 

@@ -25,7 +25,12 @@ from typing import Any, Callable, Final, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.compressed_depth import decode_compressed_depth, zero_invalid
+from hand_sog_tracker.compressed_depth import (
+    MAX_IMAGE_PIXELS,
+    check_image_size,
+    decode_compressed_depth,
+    zero_invalid,
+)
 from hand_sog_tracker.core.types import Intrinsics
 from hand_sog_tracker.errors import DepthImageError, InputError, IntrinsicsError
 
@@ -59,6 +64,10 @@ __all__ = [
     "RegionOfInterestLike",
     "CameraInfoLike",
     "DEPTH_ENCODINGS",
+    "MAX_IMAGE_PIXELS",
+    "FOCAL_PER_SIDE",
+    "MAX_FOCAL_RATIO",
+    "check_image_size",
     "image_to_depth_mm",
     "compressed_image_to_depth_mm",
     "camera_info_to_intrinsics",
@@ -117,6 +126,7 @@ DIAG_KEYS: Final[tuple[str, ...]] = (
     "processing_ms",
     "answer_ms",
     "latency_ms",
+    "worst_frame_ms",
     "status",
     "confidence",
     "frames_received",
@@ -124,6 +134,7 @@ DIAG_KEYS: Final[tuple[str, ...]] = (
     "frames_dropped",
     "frames_missed",
     "frames_rejected",
+    "frames_cut",
     "last_problem",
 )
 #: The frame counters among :data:`DIAG_KEYS` (integers since the node started).
@@ -213,6 +224,13 @@ DEPTH_ENCODINGS: dict[str, tuple[str, float | None]] = {
 }
 
 
+#: Plausible focal lengths (px) per pixel of the image's longer side: a horizontal field of view
+#: between about 5.7 and 157 degrees (every depth camera lies well inside).
+FOCAL_PER_SIDE: Final[tuple[float, float]] = (0.1, 10.0)
+#: Largest plausible ratio of the two focal lengths (non-square pixels beyond binning).
+MAX_FOCAL_RATIO: Final[float] = 3.0
+
+
 def _as_bytes(data: Any) -> NDArray[np.uint8]:
     """View the message ``data`` field as a flat uint8 array without copying when possible."""
     if isinstance(data, np.ndarray):
@@ -233,7 +251,7 @@ def _as_bytes(data: Any) -> NDArray[np.uint8]:
         raise DepthImageError(f"image data is not a byte sequence: {err}") from err
 
 
-def image_to_depth_mm(msg: ImageLike) -> NDArray[np.float32]:
+def image_to_depth_mm(msg: ImageLike, max_pixels: int | None = MAX_IMAGE_PIXELS) -> NDArray[np.float32]:
     """Convert a depth ``sensor_msgs/Image`` to millimetres.
 
     Parameters
@@ -242,6 +260,8 @@ def image_to_depth_mm(msg: ImageLike) -> NDArray[np.float32]:
         ``16UC1`` / ``mono16`` (mm, 0 = invalid) or ``32FC1`` (metres; NaN,
         Inf, 0 and negative values are invalid).  ``step`` (row padding) and
         ``is_bigendian`` are honoured.
+    max_pixels : int or None
+        Larger images are rejected before they are converted (None: no bound).
 
     Returns
     -------
@@ -251,8 +271,8 @@ def image_to_depth_mm(msg: ImageLike) -> NDArray[np.float32]:
     Raises
     ------
     DepthImageError
-        Unknown encoding, zero size, ``step < width * bytes_per_pixel`` or
-        ``data`` shorter than the image needs.
+        Unknown encoding, zero size, more than ``max_pixels`` pixels,
+        ``step < width * bytes_per_pixel`` or ``data`` shorter than the image needs.
     """
     enc = str(msg.encoding)
     spec = DEPTH_ENCODINGS.get(enc.upper())
@@ -261,8 +281,7 @@ def image_to_depth_mm(msg: ImageLike) -> NDArray[np.float32]:
             f"unsupported depth encoding {enc!r} (expected one of 16UC1, mono16, 32FC1)"
         )
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    if h <= 0 or w <= 0:
-        raise DepthImageError(f"depth image has zero size ({w}x{h})")
+    check_image_size(w, h, max_pixels)
     dtype = np.dtype(spec[0])
     if msg.is_bigendian:
         dtype = dtype.newbyteorder(">")
@@ -287,7 +306,9 @@ def image_to_depth_mm(msg: ImageLike) -> NDArray[np.float32]:
     return zero_invalid(depth)
 
 
-def compressed_image_to_depth_mm(msg: CompressedImageLike) -> NDArray[np.float32]:
+def compressed_image_to_depth_mm(
+    msg: CompressedImageLike, max_pixels: int | None = MAX_IMAGE_PIXELS
+) -> NDArray[np.float32]:
     """Depth in mm from a ``compressedDepth`` ``sensor_msgs/CompressedImage``.
 
     See :func:`hand_sog_tracker.compressed_depth.decode_compressed_depth` (formats
@@ -296,9 +317,10 @@ def compressed_image_to_depth_mm(msg: CompressedImageLike) -> NDArray[np.float32
     Raises
     ------
     DepthImageError
-        Unknown format, bad header, corrupt or truncated payload.
+        Unknown format, bad header, a declared size above ``max_pixels`` (checked before
+        decoding), corrupt or truncated payload.
     """
-    return decode_compressed_depth(str(msg.format), msg.data)
+    return decode_compressed_depth(str(msg.format), msg.data, max_pixels)
 
 
 def camera_info_to_intrinsics(msg: CameraInfoLike) -> Intrinsics:
@@ -308,7 +330,10 @@ def camera_info_to_intrinsics(msg: CameraInfoLike) -> Intrinsics:
     ``binning_x``, ``fy, cy`` by ``binning_y`` and the image size is
     ``width // binning_x`` by ``height // binning_y`` (0 and 1 mean no binning).
     A region of interest other than the full image is rejected: the camera
-    would publish a crop this node does not expect.
+    would publish a crop this node does not expect.  So are implausible intrinsics, which would
+    make the tracker's per-frame work meaningless or unbounded: focal lengths outside
+    :data:`FOCAL_PER_SIDE` times the image's longer side (e.g. a K for another resolution),
+    ``fx / fy`` beyond :data:`MAX_FOCAL_RATIO`, a principal point outside the image.
 
     Parameters
     ----------
@@ -323,7 +348,8 @@ def camera_info_to_intrinsics(msg: CameraInfoLike) -> Intrinsics:
     ------
     IntrinsicsError
         ``K`` not 9 finite numbers, all zero (uncalibrated) or with
-        non-positive focal lengths, zero image size, or a partial ROI.
+        non-positive or implausible focal lengths or principal point, zero image size, or a
+        partial ROI; the message names the value and the bound.
     """
     try:
         k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
@@ -349,4 +375,25 @@ def camera_info_to_intrinsics(msg: CameraInfoLike) -> Intrinsics:
     bx = max(int(msg.binning_x), 1)
     by = max(int(msg.binning_y), 1)
     fx, fy, cx, cy = float(k[0]) / bx, float(k[4]) / by, float(k[2]) / bx, float(k[5]) / by
-    return Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width // bx, height=height // by)
+    w, h = width // bx, height // by
+    if w <= 0 or h <= 0:
+        raise IntrinsicsError(f"CameraInfo binning {bx}x{by} leaves no pixels of the {width}x{height} image")
+    side = max(w, h)
+    lo, hi = FOCAL_PER_SIDE[0] * side, FOCAL_PER_SIDE[1] * side
+    for name, f in (("fx", fx), ("fy", fy)):
+        if not lo <= f <= hi:
+            raise IntrinsicsError(
+                f"CameraInfo focal length {name}={f:.6g} px is implausible for a {w}x{h} image "
+                f"(expected {lo:.4g} to {hi:.4g} px, a field of view of 157 to 6 degrees; "
+                "K for another resolution or in other units?)"
+            )
+    if max(fx, fy) > MAX_FOCAL_RATIO * min(fx, fy):
+        raise IntrinsicsError(
+            f"CameraInfo focal lengths fx={fx:.6g} and fy={fy:.6g} px differ by more than "
+            f"{MAX_FOCAL_RATIO:g}x (pixels that far from square: binning not declared?)"
+        )
+    if not (0.0 <= cx <= w and 0.0 <= cy <= h):
+        raise IntrinsicsError(
+            f"CameraInfo principal point ({cx:.6g}, {cy:.6g}) px lies outside the {w}x{h} image"
+        )
+    return Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h)

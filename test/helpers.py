@@ -31,3 +31,32 @@ test_domain.__test__ = False  # type: ignore[attr-defined]  # not a pytest test
 #: :func:`hand_sog_tracker.synth.sequence.default_intrinsics` gives), ``test_core_realdata`` the
 #: calibration of its recorded camera.
 INTR = Intrinsics(fx=287.26, fy=287.26, cx=160.0, cy=120.0, width=320, height=240)
+
+
+def read_setup_kwargs(colcon: bool = False) -> dict:
+    """The keyword arguments setup.py passes to ``setuptools.setup`` (nothing is built).
+
+    ``colcon``: as in a sourced ROS environment (``AMENT_PREFIX_PATH`` set), else as for pip.
+    """
+    import runpy
+    from pathlib import Path
+
+    import setuptools
+
+    repo = Path(__file__).resolve().parents[1]
+    captured: dict = {}
+    original, cwd = setuptools.setup, Path.cwd()
+    setuptools.setup = lambda **kw: captured.update(kw)
+    ament = os.environ.pop("AMENT_PREFIX_PATH", None)
+    if colcon:
+        os.environ["AMENT_PREFIX_PATH"] = "/opt/ros/jazzy"
+    try:
+        os.chdir(repo)
+        runpy.run_path(str(repo / "setup.py"), run_name="__main__")
+    finally:
+        os.chdir(cwd)
+        setuptools.setup = original
+        os.environ.pop("AMENT_PREFIX_PATH", None)
+        if ament is not None:
+            os.environ["AMENT_PREFIX_PATH"] = ament
+    return captured

@@ -119,12 +119,12 @@ def test_rvl_handles_wrapping_deltas_and_long_runs() -> None:
         (
             "16UC1; compressedDepth rvl",
             lambda b: b[:HEADER_SIZE] + struct.pack("<II", 0, 5) + b[HEADER_SIZE + 8 :],
-            "implausible size",
+            "zero size",
         ),
         (
             "16UC1; compressedDepth rvl",
             lambda b: b[:HEADER_SIZE] + struct.pack("<II", 9000, 9000) + b[HEADER_SIZE + 8 :],
-            "implausible size",
+            "more than max_image_pixels",
         ),
         (
             "32FC1; compressedDepth png",
@@ -142,6 +142,36 @@ def test_bad_payloads_are_rejected_with_a_reason(fmt: str, mutate, match: str) -
     with pytest.raises(DepthImageError, match=match) as info:
         decode_compressed_depth(fmt, mutate(data))
     assert isinstance(info.value, InputError)
+
+
+def test_sparse_rvl_is_accepted_and_data_after_the_image_is_corrupt() -> None:
+    """Valid streams are accepted however well they compress (a hand on an empty background,
+    87% zeros); a stream with more after its image's last code is not."""
+    d = np.zeros((240, 320), np.float32)
+    d[100:140, 150:180] = 450.0 + np.arange(30)
+    fmt, data = encode_compressed_depth(d, "16UC1", "rvl")
+    assert (d.size / (len(data) - HEADER_SIZE - 8)) > 5  # the ratio the old bound rejected
+    np.testing.assert_array_equal(decode_compressed_depth(fmt, data), d)
+    zeros = encode_compressed_depth(np.zeros((240, 320)), "16UC1", "rvl")[1]
+    assert not decode_compressed_depth(fmt, zeros).any()
+    for extra in (rvl_encode(np.array([7, 8], np.uint16)), b"\0\0\0\0" * 2):
+        with pytest.raises(DepthImageError, match="follow the image"):
+            decode_compressed_depth(fmt, data + extra)
+
+
+def test_declared_sizes_are_checked_before_decoding() -> None:
+    """A small PNG of a huge image (zeros compress well) is refused from its IHDR."""
+    import cv2
+
+    big = cv2.imencode(".png", np.zeros((4000, 4000), np.uint16))[1].tobytes()
+    data = struct.pack("<iff", 0, 0.0, 0.0) + big
+    assert len(data) < 200_000
+    with pytest.raises(DepthImageError, match="4000x4000 = 16000000 pixels, more than max_image_pixels"):
+        decode_compressed_depth("16UC1; compressedDepth png", data)
+    assert decode_compressed_depth("16UC1; compressedDepth png", data, max_pixels=None).shape == (4000, 4000)
+    grey8 = struct.pack("<iff", 0, 0.0, 0.0) + cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes()
+    with pytest.raises(DepthImageError, match="bit depth 8"):
+        decode_compressed_depth("16UC1; compressedDepth png", grey8)
 
 
 def test_rvl_run_past_the_image_is_corrupt() -> None:

@@ -337,3 +337,23 @@ def test_leaf_px_halves_the_leaf_for_far_hands() -> None:
     # The same camera at twice the resolution: the same depths (leaves in px of that image).
     double = Intrinsics(2 * INTR.fx, 2 * INTR.fy, 2 * INTR.cx, 2 * INTR.cy, 640, 480)
     assert [leaf_px(4, z, double) for z in (580.0, 1100.0, 1200.0)] == [4, 4, 2]
+
+
+def test_the_data_gaussians_are_capped_whatever_the_texture() -> None:
+    """A surface textured finer than the smallest leaves (a 2-pixel checkerboard of 1.5 mm
+    steps, 2 px leaves) would give one Gaussian per 2x2 block: coarsened and thinned to at
+    most ``max_gaussians``, spread over the whole ROI."""
+    from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS
+
+    intr = Intrinsics(fx=287.0, fy=287.0, cx=159.5, cy=119.5, width=320, height=240)
+    v, u = np.mgrid[0:240, 0:320]
+    depth = (500.0 + 1.5 * (((u // 2) + (v // 2)) % 2)).astype(np.float32)
+    pre = preprocess(depth, intr, TrackerConfig())
+    full = quadtree_sog(pre, 1.0, min_quad_px=2, max_gaussians=10**6)
+    assert full.n == 320 * 240 // 4
+    capped = quadtree_sog(pre, 1.0, min_quad_px=2)
+    assert 0 < capped.n <= MAX_DATA_GAUSSIANS
+    assert capped.mu[:, 0].min() < 20 and capped.mu[:, 0].max() > 300  # spread, not the first rows
+    assert capped.mu[:, 1].min() < 20 and capped.mu[:, 1].max() > 220
+    smooth = quadtree_sog(pre, 10.0, min_quad_px=2)  # (within the threshold: big leaves, not capped)
+    assert smooth.n == 320 * 240 // 256

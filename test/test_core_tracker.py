@@ -756,3 +756,33 @@ def test_a_refinement_starts_from_the_frame_befores_correction_when_the_track_we
     n = len(starts)
     tracker._refined(obj, res, open_hand)
     assert len(starts) == n + 1 and starts[-1] is res.x
+
+
+def test_the_search_stays_inside_the_image_whatever_the_intrinsics() -> None:
+    """Intrinsics 60x too large while tracking (issue 50: one frame took 2-4 s and 1.6 GB): the
+    ROI is clipped to the image and the frame allocates about what a normal one does."""
+    import tracemalloc
+
+    from hand_sog_tracker.core.tracker import hand_roi
+
+    intr = Intrinsics(fx=287.0, fy=287.0, cx=159.5, cy=119.5, width=320, height=240)
+    huge = dataclasses.replace(intr, fx=60 * 287.0, fy=60 * 287.0)
+    theta = rest_pose((5.0, 10.0, 420.0))
+    roi, _ = hand_roi(default_hand_model(), theta, huge, 160.0)
+    assert roi == (0, 0, 320, 240)
+    assert hand_roi(default_hand_model(), theta, intr, 60.0)[0] == (124, 18, 214, 109)  # inside: as before
+    assert hand_roi(default_hand_model(), theta, intr, 160.0)[0] == (32, 0, 306, 201)  # was (32, -73, 306, 201)
+    depth = render_depth(default_hand_model(), theta, intr, RenderOptions(noise_mm=1.0), rng=np.random.default_rng(0))
+    tracker = Tracker()
+    for _ in range(3):
+        tracker.process(depth, intr)
+    tracemalloc.start()
+    try:
+        tracker.process(depth, intr)
+        normal = tracemalloc.get_traced_memory()[1]
+        tracemalloc.reset_peak()
+        tracker.process(depth, huge)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 4 * normal + (8 << 20), (peak, normal)

@@ -45,3 +45,18 @@ def test_front_door_exports_the_core_names() -> None:
     for name in hand_sog_tracker.__all__:
         assert getattr(hand_sog_tracker, name) is getattr(homes.get(name, types), name)
         assert name in dir(hand_sog_tracker)
+
+
+def test_readme_is_a_front_door() -> None:
+    """One or two screens: the title, the two set-up-free commands at the top, a picture that
+    exists, and links that lead to files of this repository."""
+    text = (REPO / "README.md").read_text()
+    lines = text.splitlines()
+    assert len(lines) <= 250, f"README.md has {len(lines)} lines"
+    assert lines[0] == "# hand_sog_tracker"
+    top = "\n".join(lines[:12])
+    assert "```sh\nmake demo\nmake test\n```" in top
+    for target in re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", text):
+        if not target.startswith("http"):
+            assert (REPO / target).exists(), target
+    assert re.search(r"!\[[^\]]+\]\(doc/images/[^)]+\.png\)", text)

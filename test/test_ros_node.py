@@ -84,6 +84,9 @@ class Rig:
         # The automatic fit (a child process at half a second of tracking) is off unless a test
         # asks for it: it would compete for the CPU with what the other tests time.
         params.setdefault("auto_calibrate", False)
+        # The frame budget cuts a single image's refinement on a busy machine: tests that compare
+        # the node's answer with the core's give it all the time it needs.
+        params.setdefault("frame_budget_ms", 10000.0)
         overrides = [Parameter("user_model_path", value=str(tmp_path / "hand_model.yaml"))]
         overrides += [Parameter(k, value=v) for k, v in params.items()]
         self.node = TrackerNode(context=context, namespace=self.ns, parameter_overrides=overrides)

@@ -39,26 +39,23 @@ __all__ = [
 ]
 
 MAX_QUAD_PX = 16  #: largest quad side (px) at the processing resolution (chosen here)
+#: Most data Gaussians of one quadtree: the energy's cost grows with their number, and no input
+#: may make a frame unboundedly dear.  A near hand (200 mm, 2 px leaves) gives about 1100,
+#: 400 mm about 700; an image textured finer than the leaves (2 px at 640x480: 77 000) would
+#: give thousands.  Beyond it the leaves are thinned (:func:`quadtree_sog`).
+MAX_DATA_GAUSSIANS = 1536
 MIN_QUAD_PX = 4  #: default smallest quad side (px; chosen here)
 #: A hand farther than this many focal lengths (f in processing pixels, so mm per px) gets
 #: leaves half as wide (:func:`leaf_px`), again beyond twice that: 2 f is 575 mm for a 58 deg
-#: camera (chosen here: hands at 0.65-0.8 m in 640x480 Kinect-like renders went from 8.8 to
-#: 6.4 mm with 2 px leaves instead of 4; at 0.4 m nothing changes).
+#: camera (a far hand has few pixels per finger; measurement: design notes, "Constants").
 FAR_LEAF_DEPTH_F = 2.0
 #: A pixel more than this (mm) behind the nearest valid pixel of its median filter window lies
 #: behind a depth edge (a wall, a table or the body behind the hand): the tracker's median
 #: counts it as no data there, so that a hand pixel's median does not depend on what lies
-#: behind the hand (:func:`_median_blind_behind_edges`).  With a wall, the median of a hand edge
-#: pixel took values from farther back on the hand than with nothing behind it (3 of its 9
-#: values from the wall instead of 0): on capsule renders of the tracker's own true shape the
-#: fit turned 2.2 deg about the palm normal on average, against 0.3 deg without the wall.
-#: (Chosen here, issue 11.  150 mm leaves a finger in front of the palm alone: with 50 mm, such
-#: self-occlusion edges changed too and finger counting lost 0.2-0.3 mm on the mesh dev and
-#: validation sets; with 150 both sets score bit for bit as before (no wall there).  With
-#: walls: 12 capsule hands of their true shape 2.51 -> 2.25 mm (palm-normal turn -2.2 -> -1.1
-#: deg); 84 capsule renders (the renderer's wall at 900 mm) 4.27 -> 4.14 mm, 59 better and 7
-#: worse by more than 0.1 mm; 36 mesh dev renders with a wall at 700 mm 7.69 -> 7.29 mm, 98.8
-#: -> 99.9% of frames within 20 mm, 20 better and 7 worse (7.52 mm without the wall).)
+#: behind the hand (:func:`_median_blind_behind_edges`): with a wall, a hand edge pixel's median
+#: took values from the wall and the fit turned about the palm normal.  150 mm leaves the
+#: self-occlusion edge of a finger in front of the palm alone (measurements: design notes,
+#: "Constants").
 EDGE_BEHIND_MM = 150.0
 
 
@@ -70,7 +67,7 @@ def _raise_malloc_thresholds(nbytes: int = 16 << 20) -> None:
     Freeing an mmapped block raises both thresholds (to its size and twice that), so that
     the tracker's per-frame working set (a few depth-sized arrays, about 0.3 MiB each at
     320x240) then stays in the heap instead of being returned and page-faulted back every
-    frame (measured: up to 280 page faults and 0.3-0.5 ms per frame).  Harmless elsewhere.
+    frame (page faults cost 0.3-0.5 ms per frame).  Harmless elsewhere.
     """
     block = np.empty(nbytes, dtype=np.uint8)
     block[:: 1 << 12] = 0  # touch it so that the allocation is real
@@ -84,6 +81,9 @@ _raise_malloc_thresholds()
 class Preprocessed:
     """A range-filtered, median-filtered depth image at processing resolution.
 
+    The data stages share windowed boxes of ``depth_mm`` through a cache on the object
+    (:func:`hand_window`): do not modify ``depth_mm`` in place after the first stage ran.
+
     Attributes
     ----------
     depth_mm : array, shape (h, w), float32
@@ -92,9 +92,6 @@ class Preprocessed:
         Intrinsics of ``depth_mm`` (decimation applied).
     decimation : int
         Input pixels per processing pixel along each axis.
-
-    The data stages share windowed boxes of ``depth_mm`` through a cache on the object
-    (:func:`hand_window`): do not modify ``depth_mm`` in place after the first stage ran.
     """
 
     depth_mm: NDArray[np.float32]
@@ -533,6 +530,7 @@ def quadtree_sog(
     roi: tuple[int, int, int, int] | None = None,
     depth_window_mm: tuple[float, float] | None = None,
     min_quad_px: int = MIN_QUAD_PX,
+    max_gaussians: int = MAX_DATA_GAUSSIANS,
 ) -> ImageSoG:
     """Cluster a preprocessed depth image into quadtree leaves, one Gaussian each.
 
@@ -548,6 +546,10 @@ def quadtree_sog(
     min_quad_px : int
         Side of the smallest leaves (a power of two up to ``MAX_QUAD_PX``);
         these may be partly valid (at least half their pixels).
+    max_gaussians : int
+        At most this many Gaussians: more leaves are thinned to an evenly spread subset (every
+        k-th leaf of each level).  (Coarser leaves instead would leave nothing of a texture
+        finer than them.)
     """
     depth = pre.depth_mm
     h, w = depth.shape
@@ -641,6 +643,7 @@ def quadtree_sog(
             found.append((cells, vsum.ravel().take(cells), cnt.ravel().take(cells), leaf.shape[1], size))
     if not found:
         return _empty(pre.intrinsics)
+    n_leaves = sum(f[0].size for f in found)
     # Every level's leaves at once (the same operations per leaf as level by level, with the
     # level's width and block side per leaf: a few calls instead of a dozen per level).
     cells, sums, counts, widths, sizes = zip(*found)
@@ -648,13 +651,17 @@ def quadtree_sog(
     cells = np.concatenate(cells)
     width = np.repeat(widths, per_level)
     side = np.repeat(np.array(sizes, dtype=np.float64), per_level)
+    sums, counts = np.concatenate(sums), np.concatenate(counts)
+    if n_leaves > max_gaussians:  # an evenly spread subset, the same share of every level
+        keep = np.linspace(0, n_leaves - 1, max_gaussians).astype(np.int64)
+        cells, width, side, sums, counts = cells[keep], width[keep], side[keep], sums[keep], counts[keep]
     bv = cells // width  # (row and column by division: cheaper than 2-d nonzero)
     bu = cells - bv * width
     mu = np.empty((cells.size, 2))
     mu[:, 0] = u0 + (bu + 0.5) * side - 0.5
     mu[:, 1] = v0 + (bv + 0.5) * side - 0.5
     sigma = side / np.sqrt(2.0)
-    dq = np.concatenate(sums).astype(np.float64) / np.concatenate(counts)
+    dq = sums.astype(np.float64) / counts
     pts = pre.intrinsics.backproject(mu, dq)
     return ImageSoG(
         mu=mu,

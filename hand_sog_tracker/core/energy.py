@@ -94,7 +94,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -119,6 +119,7 @@ from hand_sog_tracker.core.kinematics import (
 )
 from hand_sog_tracker.core.silhouette import Silhouette, run_or_defer, silhouette_term
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
+from hand_sog_tracker.errors import InputError
 
 __all__ = [
     "EnergyTerms",
@@ -542,14 +543,43 @@ def contact_shares(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     return share
 
 
+def _stacked_targets(targets: Sequence[TipTargets | None], tips: slice | NDArray[np.int64]) -> tuple | None:
+    """The salient term's constants of one :class:`TipTargets` (or None) per pose: the
+    fingertips ``tips``, points (B, 5, 3) mm and weights (B, 5) per :data:`SALIENT_SCALE_MM`
+    (0 without targets); None when no pose has a weight."""
+    points = np.zeros((len(targets), 5, 3))
+    weights = np.zeros((len(targets), 5))
+    for b, t in enumerate(targets):
+        if t is not None:
+            points[b], weights[b] = t.points, t.weights
+    if not np.any(weights > 0):
+        return None
+    return tips, points, weights / SALIENT_SCALE_MM
+
+
 def _per_pose(value: NDArray[np.float64]) -> float | NDArray[np.float64]:
     """A term's value as a float for one pose (a 0-d result), else the (B,) values."""
     return float(value) if value.ndim == 0 else value
 
 
 def _squares(x: NDArray[np.float64]) -> float | NDArray[np.float64]:
-    """Sum of squares of ``x`` (k,) as a float, or along the last axis of ``x`` (B, k)."""
-    return float(x @ x) if x.ndim == 1 else _sum(x * x, axis=-1)
+    """Sum of squares of ``x`` (k,) >= 0 as a float, or of each row of ``x`` (B, k) (the same
+    bits as the row alone: its own product; the rows of zeros are 0)."""
+    if x.ndim == 1:
+        return float(x @ x)
+    out = np.zeros(x.shape[0])
+    for b in np.flatnonzero(np.logical_or.reduce(x > 0.0, axis=1)).tolist():
+        out[b] = x[b] @ x[b]
+    return out
+
+
+def _segment_sums(values: NDArray[np.float64], bounds: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Sums of ``values[bounds[b]:bounds[b + 1]]`` (B,), each as the sum of that segment
+    alone (np.add.reduceat adds in another order: other bits)."""
+    out = np.zeros(bounds.size - 1)
+    for b in np.flatnonzero(bounds[1:] > bounds[:-1]).tolist():
+        out[b] = _sum(values[bounds[b] : bounds[b + 1]])
+    return out
 
 
 @lru_cache(maxsize=1)
@@ -560,7 +590,8 @@ def _smooth_scale() -> NDArray[np.float64]:
 
 
 class Objective:
-    """The objective ``E(theta)`` for one frame.
+    """The objective ``E(theta)`` for one frame, at one pose (:meth:`__call__`) or at a batch
+    of poses in one evaluation (:meth:`batch`).
 
     Parameters
     ----------
@@ -669,11 +700,18 @@ class Objective:
         return values[0], grad
 
     def batch(
-        self, thetas: NDArray[np.float64], gradient: bool = True
+        self,
+        thetas: NDArray[np.float64],
+        gradient: bool = True,
+        targets: Sequence[TipTargets | None] | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """``E`` at every pose of ``thetas`` (B, 26) and, with ``gradient``, ``dE/dtheta``
-        (B, 26): pose by pose what :meth:`__call__` returns, up to rounding (the gradient None
+        (B, 26): pose by pose what :meth:`__call__` returns (the same bits; the gradient None
         without ``gradient``).
+
+        ``targets``: one :class:`TipTargets` (or None: no ``E_sal``) per pose, in place of the
+        objective's ``targets`` (e.g. each candidate's own fingertip assignment): pose ``b``
+        then gets what ``self.variant(self.config, targets[b])(thetas[b])`` returns.
 
         One evaluation with a leading batch axis through every term: the kinematics, the data
         terms (the B m model Gaussians against the data as the m of one pose), collision,
@@ -681,7 +719,16 @@ class Objective:
         one evaluation plus B times its arithmetic.
         """
         thetas = check_poses(thetas)
-        values, grads = self._evaluate(thetas, gradient, False)
+        B = thetas.shape[0]
+        if targets is not None and len(targets) != B:
+            raise InputError(f"targets: one per pose ({B}), got {len(targets)}")
+        if B == 0:
+            return np.zeros(0), np.zeros((0, N_PARAMS)) if gradient else None
+        if B == 1 and targets is None:  # (one pose: the one-pose path, faster, the same bits)
+            value, grad = self(thetas[0], gradient)
+            return np.array([value]), None if grad is None else grad[None]
+        each = _UNSET if targets is None else _stacked_targets(targets, _as_slice(self.model.tip_index))
+        values, grads = self._evaluate(thetas, gradient, False, targets_each=each)
         return values[0], grads
 
     def value_then_gradient(
@@ -789,6 +836,7 @@ class Objective:
         gradient: bool,
         terms: bool = True,
         later: list[Backward] | None = None,
+        targets_each: tuple | None | object = _UNSET,
     ) -> tuple[tuple[float, ...], NDArray[np.float64] | Callable[[], NDArray[np.float64]] | None]:
         """``(total, sim, col, dan, lim, smo, ord, sal, sil, cpl, curl)`` and the gradient (or None).
 
@@ -801,7 +849,8 @@ class Objective:
         and the gradient are read) a term whose weight is 0 is not evaluated (reported as 0):
         the total and the gradient are the same bits (it would add ``0 * value``).  With
         ``later`` (an empty list) the terms append their gradients' functions there and the
-        function that finishes the gradient is returned in its place.
+        function that finishes the gradient is returned in its place.  ``targets_each``: the
+        salient term's constants for poses (B, 26) with their own targets (see :meth:`_salient`).
         """
         batch = theta.ndim == 2
         self._support_key = b"" if batch else theta.tobytes()
@@ -848,7 +897,7 @@ class Objective:
         for w, g in ((cfg.w_cpl, g_cpl), (cfg.w_curl, g_curl)):
             if g is not None:
                 g_pose = w * g if g_pose is None else g_pose + w * g
-        sal = self._salient(P, g3, cfg.w_sal, later)
+        sal = self._salient(P, g3, cfg.w_sal, later, targets_each)
         sil = 0.0
         if self.silhouette is not None and cfg.w_sil > 0:
             sil = silhouette_term(
@@ -1079,8 +1128,8 @@ class Objective:
             r2_r = r2_U[sel]
             er = np.exp(-0.5 * r2_r / s2r)
             per_row_dan = _sum(phi * (1.0 - er), axis=1) / n
-            if L.batch:
-                dan = _accumulate(drows // self.model.n_gaussians, wdang_r * per_row_dan, L.B)
+            if L.batch:  # (each pose's rows summed as one pose's: the same bits)
+                dan = _segment_sums(wdang_r * per_row_dan, drows.searchsorted(m // L.B * np.arange(L.B + 1)))
             else:
                 dan = float(_sum(wdang_r * per_row_dan))
         if g3 is None and later is None:
@@ -1285,17 +1334,22 @@ class Objective:
         g3: NDArray[np.float64] | None,
         w_sal: float,
         later: list[Backward] | None = None,
+        each: object = _UNSET,
     ) -> float | NDArray[np.float64]:
         """``E_sal``; adds ``-w_sal dE_sal/dP`` into ``g3`` at the fingertip Gaussians (or
         appends the function that does to ``later``).  ``P``, ``g3``: (m, 3) or (B, m, 3)
-        (then ``E_sal`` is (B,))."""
-        t = self.targets
-        key, const = self._sal
-        if t is not key:  # the targets' constants, once per targets object
-            const = None
-            if t is not None and np.any(t.weights > 0):
-                const = (_as_slice(self.model.tip_index), np.asarray(t.points), t.weights / SALIENT_SCALE_MM)
-            self._sal = (t, const)
+        (then ``E_sal`` is (B,)); ``each``: the constants of every pose's own targets
+        (:func:`_stacked_targets`: points (B, 5, 3), weights (B, 5)) in place of ``targets``'."""
+        if each is not _UNSET:
+            const = each
+        else:
+            t = self.targets
+            key, const = self._sal
+            if t is not key:  # the targets' constants, once per targets object
+                const = None
+                if t is not None and np.any(t.weights > 0):
+                    const = (_as_slice(self.model.tip_index), np.asarray(t.points), t.weights / SALIENT_SCALE_MM)
+                self._sal = (t, const)
         if const is None or w_sal <= 0:
             return 0.0
         tips, points, w = const

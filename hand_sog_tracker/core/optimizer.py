@@ -286,6 +286,7 @@ def maximise_batch(
     initial_scale: float = 1.0,
     bounds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     initial_steps: NDArray[np.float64] | None = None,
+    with_index: bool = False,
 ) -> list[OptimizeResult]:
     """Maximise from every start pose of ``x0`` (B, 26) in lockstep: one call of ``fun_batch``
     per iteration evaluates all candidates still running.
@@ -311,6 +312,10 @@ def maximise_batch(
         Every iterate is projected into ``[low, high]`` (``x0`` too).
     initial_steps : array, shape (26,) or (B, 26), optional
         Start step lengths (mm / rad); override ``steps.initial`` and ``initial_scale``.
+    with_index : bool
+        Call ``fun_batch(thetas, gradient, index=index)`` with the candidates' positions in
+        ``x0`` (k,) (for an objective with something of its own per candidate, e.g.
+        ``Objective.batch``'s ``targets``).
 
     Returns
     -------
@@ -335,7 +340,12 @@ def maximise_batch(
         low = np.broadcast_to(np.asarray(bounds[0], dtype=np.float64), shape)
         high = np.broadcast_to(np.asarray(bounds[1], dtype=np.float64), shape)
         x = np.minimum(np.maximum(x, low), high)
-    val, grad = fun_batch(x)
+    def evaluate(thetas: NDArray[np.float64], index: NDArray[np.int64], gradient: bool = True):
+        if with_index:
+            return fun_batch(thetas, gradient, index=index)
+        return fun_batch(thetas, gradient)
+
+    val, grad = evaluate(x, np.arange(B))
     assert grad is not None
     val = np.array(val, dtype=np.float64)
     grad = np.array(grad, dtype=np.float64)
@@ -362,11 +372,11 @@ def maximise_batch(
         prev_sign[sel] = sign
         x[sel] = xs
         if it < iterations:
-            v, g = fun_batch(xs)
+            v, g = evaluate(xs, run_)
             assert g is not None
             grad[sel] = g
         else:  # the last iterate: only its value is used
-            v = fun_batch(xs, gradient=False)[0]
+            v = evaluate(xs, run_, False)[0]
         history[it, run_] = v
         better = v > best_val[run_]
         if better.any():

@@ -66,24 +66,33 @@ def hand_roi(
     Returns
     -------
     roi : (u0, v0, u1, v1)
-        End-exclusive pixel box at the resolution of ``intr``.
+        End-exclusive pixel box at the resolution of ``intr``, clipped to the image (every
+        consumer clips it so: a radius of many image widths, from implausible intrinsics or a
+        large ``roi_radius_mm``, then costs no more than the whole image); empty
+        ``(0, 0, 0, 0)`` when the centre does not project (not finite).
     window : (near_mm, far_mm)
     """
     P = posed_centres(model, theta) if centres is None else centres
     c = np.add.reduce(P, axis=0) / P.shape[0]  # (= P.mean(axis=0), without its Python layer)
     z = max(c[2], 50.0)
+    window = (c[2] - radius_mm, c[2] + radius_mm)
     # The centre's pixel as Intrinsics.project computes it, by Python floats (the same IEEE
     # operations in the same order).
     x, y, zc = c.tolist()
+    if not zc > 0.0:
+        return (0, 0, 0, 0), window
     u, v = intr.fx * x / zc + intr.cx, intr.fy * y / zc + intr.cy
     r_px = radius_mm * max(intr.fx, intr.fy) / max(z - radius_mm * 0.5, 50.0)
+    if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r_px)):
+        return (0, 0, 0, 0), window
+    w, h = intr.width, intr.height
     roi = (
-        math.floor(u - r_px),
-        math.floor(v - r_px),
-        math.ceil(u + r_px) + 1,
-        math.ceil(v + r_px) + 1,
+        min(max(math.floor(u - r_px), 0), w),
+        min(max(math.floor(v - r_px), 0), h),
+        max(min(math.ceil(u + r_px) + 1, w), 0),
+        max(min(math.ceil(v + r_px) + 1, h), 0),
     )
-    return roi, (c[2] - radius_mm, c[2] + radius_mm)
+    return roi, window
 
 
 def before_surface(

@@ -33,7 +33,10 @@ published on ``hand/pose`` and its links lie where the tracker's left model puts
 
 from __future__ import annotations
 
-from typing import Final
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from typing import Final, Mapping, Sequence
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -49,6 +52,9 @@ __all__ = [
     "TIP_LINKS",
     "rotation_to_rpy",
     "hand_urdf",
+    "UrdfJoint",
+    "urdf_joints",
+    "joint_transforms",
 ]
 
 #: The hand frame (origin at the wrist joint).
@@ -76,9 +82,14 @@ def _vec(v: NDArray[np.float64]) -> str:
 
 
 class _Builder:
-    def __init__(self, right: bool) -> None:
+    def __init__(self, right: bool, prefix: str = "") -> None:
         self.m = np.diag([1.0 if right else -1.0, 1.0, 1.0])
+        self.prefix = prefix
+        self.camera_frame = ""  # the root link with the virtual wrist joints: never prefixed
         self.lines: list[str] = []
+
+    def frame(self, name: str) -> str:
+        return name if name == self.camera_frame else self.prefix + name
 
     def origin(self, xyz_m: NDArray[np.float64], rot: NDArray[np.float64] | None = None) -> str:
         p = self.m @ np.asarray(xyz_m, dtype=np.float64)
@@ -92,6 +103,7 @@ class _Builder:
         return f'<axis xyz="{_vec(v)}"/>'
 
     def link(self, name: str, visual: str = "") -> None:
+        name = self.frame(name)
         if visual:
             self.lines += [f"  <link name={quoteattr(name)}>", visual, "  </link>"]
         else:
@@ -99,8 +111,8 @@ class _Builder:
 
     def joint(self, name: str, kind: str, parent: str, child: str, origin: str, extra: tuple[str, ...] = ()) -> None:
         self.lines.append(f"  <joint name={quoteattr(name)} type={quoteattr(kind)}>")
-        self.lines.append(f"    <parent link={quoteattr(parent)}/>")
-        self.lines.append(f"    <child link={quoteattr(child)}/>")
+        self.lines.append(f"    <parent link={quoteattr(self.frame(parent))}/>")
+        self.lines.append(f"    <child link={quoteattr(self.frame(child))}/>")
         self.lines.append(f"    {origin}")
         self.lines += [f"    {e}" for e in extra]
         self.lines.append("  </joint>")
@@ -112,7 +124,9 @@ class _Builder:
         )
 
 
-def hand_urdf(model: HandModel | None = None, camera_frame: str | None = None, name: str = "hand") -> str:
+def hand_urdf(
+    model: HandModel | None = None, camera_frame: str | None = None, name: str = "hand", prefix: str = ""
+) -> str:
     """URDF text of a hand model.
 
     Parameters
@@ -126,6 +140,10 @@ def hand_urdf(model: HandModel | None = None, camera_frame: str | None = None, n
         root is ``hand_wrist``.
     name : str
         The robot name.
+    prefix : str
+        Put in front of every link name of the hand (``<prefix>hand_wrist`` ...), not of
+        ``camera_frame`` nor of the joint names: the node's ``frame_prefix``, so that two
+        trackers' frames never clash.
 
     Returns
     -------
@@ -133,7 +151,7 @@ def hand_urdf(model: HandModel | None = None, camera_frame: str | None = None, n
         The URDF document (UTF-8 text ending in a newline).
     """
     model = model or default_hand_model()
-    b = _Builder(model.right)
+    b = _Builder(model.right, prefix)
     side = "right" if model.right else "left"
     shape = model.shape
     b.lines += [
@@ -148,6 +166,7 @@ def hand_urdf(model: HandModel | None = None, camera_frame: str | None = None, n
         '  <material name="tip"><color rgba="0.9 0.2 0.2 1"/></material>',
     ]
     if camera_frame:
+        b.camera_frame = camera_frame
         b.link(camera_frame)
         parent = camera_frame
         axes = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
@@ -210,6 +229,95 @@ def hand_urdf(model: HandModel | None = None, camera_frame: str | None = None, n
         b.joint(f"{FINGERS[c]}_tip_joint", "fixed", parent, TIP_LINKS[c], b.origin(model.g_offsets[tip] * _MM))
     b.lines.append("</robot>")
     return "\n".join(b.lines) + "\n"
+
+
+@dataclass(frozen=True)
+class UrdfJoint:
+    """One joint of a URDF tree, as :func:`joint_transforms` needs it.
+
+    Attributes
+    ----------
+    name, kind, parent, child : str
+        ``kind`` is ``revolute``, ``continuous``, ``prismatic`` or ``fixed``.
+    xyz : array, shape (3,), m
+        Origin of the child frame in the parent frame (at joint value 0).
+    rot : array, shape (3, 3)
+        Rotation of the origin (URDF ``rpy``: ``R = Rz(y) Ry(p) Rx(r)``).
+    axis : array, shape (3,)
+        Unit joint axis in the child frame (zeros for a fixed joint).
+    """
+
+    name: str
+    kind: str
+    parent: str
+    child: str
+    xyz: NDArray[np.float64]
+    rot: NDArray[np.float64]
+    axis: NDArray[np.float64]
+
+
+def _axis_rotation(axis: NDArray[np.float64], q: float) -> NDArray[np.float64]:
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + math.sin(q) * k + (1.0 - math.cos(q)) * (k @ k)
+
+
+def urdf_joints(text: str) -> tuple[UrdfJoint, ...]:
+    """The joints of a URDF document, parents before children (document order).
+
+    Raises
+    ------
+    ValueError
+        The text is not a URDF with ``origin`` elements on every joint.
+    """
+    out = []
+    for j in ET.fromstring(text).findall("joint"):
+        o = j.find("origin")
+        parent, child = j.find("parent"), j.find("child")
+        if o is None or parent is None or child is None:
+            raise ValueError(f"URDF joint {j.get('name')!r} lacks origin, parent or child")
+        roll, pitch, yaw = (float(v) for v in o.get("rpy", "0 0 0").split())
+        rot = _axis_rotation(np.array([0.0, 0, 1]), yaw) @ _axis_rotation(np.array([0.0, 1, 0]), pitch)
+        rot = rot @ _axis_rotation(np.array([1.0, 0, 0]), roll)
+        ax = j.find("axis")
+        axis = np.zeros(3) if j.get("type") == "fixed" else np.array(
+            [float(v) for v in (ax.get("xyz", "1 0 0") if ax is not None else "1 0 0").split()]
+        )
+        norm = float(np.linalg.norm(axis))
+        out.append(UrdfJoint(
+            str(j.get("name")), str(j.get("type")), str(parent.get("link")), str(child.get("link")),
+            np.array([float(v) for v in o.get("xyz", "0 0 0").split()]), rot, axis / norm if norm else axis,
+        ))
+    return tuple(out)
+
+
+def joint_transforms(
+    joints: Sequence[UrdfJoint], values: Mapping[str, float]
+) -> list[tuple[str, str, NDArray[np.float64], NDArray[np.float64]]]:
+    """Parent-to-child transform of every joint at the given joint values (what
+    ``robot_state_publisher`` puts on TF).
+
+    Parameters
+    ----------
+    joints : sequence of UrdfJoint
+        From :func:`urdf_joints`.
+    values : mapping
+        Joint name -> position (rad, or m for a prismatic joint); a missing joint is at 0.
+
+    Returns
+    -------
+    list of (parent, child, translation, rotation)
+        ``translation`` shape (3,) in m, ``rotation`` shape (3, 3): the child frame in the parent.
+    """
+    out = []
+    for j in joints:
+        q = float(values.get(j.name, 0.0))
+        xyz, rot = j.xyz, j.rot
+        if j.kind in ("revolute", "continuous"):
+            rot = rot @ _axis_rotation(j.axis, q)
+        elif j.kind == "prismatic":
+            xyz = xyz + rot @ (j.axis * q)
+        out.append((j.parent, j.child, xyz, rot))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

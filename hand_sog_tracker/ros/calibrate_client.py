@@ -41,7 +41,8 @@ def service_name(node_name: str) -> str:
     return (name if name.startswith("/") else "/" + name) + "/calibrate"
 
 
-def _parse(argv: Sequence[str]) -> argparse.Namespace:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``calibrate_hand`` (also read by the documentation)."""
     parser = argparse.ArgumentParser(
         prog="calibrate_hand",
         description="Calibrate the hand model of a running hand_sog_tracker node: hold an open "
@@ -57,6 +58,11 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
         "--node-name", default="hand_sog_tracker",
         help="name (with namespace if any) of the tracker node (default hand_sog_tracker)",
     )
+    return parser
+
+
+def _parse(argv: Sequence[str]) -> argparse.Namespace:
+    parser = build_parser()
     ns = parser.parse_args(list(argv))
     if not ns.timeout > 0:
         parser.error("--timeout must be positive")

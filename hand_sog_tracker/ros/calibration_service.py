@@ -219,6 +219,7 @@ class CalibrationService:
     _calib_wake: GuardCondition
     _fit_worker: FitWorker
     _model_generation: int = 0
+    _calibrating: bool = False  # a ~/calibrate call is being served (set on the instance)
 
     def _run_fit(self, args: tuple, kwargs: dict) -> CalibrationResult:
         """:func:`~hand_sog_tracker.core.calibration.calibrate` in the child process
@@ -296,6 +297,20 @@ class CalibrationService:
         threading.Thread(target=work, name="hand_sog_auto_calibration", daemon=True).start()
 
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """The ``~/calibrate`` callback: :meth:`_calibrate`, one call at a time; a call that comes
+        while one is served is answered at once, ``success: false``, ``"busy: ..."`` (the
+        service's callback group is reentrant, so no call waits in a queue for the fit)."""
+        if self._calibrating:
+            response.success = False
+            response.message = "busy: a calibration is running (call again when it has answered)"
+            return response
+        self._calibrating = True
+        try:
+            return await self._calibrate(request, response)
+        finally:
+            self._calibrating = False
+
+    async def _calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Fit the hand model to recent frames in a child process; tracking goes on meanwhile.
 
         The callback is a coroutine: it starts a worker thread, which runs the fit in a child
@@ -307,7 +322,7 @@ class CalibrationService:
         ones) and is checked on up to CALIB_HOLDOUT other frames of it (the guard of
         :func:`~hand_sog_tracker.core.calibration.calibrate`); a refused fit changes and
         saves nothing.  A fit that is saved ends the automatic fits.  Calls are served one at
-        a time (own callback group).
+        a time (:meth:`_on_calibrate`).
         """
         with self._tracker_lock:  # a consistent snapshot of the history and the model
             history = self._calib_history.frames()

@@ -33,20 +33,31 @@ core tracker's whole search (the same answers as ``evaluate_bag``'s core mode; a
 re-sent with the stamp of the last one gets the same answer again).  A machine that cannot
 keep up drops whole frames, never part of a frame's search.  Frames that are never processed are counted: ``dropped``
 (received but replaced by a newer one before processing) and ``missed`` (replaced inside
-DDS, so never received; estimated
-from gaps in the image stamps against the shortest stamp interval seen).
+DDS, so never received; estimated from gaps in the image stamps against the camera period,
+the running median of the last :data:`RATE_WINDOW` intervals, learned anew after a pause or
+a jump back).
 :func:`main` spins a single-threaded executor (see :func:`make_executor`).
 
 Robustness: a bad frame (encoding, size, truncated data, no CameraInfo yet,
 stamps going backwards, resolution change, any error from the core) is
 skipped with a throttled warning naming the problem and counted as rejected;
-the tracker state is reset only where the track cannot continue.
+the tracker state is reset only where the track cannot continue.  Every frame is bounded:
+images above ``max_image_pixels`` are refused before anything of their size is allocated,
+implausible CameraInfo is refused (:func:`~hand_sog_tracker.interface.camera_info_to_intrinsics`),
+the core clips its search to the image and caps its data, and a frame over ``frame_budget_ms``
+is warned about and counted (``frames_cut``, ``worst_frame_ms`` in /diagnostics; its search is
+never cut, issue 45).
+An image without ``frame_id`` is tracked in :data:`DEFAULT_FRAME_ID` (with a warning); stamps
+more than :data:`STAMP_SKEW_S` from the node's clock are warned about and left out of
+``latency_ms``.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import copy
+import math
 import re
 import sys
 import threading
@@ -62,7 +73,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from numpy.typing import NDArray
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.context import Context
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -85,7 +96,7 @@ from hand_sog_tracker.core.model_io import load_hand_shape
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerStatus, TrackResult
-from hand_sog_tracker.core.urdf import hand_urdf
+from hand_sog_tracker.core.urdf import UrdfJoint, hand_urdf, urdf_joints
 from hand_sog_tracker.errors import (
     DepthImageError,
     HandSogError,
@@ -117,11 +128,11 @@ from hand_sog_tracker.ros.conversions import (
     delete_all_markers,
     diagnostic_array,
     fingertip_markers,
-    hand_transforms,
     joint_state_msg,
     keypoints_msg,
     pose_msg,
 )
+from hand_sog_tracker.ros.frames import description_transforms
 from hand_sog_tracker.ros.params import (
     NodeSettings,
     declare_node_parameters,
@@ -139,6 +150,20 @@ COMPRESSED_TOPIC = COMPRESSED_DEPTH_TOPIC
 WARN_THROTTLE_S = 2.0
 #: A gap between two received images longer than this is a pause, not missed frames.
 MAX_GAP_S = 1.0
+#: Intervals between received images whose running median is the camera period (a burst at
+#: 200 Hz is forgotten after this many intervals at the camera's own rate).
+RATE_WINDOW = 15
+#: Where outputs of an image without ``header.frame_id`` are (the usual optical frame of a
+#: depth camera driver).
+DEFAULT_FRAME_ID = "camera_depth_optical_frame"
+#: Image stamps further than this from the node's clock (s) are warned about and left out of the
+#: latency in /diagnostics (a bag replayed without use_sim_time, unsynchronised clocks).
+STAMP_SKEW_S = 30.0
+#: Seconds a fingertip marker stays in RViz without a newer one (so a stopped node's hand goes).
+MARKER_LIFETIME_S = 1.0
+#: ~/calibrate requests kept while the executor is busy with a frame (each is then answered at
+#: once, "busy" during a fit): more calls arriving within one frame's processing are lost.
+CALIBRATE_QUEUE = 100
 _NUMBERS = re.compile(r"\d+(\.\d+)?")
 
 
@@ -159,6 +184,8 @@ class NodeStats:
         frame was processed), estimated from gaps in the image stamps.
     rejected : int
         Frames skipped because of bad input.
+    cut : int
+        Processed frames that took longer than ``frame_budget_ms`` (never cut: reported).
     last_problem : str
         Why the last frame was rejected ("" if none was).
     status : TrackerStatus
@@ -172,6 +199,7 @@ class NodeStats:
     dropped: int = 0
     missed: int = 0
     rejected: int = 0
+    cut: int = 0
     last_problem: str = ""
     status: TrackerStatus = TrackerStatus.NO_HAND
     confidence: float = 0.0
@@ -187,6 +215,8 @@ class _Window:
     proc_ms: float = 0.0
     answer_ms: float = 0.0  # from the start of a frame's processing to its result published
     latency_ms: float = 0.0
+    latency_frames: int = 0  # frames whose stamp is within STAMP_SKEW_S of the clock
+    worst_ms: float = 0.0  # the longest processing of a frame
     start: float = field(default_factory=time.monotonic)
 
 
@@ -228,7 +258,8 @@ class TrackerNode(CalibrationService, Node):
         self._window = _Window()
         self._pending: Image | CompressedImage | None = None
         self._rx_stamp_ns: int | None = None  # stamp of the last received image
-        self._period_ns: int | None = None  # shortest interval between received images
+        self._period_ns: int | None = None  # camera period: median of the recent intervals
+        self._intervals: collections.deque[int] = collections.deque(maxlen=RATE_WINDOW)
         self._intrinsics: Intrinsics | None = None
         self._intrinsics_problem = ""
         # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).
@@ -242,6 +273,8 @@ class TrackerNode(CalibrationService, Node):
         self._last_answer: tuple[int, TrackResult, NDArray[np.float32], Intrinsics] | None = None
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
+        self._last_intr: Intrinsics | None = None  # of the last frame that passed the checks
+        self._last_intr_shape: tuple[int, int] | None = None
         self._markers_shown = False
         self._frame_id = ""
         # Recent tracked frames for ~/calibrate and the automatic fit (calibration_service.py),
@@ -252,8 +285,10 @@ class TrackerNode(CalibrationService, Node):
 
         # Every callback is in the node's default group except ~/calibrate: its coroutine holds
         # its callback group while it awaits the calibration worker thread, so it gets a group
-        # of its own (one call at a time) and tracking goes on in the default group meanwhile.
-        self._calib_group = MutuallyExclusiveCallbackGroup()
+        # of its own and tracking goes on in the default group meanwhile.  A reentrant group:
+        # a call that comes during a fit is taken at once and answered "busy" (a mutually
+        # exclusive one left such calls in the service's queue, beyond which they were lost).
+        self._calib_group = ReentrantCallbackGroup()
         sensor_qos = copy.copy(qos_profile_sensor_data)
         sensor_qos.depth = 1
         out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
@@ -284,6 +319,7 @@ class TrackerNode(CalibrationService, Node):
         )
         self._description_pub = self.create_publisher(String, DESCRIPTION_TOPIC, latched)
         self._described: tuple[HandModel, str | None] | None = None
+        self._description_joints: tuple[UrdfJoint, ...] = ()
         self._tf_pub: Any = None  # created on first use (tf2_msgs is optional)
         self._debug_pub = self.create_publisher(
             Image, DEBUG_IMAGE_TOPIC, QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
@@ -292,7 +328,8 @@ class TrackerNode(CalibrationService, Node):
         self._publish_description(None)
 
         self._calibrate_srv = self.create_service(
-            Trigger, CALIBRATE_SERVICE, self._on_calibrate, callback_group=self._calib_group
+            Trigger, CALIBRATE_SERVICE, self._on_calibrate, callback_group=self._calib_group,
+            qos_profile=QoSProfile(depth=CALIBRATE_QUEUE, reliability=ReliabilityPolicy.RELIABLE),
         )
         # Triggered by the calibration worker when it is done: wakes the executor, which then
         # resumes the waiting (async) service callback.
@@ -391,32 +428,40 @@ class TrackerNode(CalibrationService, Node):
     def _missed_before(self, stamp: int) -> int:
         """Frames the camera must have sent between the last received image and this one.
 
-        The camera period is taken as the shortest interval seen between two received images;
-        a gap over :data:`MAX_GAP_S` is a pause of the stream, not lost frames.
+        The camera period is the running median of the last :data:`RATE_WINDOW` intervals
+        between received images (robust to a burst, a stall or a missed frame, and forgotten
+        within that many frames when the rate changes); a gap over :data:`MAX_GAP_S` is a pause
+        of the stream, not lost frames, and like a jump back starts the estimate anew.
         """
         prev, self._rx_stamp_ns = self._rx_stamp_ns, stamp
-        if prev is None:
-            return 0
-        if stamp < prev:  # bag loop or clock reset: learn the period anew
-            self._period_ns = None
+        if prev is None or stamp == prev:
             return 0
         gap = stamp - prev
-        if gap == 0:
+        if gap < 0 or gap > MAX_GAP_S * 1e9:  # bag loop, clock reset or pause: learn the period anew
+            self._intervals.clear()
+            self._period_ns = None
             return 0
-        if self._period_ns is None or gap < self._period_ns:
-            self._period_ns = gap
+        period = self._period_ns
+        self._intervals.append(gap)
+        self._period_ns = int(np.median(self._intervals))
+        if period is None:
             return 0
-        if gap > MAX_GAP_S * 1e9:
-            return 0
-        return max(int(round(gap / self._period_ns)) - 1, 0)
+        return max(int(round(gap / period)) - 1, 0)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
+        """Keep the intrinsics of a usable CameraInfo; an unusable one (its reason warned
+        about) leaves none, so the images meanwhile are rejected with that reason."""
         try:
             intr = camera_info_to_intrinsics(msg)
         except IntrinsicsError as err:
             self._intrinsics = None
             self._intrinsics_problem = f"unusable CameraInfo: {err}"
             self._warn(f"unusable CameraInfo on {self._info_sub.topic_name}: {err}")
+            return
+        except (TypeError, ValueError, OverflowError, AttributeError) as err:  # (fields of other types)
+            self._intrinsics = None
+            self._intrinsics_problem = f"unusable CameraInfo: {err!r}"
+            self._warn(f"unusable CameraInfo on {self._info_sub.topic_name}: {err!r}")
             return
         self._intrinsics = intr
         self._intrinsics_problem = ""
@@ -431,7 +476,9 @@ class TrackerNode(CalibrationService, Node):
             "output_rate_hz": n_proc / dt,
             "processing_ms": w.proc_ms / n_proc if n_proc else 0.0,
             "answer_ms": w.answer_ms / n_proc if n_proc else 0.0,
-            "latency_ms": w.latency_ms / n_proc if n_proc else 0.0,
+            # (NaN when no frame's stamp was within STAMP_SKEW_S of the clock)
+            "latency_ms": w.latency_ms / w.latency_frames if w.latency_frames else (math.nan if n_proc else 0.0),
+            "worst_frame_ms": w.worst_ms,
             "status": c.status.value,
             "confidence": c.confidence,
             "frames_received": c.received,
@@ -439,6 +486,7 @@ class TrackerNode(CalibrationService, Node):
             "frames_dropped": c.dropped,
             "frames_missed": c.missed,
             "frames_rejected": c.rejected,
+            "frames_cut": c.cut,
             "last_problem": c.last_problem,
         }
         win_received, win_rejected, last_problem = w.received, w.rejected, c.last_problem
@@ -453,7 +501,7 @@ class TrackerNode(CalibrationService, Node):
             diagnostic_array(
                 self.get_clock().now().to_msg(),
                 f"{NODE_NAME}: {self.get_fully_qualified_name()}",
-                self._frame_id,
+                self._frame_id or self._image_sub.topic_name,  # hardware_id: the camera
                 level,
                 message,
                 values,
@@ -471,8 +519,18 @@ class TrackerNode(CalibrationService, Node):
             with self._tracker_lock:
                 answered_at = self._process(msg, intr, intr_problem)
             if answered_at is not None:
-                self._window.proc_ms += (time.perf_counter() - t0) * 1e3
+                ms = (time.perf_counter() - t0) * 1e3
+                self._window.proc_ms += ms
                 self._window.answer_ms += (answered_at - t0) * 1e3
+                self._window.worst_ms = max(self._window.worst_ms, ms)
+                if ms > self._settings.frame_budget_ms:
+                    # (Reported, never cut: a frame runs its whole search, issue 45; the frames
+                    # the camera sent meanwhile are dropped whole and counted as missed.)
+                    self._stats = replace(self._stats, cut=self._stats.cut + 1)
+                    self._warn(
+                        f"frame took {ms:.0f} ms, over its budget of {self._settings.frame_budget_ms:.0f} ms "
+                        "(frame_budget_ms); the frames that arrived meanwhile are dropped"
+                    )
         except Exception as err:  # noqa: BLE001 - a bug in one frame must not kill the node
             if not self.context.ok():
                 return
@@ -514,8 +572,17 @@ class TrackerNode(CalibrationService, Node):
         settings = self._settings
         if settings.tracker != self._tracker.config:
             self._tracker.set_config(settings.tracker)
+        if not header.frame_id:
+            self._warn(f"image without header.frame_id: outputs are in '{DEFAULT_FRAME_ID}'")
+            header = Header(stamp=header.stamp, frame_id=DEFAULT_FRAME_ID)
 
         stamp = stamp_to_ns(header.stamp)
+        skew_s = (stamp - self.get_clock().now().nanoseconds) * 1e-9
+        if abs(skew_s) > STAMP_SKEW_S:
+            self._warn(
+                f"image stamp is {abs(skew_s):.0f} s {'ahead of' if skew_s > 0 else 'behind'} the node's clock "
+                "(unsynchronised clocks, or a bag replayed without use_sim_time?): tracked, left out of latency_ms"
+            )
         if self._last_stamp_ns is not None and stamp < self._last_stamp_ns:
             back_s = (self._last_stamp_ns - stamp) * 1e-9
             self._last_stamp_ns = stamp
@@ -535,7 +602,10 @@ class TrackerNode(CalibrationService, Node):
             return None
 
         try:
-            depth = compressed_image_to_depth_mm(msg) if isinstance(msg, CompressedImage) else image_to_depth_mm(msg)
+            if isinstance(msg, CompressedImage):
+                depth = compressed_image_to_depth_mm(msg, settings.max_image_pixels)
+            else:
+                depth = image_to_depth_mm(msg, settings.max_image_pixels)
         except DepthImageError as err:
             self._reject(f"bad depth image: {err}")
             self._warn(f"bad depth image: {err}: frame skipped")
@@ -558,9 +628,23 @@ class TrackerNode(CalibrationService, Node):
             self._reject(problem)
             self._warn(f"{problem}: frame skipped")
             return None
+        if self._last_intr is not None and intr != self._last_intr and shape == self._last_intr_shape:
+            # A pose fitted with other intrinsics is wrong with these (a track carried over
+            # from a K 2x off stayed 60 mm off): start anew, as on a resolution change.
+            self._warn(f"CameraInfo changed ({self._last_intr} -> {intr}): tracker reset")
+            self._reset_track(header)
+            self._calib_history.clear()
+        self._last_intr, self._last_intr_shape = intr, shape
 
-        if not np.any(depth > 0.0):
+        top = float(depth.max())
+        if top <= 0.0:
             self._warn("depth image has no valid pixels (all 0, NaN or Inf)")
+        else:
+            unit_problem = self._unit_problem(msg, depth, top)
+            if unit_problem:
+                self._reject(unit_problem)
+                self._warn(f"{unit_problem}: frame skipped")
+                return None
 
         last = self._last_answer
         try:
@@ -587,8 +671,30 @@ class TrackerNode(CalibrationService, Node):
             confidence=float(result.confidence),
         )
         self._window.processed += 1
-        self._window.latency_ms += latency_ms
+        if abs(skew_s) <= STAMP_SKEW_S:
+            self._window.latency_ms += latency_ms
+            self._window.latency_frames += 1
         return answered_at
+
+    def _unit_problem(self, msg: Image | CompressedImage, depth: NDArray[np.float32], top: float) -> str:
+        """Why depth whose valid pixels all lie outside ``[near_mm, far_mm]`` looks like the wrong
+        unit ("" if it does not): metres sent as 16UC1, or millimetres as 32FC1."""
+        cfg = self._tracker.config
+        encoding = msg.format if isinstance(msg, CompressedImage) else msg.encoding
+        encoding = str(encoding).split(";")[0].strip().upper()
+        if encoding in ("16UC1", "MONO16") and top < cfg.near_mm:
+            return (
+                f"every valid depth of this {encoding} image is at most {top:.0f} mm, nearer than near_mm = "
+                f"{cfg.near_mm:g}: depth in metres sent as 16UC1 (which is mm)?"
+            )
+        if encoding == "32FC1" and top > max(cfg.far_mm, 1e5):  # (beyond 100 m: no depth camera's)
+            nearest = float(depth[depth > 0.0].min())
+            if nearest > max(cfg.far_mm, 1e5):
+                return (
+                    f"every valid depth of this 32FC1 image is at least {nearest / 1000:.0f} m: depth in "
+                    "millimetres sent as 32FC1 (which is metres)?"
+                )
+        return ""
 
     @staticmethod
     def _take_waiting(sub: Subscription, callback: Callable[[Any], None]) -> bool:
@@ -626,11 +732,12 @@ class TrackerNode(CalibrationService, Node):
             # outputs at 30-100 Hz; a pose and keypoints nobody reads cost 0.45 ms per frame).
             # The fingertips first: what most listeners (and the evaluations) wait for.
             if self._marker_pub.get_subscription_count():
-                self._marker_pub.publish(
-                    fingertip_markers(
-                        header, result.fingertips_mm, result.skeleton_mm, self._tracker.model.tip_radii
-                    )
+                markers = fingertip_markers(
+                    header, result.fingertips_mm, result.skeleton_mm, self._tracker.model.tip_radii
                 )
+                for m in markers.markers:
+                    m.lifetime.sec, m.lifetime.nanosec = int(MARKER_LIFETIME_S), int(MARKER_LIFETIME_S % 1 * 1e9)
+                self._marker_pub.publish(markers)
                 self._markers_shown = True
             if self._joint_pub.get_subscription_count():
                 self._joint_pub.publish(joint_state_msg(header, result.pose, wrist_joints))
@@ -639,7 +746,7 @@ class TrackerNode(CalibrationService, Node):
             if result.skeleton_mm is not None and self._keypoints_pub.get_subscription_count():
                 self._keypoints_pub.publish(keypoints_msg(header, result.skeleton_mm, result.fingertips_mm))
             if self._settings.publish_tf:
-                self._publish_tf(header, result.pose, result.fingertips_mm)
+                self._publish_tf(header, result.pose, result.fingertips_mm, wrist_joints)
         elif self._markers_shown:
             self._marker_pub.publish(delete_all_markers(header))
             self._markers_shown = False
@@ -666,10 +773,14 @@ class TrackerNode(CalibrationService, Node):
             # (a calibration, or a new track of a small hand on the default model's small size)
             self.get_logger().info(f"hand model in use: {model.shape}")
         self._described = (model, camera_frame)
-        self._description_pub.publish(String(data=hand_urdf(model, camera_frame=camera_frame or None)))
+        text = hand_urdf(model, camera_frame=camera_frame or None, prefix=self._settings.frame_prefix)
+        self._description_joints = urdf_joints(text)
+        self._description_pub.publish(String(data=text))
 
-    def _publish_tf(self, header: Header, pose: NDArray[np.float64], tips_mm: NDArray[np.float64]) -> None:
-        """Broadcast the wrist and fingertip frames on /tf (publish_tf is validated: tf2_msgs exists)."""
+    def _publish_tf(
+        self, header: Header, pose: NDArray[np.float64], tips_mm: NDArray[np.float64], wrist_joints: bool
+    ) -> None:
+        """Broadcast the hand's frames on /tf (publish_tf is validated: tf2_msgs exists)."""
         if self._tf_pub is None:
             from tf2_msgs.msg import TFMessage  # optional dependency, checked by the parameter
 
@@ -677,20 +788,24 @@ class TrackerNode(CalibrationService, Node):
             self._tf_pub = self.create_publisher(
                 TFMessage, TF_TOPIC, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
             )
-        self._tf_pub.publish(self._tf_msg_type(transforms=hand_transforms(header, pose, tips_mm)))
+        transforms = description_transforms(
+            header, self._description_joints, pose, tips_mm, wrist_joints, self._settings.frame_prefix
+        )
+        self._tf_pub.publish(self._tf_msg_type(transforms=transforms))
 
 def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
     """The executor :func:`main` uses: single-threaded.
 
     rclpy 7.1's ``MultiThreadedExecutor`` re-wakes itself thousands of times a second while
-    callbacks run in its pool (measured with this node: ~3000 wake-ups/s, end-to-end latency
-    up to seconds instead of ~17 ms), so the node runs single-threaded.  A ``~/calibrate`` call
+    callbacks run in its pool (end-to-end latency of seconds with this node), so the node runs
+    single-threaded.  A ``~/calibrate`` call
     does not pause tracking: its callback is a coroutine awaiting a worker thread.
     """
     return SingleThreadedExecutor(context=context)
 
 
-def _parse_cli(argv: Sequence[str]) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``tracker_node``: only ``--help``; the node is configured by ROS parameters."""
     parser = argparse.ArgumentParser(
         prog="tracker_node",
         description="Sum-of-Gaussians hand tracker (ROS 2 node). Configure it with ROS "
@@ -704,7 +819,11 @@ def _parse_cli(argv: Sequence[str]) -> None:
         "service ~/calibrate (see calibrate_hand). Without a saved hand model it fits the model "
         "by itself once, half a second into tracking (-p auto_calibrate:=false turns that off).",
     )
-    parser.parse_args(list(argv))
+    return parser
+
+
+def _parse_cli(argv: Sequence[str]) -> None:
+    build_parser().parse_args(list(argv))
 
 
 def main(args: list[str] | None = None) -> None:

@@ -4,17 +4,22 @@ Every tunable of :class:`~hand_sog_tracker.core.types.TrackerConfig` becomes a
 parameter of the same name (units in the name), except ``right_hand`` which is
 the string parameter ``handedness`` (``right`` / ``left``).  Node-only
 parameters: ``user_model_path``, ``debug_image``, ``calibration_frames``,
-``auto_calibrate``, ``input_transport``, ``publish_wrist_joints`` and ``publish_tf``.
+``auto_calibrate``, ``input_transport``, ``publish_wrist_joints``, ``publish_tf``,
+``frame_prefix``, ``max_image_pixels`` and ``frame_budget_ms``.
 
 The values are validated as a whole by building a :class:`NodeSettings` (which
 builds a ``TrackerConfig``), both at start-up and in the on-set callback, so a
-rejected change names the reason (e.g. ``need 0 < near_mm < far_mm``).
+rejected change names the reason (e.g. ``need 0 < near_mm < far_mm``).  A start-up value of
+the wrong type (``-p near_mm:=abc``, ``-p far_mm:=800`` for a double, ``-p iterations:=7.5``)
+is one :class:`~hand_sog_tracker.errors.InputError` naming the parameter, the value and the
+type expected (:func:`declare_node_parameters`), not a traceback.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Union
@@ -26,9 +31,11 @@ from rcl_interfaces.msg import (
     ParameterType,
     SetParametersResult,
 )
+from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from hand_sog_tracker.compressed_depth import MAX_IMAGE_PIXELS
 from hand_sog_tracker.core.model_io import default_model_path
 from hand_sog_tracker.core.types import TrackerConfig
 from hand_sog_tracker.errors import InputError
@@ -206,8 +213,32 @@ PARAM_SPECS: tuple[ParamSpec, ...] = _tracker_specs() + (
     ParamSpec(
         "publish_tf",
         False,
-        "Broadcast hand_wrist (in the image frame) and <finger>_fingertip frames on /tf "
-        "(needs the tf2_msgs package).",
+        "Broadcast the hand on /tf: hand_wrist in the image frame, every link of hand/robot_description "
+        "and the <finger>_fingertip frames (needs the tf2_msgs package).",
+    ),
+    ParamSpec(
+        "frame_prefix",
+        "",
+        "Put in front of every frame the node names: the TF frames and the links of hand/robot_description "
+        "(e.g. left_ for a second tracker); the image frame and the joint names keep theirs.",
+        read_only=True,
+    ),
+    ParamSpec(
+        "max_image_pixels",
+        MAX_IMAGE_PIXELS,
+        "Depth images of more pixels (width x height) are rejected before they are converted or "
+        "decoded (a compressed image by the size its header declares).",
+        10_000,
+        50_000_000,
+    ),
+    ParamSpec(
+        "frame_budget_ms",
+        200.0,
+        "Time budget of one frame (ms): a frame that takes longer is warned about and counted "
+        "in /diagnostics (frames_cut); its search is never cut, the frames that arrive meanwhile "
+        "are dropped whole.",
+        10.0,
+        10000.0,
     ),
 )
 PARAM_NAMES: tuple[str, ...] = tuple(s.name for s in PARAM_SPECS)
@@ -230,6 +261,9 @@ class NodeSettings:
     input_transport : {"raw", "compressedDepth"}
     publish_wrist_joints : bool
     publish_tf : bool
+    frame_prefix : str
+    max_image_pixels : int
+    frame_budget_ms : float
     """
 
     tracker: TrackerConfig
@@ -240,6 +274,13 @@ class NodeSettings:
     input_transport: str = "raw"
     publish_wrist_joints: bool = False
     publish_tf: bool = False
+    frame_prefix: str = ""
+    max_image_pixels: int = MAX_IMAGE_PIXELS
+    frame_budget_ms: float = 200.0
+
+
+#: Characters a frame prefix may hold (those of ROS names and TF frame ids).
+_FRAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_/")
 
 
 def tf_available() -> bool:
@@ -289,6 +330,9 @@ def settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
             "parameter publish_tf=true needs the tf2_msgs Python package, which is not installed here "
             "(install ros-jazzy-tf2-msgs / source a ROS installation); use hand/pose instead"
         )
+    bad = sorted(set(v["frame_prefix"]) - _FRAME_CHARS)
+    if bad:
+        raise InputError(f"parameter frame_prefix may hold letters, digits, _ and / only, got {v['frame_prefix']!r}")
     path = Path(v["user_model_path"]).expanduser() if v["user_model_path"] else default_model_path()
     return NodeSettings(
         tracker=tracker,
@@ -299,6 +343,9 @@ def settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
         input_transport=str(v["input_transport"]),
         publish_wrist_joints=bool(v["publish_wrist_joints"]),
         publish_tf=bool(v["publish_tf"]),
+        frame_prefix=str(v["frame_prefix"]),
+        max_image_pixels=int(v["max_image_pixels"]),
+        frame_budget_ms=float(v["frame_budget_ms"]),
     )
 
 
@@ -308,12 +355,41 @@ def declare_node_parameters(node: Node) -> NodeSettings:
     Raises
     ------
     InputError
-        The start-up values (params file, ``-p``, ``parameter_overrides``) are invalid.
+        The start-up values (params file, ``-p``, ``parameter_overrides``) are invalid, or of
+        the wrong type (one line naming the parameter, the value and the type expected).
     rclpy.exceptions.InvalidParameterValueException
         A value is outside a descriptor range.
     """
-    node.declare_parameters("", [(s.name, s.default, s.descriptor()) for s in PARAM_SPECS])
+    try:
+        node.declare_parameters("", [(s.name, s.default, s.descriptor()) for s in PARAM_SPECS])
+    except InvalidParameterTypeException as err:
+        raise InputError(_type_mistake(err)) from None
     return read_settings(node)
+
+
+_TYPE_NAMES = {bool: "a boolean (true or false)", int: "an integer", float: "a double", str: "a string"}
+
+
+_TYPE_MISTAKE = re.compile(r"parameter '(?P<name>[^']*)' to '(?P<value>.*)' of type '(?P<type>\w+)'", re.S)
+
+
+def _type_mistake(err: InvalidParameterTypeException) -> str:
+    """One line for a start-up value of the wrong type: the parameter, the value, what it must be.
+
+    (rclpy 7.1's exception keeps neither the parameter nor the value: they are read from its
+    message, which is used as it is when it cannot be read.)
+    """
+    found = _TYPE_MISTAKE.search(str(err))
+    spec = _SPEC_BY_NAME.get(found["name"]) if found else None
+    if found is None or spec is None:
+        return str(err)
+    value, expected = found["value"], type(spec.default)
+    hint = ""
+    if expected is float and found["type"] == "INTEGER":
+        hint = f" (write {value}.0)"
+    elif expected is str:
+        hint = f' (quote it: {spec.name}:="\'{value}\'")'
+    return f"parameter {spec.name} must be {_TYPE_NAMES[expected]}{hint}, got {found['type'].lower()} {value!r}"
 
 
 def read_settings(node: Node) -> NodeSettings:
@@ -349,8 +425,11 @@ def _yaml_value(value: Value) -> str:
     return f'"{value}"'
 
 
-def params_yaml(node_name: str = "hand_sog_tracker") -> str:
+def params_yaml(node_name: str = "/**") -> str:
     """A ROS 2 params file with every parameter at its default.
+
+    Keyed ``/**`` (any node name, any namespace) by default: a file keyed by the node's name
+    is ignored once the node runs in a namespace (``-r __ns:=/robot``).
 
     ``config/hand_sog_tracker.yaml`` is this text (a test checks it); regenerate it with
     ``python -m hand_sog_tracker.ros.params > config/hand_sog_tracker.yaml``.

@@ -2,6 +2,8 @@
 
 Console scripts (``setup.py``)
 ------------------------------
+``ros2 run hand_sog_tracker <name>``; a pip install names them ``hand_sog_<name>``.
+
 evaluate_bag
     Score the tracker on bags with fingertip ground truth (core mode or ``--through-node``).
 replay_bag

@@ -69,11 +69,17 @@ def _evaluate(path: str, config: TrackerConfig, match_mm: float) -> tuple[int, i
     return tp, n_det, n_true
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Print precision and recall per bag and in total; exit 2 on a bag error."""
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``detector_eval`` (also read by the documentation)."""
     parser = argparse.ArgumentParser(prog="detector_eval", description=__doc__.split("\n\n")[0])
     parser.add_argument("bags", nargs="+", metavar="BAG_OR_FOLDER")
     parser.add_argument("--match-mm", type=float, default=15.0, help="3D match distance (default 15)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Print precision and recall per bag and in total; exit 2 on a bag error."""
+    parser = build_parser()
     args = parser.parse_args(argv)
     config = TrackerConfig()
     totals = np.zeros(3, dtype=np.int64)

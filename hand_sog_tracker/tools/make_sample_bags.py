@@ -500,8 +500,8 @@ def _report(bag: SampleBag) -> None:
     )
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Console entry point; returns the exit status (0 ok, 2 error)."""
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``make_sample_bags`` (also read by the documentation)."""
     p = argparse.ArgumentParser(
         prog="make_sample_bags",
         description="Write deterministic synthetic depth bags with fingertip ground truth, one per motion.",
@@ -529,6 +529,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--background-mm", type=float, default=None, metavar="MM",
                    help="render a noisy wall at this depth behind the hand (default: none, i.e. no return; "
                    "a wall makes each 90-frame bag ~5 MB instead of ~0.7 MB)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry point; returns the exit status (0 ok, 2 error)."""
+    p = build_parser()
     args = p.parse_args(argv)
     if args.frames is not None and args.frames < 1:
         p.error("--frames must be >= 1")

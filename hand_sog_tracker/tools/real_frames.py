@@ -16,10 +16,10 @@ image) and the last result's fingertips are scored against the labels (3D distan
 Besides the frame as recorded, :data:`VARIANTS` moves the image and its labels by one whole
 pixel in each direction (``np.roll``) or offsets every valid depth by +-3 mm, and ``mirror``
 flips each variant left-right (``u -> W - 1 - u``, ``cx -> W - 1 - cx``) and tracks it as a
-left hand: 8 frames x 7 variants x 2 hands are the README's "112 runs".  Such small changes
-decide between the right pose and a hand one finger over on some frames (README, known
+left hand: 8 frames x 7 variants x 2 hands are the documentation's "112 runs".  Such small changes
+decide between the right pose and a hand one finger over on some frames (documentation, known
 limitations), so a single run per frame says little.  ``--wide`` runs :data:`WIDE_VARIANTS` instead
-(larger shifts, used less often for decisions: with ``--no-mirror`` the README's "128 runs").
+(larger shifts, used less often for decisions: with ``--no-mirror`` the documentation's "128 runs").
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ __all__ = [
 ]
 
 #: Times each frame is processed (count): the first pass finds the hand, the other nine track it
-#: on the same image (the node, too, refines a single image 9 times before it answers: README).
+#: on the same image (the node, too, refines a single image 9 times before it answers: ``ros/node.py``).
 PASSES = 10
 #: A run that misses by more than this (mean over the five fingertips, mm) is counted apart:
 #: typically a hand one finger over.
@@ -74,7 +74,7 @@ VARIANTS: tuple[Variant, ...] = (
 )
 
 
-#: Larger shifts, checked less often for decisions (the README's "128 runs", right hands): the image
+#: Larger shifts, checked less often for decisions (the documentation's "128 runs", right hands): the image
 #: rolled by 3 px left or right and 2 px up or down, each with a depth offset of -3, -1, +1 or +3 mm.
 WIDE_VARIANTS: tuple[Variant, ...] = tuple(
     Variant(du, dv, dz) for du in (-3, 3) for dv in (-2, 2) for dz in (-3.0, -1.0, 1.0, 3.0)
@@ -204,7 +204,8 @@ def number_list(spec: str) -> list[int]:
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``real_frames`` (also read by the documentation)."""
     parser = argparse.ArgumentParser(
         prog="real_frames",
         description="Fingertip error of the core tracker on labelled single depth frames, each fed "
@@ -225,9 +226,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     which.add_argument(
         "--wide", action="store_true",
-        help="16 larger shifts instead (u +-3 px, v +-2 px, depth +-1/+-3 mm; with --no-mirror the README's 128 runs)",
+        help="16 larger shifts instead (u +-3 px, v +-2 px, depth +-1/+-3 mm; "
+        "with --no-mirror the documentation's 128 runs)",
     )
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every run to this JSON file")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     try:
         labels = json.loads(args.labels.read_text())

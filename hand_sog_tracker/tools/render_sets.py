@@ -20,7 +20,7 @@ the automatic calibration on (as the node and ``evaluate_bag`` do), and every fr
 the mean distance of the five fingertips from the truth (mm), 100 mm for a frame without a
 hand.
 
-The README's sets are the seeds 3000-3095 (development: look, tune), 5000-5095 (validation)
+The documentation's sets are the seeds 3000-3095 (development: look, tune), 5000-5095 (validation)
 and 7000-7095 (further: score only).  ``--compare`` prints how a set moved against an earlier
 ``--json`` of the same seeds (renders better or worse by more than 0.3 mm, frames over 20 mm).
 A render takes 1-2 s per core; ``--jobs`` runs renders in parallel processes (the results do
@@ -310,12 +310,13 @@ def _renders_of(path: Path) -> dict[str, dict[str, Any]]:
     return renders
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``render_sets`` (also read by the documentation)."""
     parser = argparse.ArgumentParser(
         prog="render_sets",
         description="Track sets of random mesh renders (motion, hand, sensor and wrist bend drawn per "
         "seed) with a fresh core tracker each, automatic calibration on, and print the mean fingertip "
-        "error per motion and sensor. The README's sets: 3000-3095 (development), 5000-5095 "
+        "error per motion and sensor. The documentation's sets: 3000-3095 (development), 5000-5095 "
         "(validation), 7000-7095 (further).",
     )
     parser.add_argument("seeds", help="seeds, e.g. 3000-3095 or 3001,3005")
@@ -333,6 +334,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--compare", type=Path, default=None, metavar="OLD",
                         help="an earlier --json of these seeds to compare with")
     parser.add_argument("--quiet", action="store_true", help="no line per render (on stderr)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     try:
         seeds = number_list(args.seeds)
