@@ -1064,6 +1064,8 @@ def test_battery_memory_and_time(bench: Bench) -> None:
                                     peak_rss=peak, after_rss=after, trimmed_rss=trimmed, worst=worst)) + "\n")
     assert peak - bench.steady_rss < 50.0
     # No bad input costs more than a small factor of a clean frame's initialisation (the clean
-    # frames after each kind, measured in the same run: the machine's load scales both).
+    # frames after each kind, measured in the same run: the machine's load scales both).  A frame
+    # runs its whole search, never cut (issue 45): intrinsics 10x too large (the hand 10x wider,
+    # its data at the cap) take 3-6 initialisations.
     init_ms = max(r["recover_ms"] for r in RESULTS)
-    assert worst["worst_ms"] <= 3.0 * init_ms, (worst, init_ms)
+    assert worst["worst_ms"] <= 8.0 * init_ms, (worst, init_ms)

@@ -31,9 +31,10 @@ from hand_sog_tracker.core.initialise import (
     initial_hypotheses,
 )
 from hand_sog_tracker.core.kinematics import global_rotation
-from hand_sog_tracker.core.optimizer import OptimizeResult, maximise_batch
+from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import detect_fingertips
+from hand_sog_tracker.core.search.fit import fit_batch
 from hand_sog_tracker.core.search.score import assignment_cost
 from hand_sog_tracker.core.types import TrackerConfig
 
@@ -99,14 +100,14 @@ def fit_each(
     **kwargs: object,
 ) -> list[OptimizeResult]:
     """Fit each ``(start pose (26,), data)`` of ``items`` on the plain objective of its data;
-    the items sharing a data object as one batch (:func:`maximise_batch`).  Results in order."""
+    the items sharing a data object as one batch (:func:`~.fit.fit_batch`).  Results in order."""
     groups: dict[int, list[int]] = {}
     for k, (_, data) in enumerate(items):
         groups.setdefault(id(data), []).append(k)
     out: list[OptimizeResult | None] = [None] * len(items)
     for ks in groups.values():
         obj = Objective(model, items[ks[0]][1], config)
-        fits = maximise_batch(obj.batch, np.array([items[k][0] for k in ks]), bounds=bounds, **kwargs)  # type: ignore[arg-type]
+        fits = fit_batch(obj.batch, np.array([items[k][0] for k in ks]), bounds=bounds, **kwargs)
         for k, res in zip(ks, fits):
             out[k] = res
     return out  # type: ignore[return-value]
