@@ -82,3 +82,23 @@ def test_two_trackers_give_the_same_answers_and_proposals() -> None:
             out.append((None if res.pose is None else res.pose.tobytes(), tracker.last_proposal))
         runs.append(out)
     assert runs[0] == runs[1]
+
+
+def test_a_detection_whose_pulls_lost_is_not_pulled_onto_again_where_it_stays() -> None:
+    from hand_sog_tracker.core.kinematics import fingertips
+    from hand_sog_tracker.core.salient import Detections
+    from hand_sog_tracker.core.search.candidates import SAME_DETECTION_MM, pull_target
+
+    model = default_hand_model()
+    theta = rest_pose((0.0, 20.0, 400.0))
+    lonely = fingertips(model, theta)[2] + np.array([0.0, -60.0, -30.0])
+    det = Detections(lonely[None], np.zeros((1, 2)), np.array([0.95]), np.array([False]))
+    fit = OptimizeResult(theta, 0.5, 7, True, 0, "", np.zeros(1))
+
+    def target(lost: np.ndarray) -> int | None:
+        frame = Frame(model, fit, None, None, None, det, (None, None), lost_pulls=lost)  # type: ignore[arg-type]
+        return pull_target(frame)
+
+    assert target(np.zeros((0, 3))) == 0
+    assert target(lonely[None] + 0.5 * SAME_DETECTION_MM) is None  # (within it: the same detection)
+    assert target(lonely[None] + [2 * SAME_DETECTION_MM, 0.0, 0.0]) == 0  # moved on: another one

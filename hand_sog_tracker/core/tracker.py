@@ -44,6 +44,7 @@ from hand_sog_tracker.core.search import (
     plain,
     search,
 )
+from hand_sog_tracker.core.search.candidates import pull_target
 from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
@@ -82,6 +83,7 @@ SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
+_NO_POINTS = np.zeros((0, 3))
 
 
 def _open(theta: NDArray[np.float64]) -> bool:
@@ -128,6 +130,8 @@ class Tracker:
         self._refine_last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         #: The proposal the last frame's pose came from (None: its fit), for the tools.
         self.last_proposal: str | None = None
+        #: The detection (1, 3) mm whose pulls lost on the last frame, or none (0, 3).
+        self._lost_pulls = _NO_POINTS
 
     @property
     def config(self) -> TrackerConfig:
@@ -168,6 +172,7 @@ class Tracker:
         self._prev = None
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
+        self._lost_pulls = _NO_POINTS
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
         """Track the hand in one depth frame.
@@ -191,6 +196,7 @@ class Tracker:
             result = self._track(pre)
         else:
             self._steps = None  # a new track starts with fresh step lengths
+            self._lost_pulls = _NO_POINTS
             if self._sizes is not None:
                 self._model = self._sizes[0]  # (a new track on the default model: its size is chosen again)
             result = self._initialise(pre)
@@ -272,8 +278,12 @@ class Tracker:
             extra_iterations=EXTRA_ITERATIONS, extra_gain=EXTRA_GAIN,
         )
         self._steps = fit.steps
-        frame = Frame(self._model, fit, obj, plain(obj), data, det, self._limits())
+        frame = Frame(self._model, fit, obj, plain(obj), data, det, self._limits(), lost_pulls=self._lost_pulls)
         res, self.last_proposal = search(frame, TRACK_PROPOSALS)
+        # A detection whose pulls lost is not pulled onto again while it stays where it is.
+        target = pull_target(frame)
+        lost = target is not None and self.last_proposal != "detection"
+        self._lost_pulls = det.points[[target]] if lost else _NO_POINTS
         centres = gaussian_centres(self._model, res.x)
         conf = coverage(self._model, res.x, data, centres, obj.support(res.x))
         self._low_frames = self._low_frames + 1 if conf < cfg.lost_confidence else 0

@@ -11,7 +11,7 @@ measurements behind each value: ``doc/notes/search.md``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Callable, Iterator
 
 import numpy as np
@@ -49,6 +49,7 @@ __all__ = [
     "Proposal",
     "TRACK_PROPOSALS",
     "NEW_TRACK_PROPOSALS",
+    "pull_target",
     "shifted",
     "swapped",
 ]
@@ -74,6 +75,9 @@ CURL_MARGIN = 0.04
 #: a detection pull must then win by ``EDGE_ON_MARGIN`` (issue 11).
 EDGE_ON_PALM_COS = 0.6
 EDGE_ON_MARGIN = SWAP_MARGIN
+#: A detection within this of one whose pulls lost on the frame before is the same one (mm;
+#: a few frames' motion of a fingertip at 30 Hz; chosen here).
+SAME_DETECTION_MM = 10.0
 #: The salient weight of a detection pull: 20 x ``w_sal`` (at least 20).
 PULL_WEIGHT = 20.0
 #: A shift that only the assignment calls for (no unexplained detection) must win by this
@@ -105,6 +109,8 @@ class Frame:
     new_track : bool
         A new track's first frame: scored without the hidden-tip discount, with the lateral
         candidates and both finger shifts.
+    lost_pulls : array, shape (k, 3), mm
+        Detections whose pulls lost on the frame before (see :func:`pull_target`).
     """
 
     model: HandModel
@@ -115,6 +121,7 @@ class Frame:
     det: Detections
     limits: tuple[NDArray[np.float64], NDArray[np.float64]]
     new_track: bool = False
+    lost_pulls: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
     def score(self, theta: NDArray[np.float64], value: float | None = None) -> float:
         """:func:`~hand_sog_tracker.core.search.score.score` of ``theta`` (26,) on this frame."""
@@ -274,12 +281,23 @@ def _joint_targets(model: HandModel, theta: NDArray[np.float64], det: Detections
     return TipTargets(points, weights)
 
 
+def pull_target(f: Frame) -> int | None:
+    """The detection the detection proposal pulls fingers onto: the most confident one that no
+    fingertip explains, unless its pulls lost on the frame before where it still is (within
+    ``SAME_DETECTION_MM`` of one of ``f.lost_pulls``: the score already preferred the fit
+    there); None when there is none."""
+    lonely = lonely_detections(f.model, f.fit.x, f.det)
+    if lonely.size and f.lost_pulls.shape[0]:
+        near = np.sqrt(sq_distances(f.det.points[lonely], f.lost_pulls)).min(axis=1) < SAME_DETECTION_MM
+        lonely = lonely[~near]
+    return int(lonely[np.argmax(f.det.confidence[lonely])]) if lonely.size else None
+
+
 def _detection(f: Frame) -> Iterator[Candidate]:
     x, det = f.fit.x, f.det
-    lonely = lonely_detections(f.model, x, det)
-    if lonely.size == 0:
+    s = pull_target(f)
+    if s is None:
         return
-    s = int(lonely[np.argmax(det.confidence[lonely])])
     dist = np.linalg.norm(det.points[s] - fingertips(f.model, x), axis=1)
     cfg = f.obj.config
     margin = EDGE_ON_MARGIN if abs(global_rotation(x)[2, 2]) < EDGE_ON_PALM_COS else 0.0
@@ -323,7 +341,10 @@ SHIFT = Proposal(
     _shift,
 )
 DETECTION = Proposal(
-    "detection", "a detection no fingertip explains: the two nearest fingers pulled onto it", _detection
+    "detection",
+    "a detection no fingertip explains (and whose pulls did not lose on the frame before): the two nearest"
+    " fingers pulled onto it",
+    _detection,
 )
 LATERAL = Proposal(
     "lateral", "a new track: the hand moved one finger's spacing sideways, fingers as they are and shifted", _lateral
