@@ -16,8 +16,8 @@ from hand_sog_tracker.core.energy import (
 )
 from hand_sog_tracker.core.hand_model import FINGER_ABD, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import gaussian_centres
-from hand_sog_tracker.core.restarts import _sq_distances
 from hand_sog_tracker.core.salient import Detections, assign_detections
+from hand_sog_tracker.core.search.score import sq_distances as _sq_distances
 from hand_sog_tracker.core.silhouette import silhouette, silhouette_term
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig

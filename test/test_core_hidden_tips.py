@@ -7,11 +7,12 @@ import itertools
 import numpy as np
 import pytest
 
-from hand_sog_tracker.core import restarts
 from hand_sog_tracker.core.articulations import FINGER_CURLED
 from hand_sog_tracker.core.hand_model import chain_slice, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips
+from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.salient import Detections, assign_detections
+from hand_sog_tracker.core.search import candidates, score
 from hand_sog_tracker.core.tracker import Tracker
 
 
@@ -51,16 +52,16 @@ def _curled_middle_ring(theta: np.ndarray) -> np.ndarray:
 
 
 def test_curled_fingers_facing_the_camera_cost_no_missing_detection() -> None:
-    lam = restarts.ASSIGN_LAMBDA_MM
+    lam = score.ASSIGN_LAMBDA_MM
     open_hand = rest_pose()  # palm toward the camera
-    np.testing.assert_array_equal(restarts._tip_lambdas(open_hand), [lam] * 5)
+    np.testing.assert_array_equal(score.tip_lambdas(open_hand), [lam] * 5)
     curled = _curled_middle_ring(open_hand)
-    expected = [lam, lam, restarts.HIDDEN_TIP_LAMBDA * lam, restarts.HIDDEN_TIP_LAMBDA * lam, lam]
-    np.testing.assert_allclose(restarts._tip_lambdas(curled), expected)
+    expected = [lam, lam, score.HIDDEN_TIP_LAMBDA * lam, score.HIDDEN_TIP_LAMBDA * lam, lam]
+    np.testing.assert_allclose(score.tip_lambdas(curled), expected)
     # The back of the hand toward the camera: curled tips are not known to be hidden there.
     back = curled.copy()
     back[3:6] = 0.0  # identity rotation: the palm faces away from the camera
-    np.testing.assert_array_equal(restarts._tip_lambdas(back), [lam] * 5)
+    np.testing.assert_array_equal(score.tip_lambdas(back), [lam] * 5)
 
 
 def test_two_model_tips_on_one_seen_tip_score_worse_than_a_curled_finger() -> None:
@@ -75,25 +76,35 @@ def test_two_model_tips_on_one_seen_tip_score_worse_than_a_curled_finger() -> No
     tips = fingertips(tracker.model, right)
     seen = tips[[0, 1]] + 2.0  # thumb and index detected
     det = Detections(seen, np.zeros((2, 2)), np.ones(2), np.zeros(2, bool))
-    assert tracker._assignment_cost(wrong, det) > tracker._assignment_cost(right, det) + 0.2
+    cost = [score.assignment_cost(tracker.model, x, det, hidden_tips=True) for x in (wrong, right)]
+    assert cost[0] > cost[1] + 0.2
+
+
+def _shift_sides(tracker: Tracker, fit: np.ndarray, det: Detections) -> list[int]:
+    """The sides of the shift proposal's candidates for a frame fitted at ``fit`` (26,)."""
+    res = OptimizeResult(fit, 0.0, 0, True, 0, "", np.zeros(1))
+    frame = candidates.Frame(tracker.model, res, None, None, None, det, tracker._limits())  # type: ignore[arg-type]
+    out = []
+    for c in candidates.SHIFT.generate(frame):
+        side = [s for s in (1, -1) if np.array_equal(c.x0, candidates.shifted(fit, s))]
+        out += side
+    return out
 
 
 @pytest.mark.parametrize("side", [1, -1])
-def test_scheduled_shift_goes_to_the_side_the_detections_point_to(side: int) -> None:
+def test_the_shift_goes_to_the_side_the_detections_point_to(side: int) -> None:
     """The fingers of the fit sit one place over from the seen ones (finger counting: index,
-    middle and ring extended where index and middle are).  The scheduled shift candidate takes
-    the side whose shifted pose meets the detections; without detections the sides alternate."""
+    middle and ring extended where index and middle are).  The shift proposal takes the side
+    whose shifted pose meets the detections; without detections none says where the fingers
+    are, and nothing is proposed."""
     tracker = Tracker()
     fit = rest_pose()
     for c in (3, 4):
         fit[chain_slice(c)] = FINGER_CURLED
     fit[chain_slice(2 if side == 1 else 1)] = FINGER_CURLED  # 1 1 0 0 or 1 0 1 0 (index .. little)
-    truth = restarts._shifted(fit, side)
+    truth = candidates.shifted(fit, side)
     seen = [0] + [c for c in range(1, 5) if truth[chain_slice(c)][2] < 0.5]  # thumb, extended fingers
     n = len(seen)
     det = Detections(fingertips(tracker.model, truth)[seen], np.zeros((n, 2)), np.ones(n), np.zeros(n, bool))
-    assert tracker._shift_side(fit, det) == side
-    tracker._frame_count = 0
-    first = tracker._shift_side(fit, Detections.empty())
-    tracker._frame_count = restarts.SHIFT_EVERY
-    assert tracker._shift_side(fit, Detections.empty()) == -first
+    assert side in _shift_sides(tracker, fit, det)  # (both when a detection is unexplained)
+    assert _shift_sides(tracker, fit, Detections.empty()) == []

@@ -23,8 +23,10 @@ from hand_sog_tracker.core.initialise import (
     finger_combinations,
 )
 from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
-from hand_sog_tracker.core.restarts import RESTART_ITERATIONS
-from hand_sog_tracker.core.tracker import Tracker, _balanced
+from hand_sog_tracker.core.search import SEARCH_ITERATIONS as RESTART_ITERATIONS
+from hand_sog_tracker.core.search import start as start_module
+from hand_sog_tracker.core.search.start import _balanced, _screened, hand_side
+from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
 
@@ -53,67 +55,19 @@ def _error(res, frame) -> float:
     return float(np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).max())
 
 
-def test_split_initialisation_publishes_nothing_then_tracks_from_the_second_frame(frames: list) -> None:
-    tracker = Tracker()
-    tracker.split_initialisation = True
-    first = tracker.process(frames[0].depth_mm, INTR)
-    assert first.pose is None and first.fingertips_mm is None
-    assert first.status is TrackerStatus.NO_HAND and tracker.initialising and tracker.last_pose is None
-    second = tracker.process(frames[1].depth_mm, INTR)
-    assert second.status is TrackerStatus.TRACKING and not tracker.initialising
-    assert _error(second, frames[1]) < 20.0
-    third = tracker.process(frames[2].depth_mm, INTR)
-    assert third.status is TrackerStatus.TRACKING and _error(third, frames[2]) < 20.0
-
-
-def test_finishing_on_the_same_frame_equals_the_unsplit_initialisation(frames: list) -> None:
-    whole = Tracker().process(frames[0].depth_mm, INTR)
-    split = Tracker()
-    split.split_initialisation = True
-    assert split.finish_initialisation() is None  # nothing pending
-    assert split.process(frames[0].depth_mm, INTR).pose is None
-    done = split.finish_initialisation()
-    assert done is not None and done.status is TrackerStatus.TRACKING and not split.initialising
-    np.testing.assert_array_equal(done.pose, whole.pose)
-    assert _error(done, frames[0]) < 20.0
-
-
-def test_reset_and_a_new_configuration_discard_the_pending_search(frames: list) -> None:
-    tracker = Tracker()
-    tracker.split_initialisation = True
-    tracker.process(frames[0].depth_mm, INTR)
-    tracker.reset()
-    assert not tracker.initialising
-    # After a reset the next frame searches again (no pose), it does not finish stale finalists.
-    assert tracker.process(frames[1].depth_mm, INTR).pose is None and tracker.initialising
-    tracker.set_config(replace(tracker.config, iterations=11))
-    assert tracker.process(frames[2].depth_mm, INTR).pose is None and tracker.initialising
-    assert tracker.process(frames[3].depth_mm, INTR).status is TrackerStatus.TRACKING
-
-
-def test_each_stage_stays_within_its_budget_of_objective_evaluations(
+def test_the_initialisation_stays_within_its_budget_of_objective_evaluations(
     frames: list, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """About 0.5 ms an evaluation: each stage must stay near 100 (50 ms), whatever the machine;
-    the new track's lateral restarts run after the answer (as in the node), within their own
-    budget."""
+    """About 0.5 ms an evaluation: a new track's frame (search, finalists, restarts) must stay
+    within a few hundred evaluations, whatever the machine."""
     calls = _count_evaluations(monkeypatch)
     tracker = Tracker()
-    tracker.split_initialisation = tracker.defer_restarts = True
-    tracker.process(frames[0].depth_mm, INTR)
-    search = calls[0]
-    tracker.process(frames[1].depth_mm, INTR)
-    finish = calls[0] - search
-    tracker.finish_frame()
-    after = calls[0] - search - finish
+    assert tracker.process(frames[0].depth_mm, INTR).status is TrackerStatus.TRACKING
     s = INIT_SEARCH
     hypotheses = tracker.config.init_hypotheses + 4  # (+ the hand axis' and the detection direction's two)
     aligned = 2 * s.screened + 4  # (screened per palm side, + the hand axis' and detections' starts)
-    assert search <= hypotheses + aligned * (s.rigid_iterations + 1) + (s.kept + 1) * (s.full_iterations + 2) <= 130
-
-    assert finish <= 100, finish
-    assert 0 < after <= 6 * (RESTART_ITERATIONS + 1) + 1  # six candidates and the pose they must beat
-
+    search = hypotheses + aligned * (s.rigid_iterations + 1) + (s.kept + 1) * (s.full_iterations + 2)
+    assert calls[0] <= search + 100 + 6 * (RESTART_ITERATIONS + 1) + 1, calls[0]
 
 def test_the_start_poses_aligned_are_the_best_at_their_start_on_each_palm_side(frames: list) -> None:
     from hand_sog_tracker.core.depth_sog import quadtree_sog
@@ -128,8 +82,8 @@ def test_the_start_poses_aligned_are_the_best_at_their_start_on_each_palm_side(f
     starts = initial_hypotheses(tracker.model, blob, config.init_hypotheses)
     roi, window = hand_roi(tracker.model, starts[0], INTR, config.roi_radius_mm)
     data = quadtree_sog(pre, config.quadtree_threshold_mm, roi, window, INIT_SEARCH.coarse_quad_px)
-    parts = [tracker._hand_side(data, x) for x in starts]
-    chosen = tracker._screened(starts, parts, 2)
+    parts = [hand_side(data, x) for x in starts]
+    chosen = _screened(tracker.model, config, starts, parts, 2)
     value = [Objective(tracker.model, part, config)(x, gradient=False)[0] for x, part in zip(starts, parts)]
     palm = [bool(global_rotation(x)[2, 2] > 0) for x in starts]
     for side in (True, False):
@@ -261,22 +215,7 @@ def test_a_hand_found_mid_motion_with_two_fingers_out_is_found_with_the_rest_cur
         return np.linalg.norm(result.fingertips_mm - frame.fingertips_mm, axis=1)
 
     assert found().max() < 20.0  # (3-11 mm)
-    # Split (issue 14), the combinations wait for the second stage (on the first stage's data):
-    # a first stage within its budget, the same pose.
-    whole = Tracker().process(depth, INTR)
-    calls = _count_evaluations(monkeypatch)
-    split = Tracker()
-    split.split_initialisation = True
-    assert split.process(depth, INTR).pose is None
-    pending = split._pending
-    assert pending is not None and pending.rest is not None and pending.poses == []
-    first = calls[0]
-    assert first <= 130, first  # (the bound of test_each_stage_stays_within_its_budget_...)
-    done = split.finish_initialisation()
-    assert done is not None and calls[0] - first > 34  # (the combinations: up to 17 per palm side to pick them)
-    np.testing.assert_array_equal(done.pose, whole.pose)
-    monkeypatch.undo()
-    monkeypatch.setattr(tracker_module, "INIT_SEARCH", replace(INIT_SEARCH, combination_below=-np.inf))
+    monkeypatch.setattr(start_module, "INIT_SEARCH", replace(INIT_SEARCH, combination_below=-np.inf))
     assert found().mean() > 50.0
 
 

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import time
-from typing import Callable
 
 import numpy as np
 import pytest
@@ -15,15 +13,19 @@ from hand_sog_tracker.core.depth_sog import ImageSoG, preprocess
 from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, chain_slice, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
-from hand_sog_tracker.core.optimizer import OptimizeResult, run
-from hand_sog_tracker.core.restarts import (
+from hand_sog_tracker.core.optimizer import OptimizeResult
+from hand_sog_tracker.core.salient import Detections
+from hand_sog_tracker.core.search import TRACK_PROPOSALS, Frame, plain, search
+from hand_sog_tracker.core.search.candidates import (
+    CURL,
+    DETECTION,
     EDGE_ON_MARGIN,
     EDGE_ON_PALM_COS,
-    RESTART_ITERATIONS,
-    SHIFT_CHUNK,
-    SHIFT_EVERY,
+    SHIFT,
+    _joint_targets,
+    swap_pair,
 )
-from hand_sog_tracker.core.salient import Detections
+from hand_sog_tracker.core.search.score import lonely_detections
 from hand_sog_tracker.core.silhouette import Silhouette
 from hand_sog_tracker.core.tracker import REFINE_CURL_RAD, Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
@@ -210,7 +212,7 @@ def test_a_tracked_frames_window_ends_before_a_surface_behind_the_hand() -> None
     """:func:`before_surface`: a wall filling the hand's region 60 mm behind its farthest
     Gaussian centre ends the window before it; a forearm receding through the same depths (a
     strip 60 mm wide) does not, nor does nothing behind the hand."""
-    from hand_sog_tracker.core.tracker import SURFACE_MARGIN_MM, before_surface
+    from hand_sog_tracker.core.region import SURFACE_MARGIN_MM, before_surface
 
     intr = default_intrinsics()
     roi = (60, 20, 260, 220)
@@ -292,9 +294,9 @@ def test_the_small_model_is_tried_on_the_default_models_best_finalists(monkeypat
     calls: list[tuple[float, list[NDArray[np.float64]], list]] = []
     original = Tracker._finalist_fits
 
-    def spy(self: Tracker, poses: list, *args: object) -> list:
-        fits = original(self, poses, *args)
-        calls.append((self.model.shape.length, [p.copy() for p in poses], fits))
+    def spy(self: Tracker, found, *args: object) -> list:
+        fits = original(self, found, *args)
+        calls.append((self.model.shape.length, [p.copy() for p in found.poses], fits))
         return fits
 
     monkeypatch.setattr(Tracker, "_finalist_fits", spy)
@@ -312,7 +314,6 @@ def test_the_small_model_is_tried_on_the_default_models_best_finalists(monkeypat
 def test_a_small_hands_fist_keeps_the_default_model() -> None:
     """Curled fingers do not show their length: the small model may score higher on a fist
     (its fingers opened onto the knuckles), so the size is chosen only between open fits."""
-    from hand_sog_tracker.core.articulations import FINGER_CURLED
     from hand_sog_tracker.core.tracker import SMALL_HAND_MAX_FLEX
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, render_mesh_depth
     from hand_sog_tracker.synth.motions import motion_poses
@@ -388,31 +389,6 @@ def test_far_hand_gets_finer_data_and_is_tracked() -> None:
     assert np.mean(errs) < 6.0 and max(errs) < 12.0, np.round(errs, 1)  # (4 px leaves: 6.1 mm mean)
 
 
-def test_restart_interval_limits_the_restarts_to_a_rate() -> None:
-    """restart_interval_s (the node's setting for fast cameras) skips the restarts on frames
-    closer than the interval to the last frame that ran them; None runs them every frame."""
-    intr = default_intrinsics()
-    frames = [f.depth_mm for f in synthetic_sequence("fingerwave", 8, intrinsics=intr, seed=3)]
-    runs = {}
-    for interval in (None, 3600.0):
-        tracker = Tracker()
-        tracker.restart_interval_s = interval
-        calls = []
-        finger = tracker._finger_restarts  # the first restart of every frame that runs them
-
-        def counting(*args, _finger=finger, _calls=calls, **kwargs):
-            _calls.append(1)
-            return _finger(*args, **kwargs)
-
-        tracker._finger_restarts = counting
-        assert tracker.process(frames[0], intr).status is TrackerStatus.TRACKING
-        calls.clear()  # (the initialisation's own)
-        assert all(tracker.process(d, intr).status is TrackerStatus.TRACKING for d in frames[1:])
-        runs[interval] = len(calls)
-    assert runs[None] == 7  # every tracked frame
-    assert runs[3600.0] == 1  # the first tracked frame only
-
-
 def _counting_one_shifted() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Counting "one" (26,): the index finger up, the others curled; and the same hand with the
     index and middle fingers' articulations swapped (the middle finger up on the index's data)."""
@@ -424,57 +400,10 @@ def _counting_one_shifted() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return truth, wrong
 
 
-def test_a_rate_limited_tracker_still_runs_the_scheduled_finger_shift() -> None:
-    """With restart_interval_s (the node's fast cameras) the frames between two that run all the
-    restarts still run the scheduled shift, frame by frame: a track with a finger on its
-    neighbour's place is put right although no frame runs the whole restarts.  (Before, the
-    schedule only counted the frames that ran them: at 100 Hz one in 20.)"""
-    intr = default_intrinsics()
-    model = default_hand_model()
-    truth, wrong = _counting_one_shifted()
-    depth = render_depth(model, truth, intr, RenderOptions())
-    true_tips = fingertips(model, truth)
-    tracker = Tracker()
-    tracker.restart_interval_s = 3600.0
-    tracker._last_restarts_s = time.perf_counter()  # (as if the last frame had run them)
-    full = []
-    restarts = tracker._restarts
 
-    def counting(*args, **kwargs):
-        full.append(1)
-        return restarts(*args, **kwargs)
-
-    tracker._restarts = counting  # type: ignore[method-assign]
-    # The track as a finger counting hand leaves it (no public way to set a track).
-    tracker._prev = (wrong.copy(), wrong.copy())
-    tracker._status = TrackerStatus.TRACKING
-    errs = []
-    for _ in range(SHIFT_EVERY + RESTART_ITERATIONS // SHIFT_CHUNK + 1):
-        res = tracker.process(depth, intr)
-        assert res.pose is not None
-        errs.append(np.linalg.norm(res.fingertips_mm - true_tips, axis=1).max())
-    assert full == []
-    # (Once the candidate wins, the next frames start from the extrapolated jump and settle
-    # 10-25 mm off on this static frame: the velocity prediction of any restart that wins.)
-    assert errs[0] > 40.0 and min(errs) < 15.0, np.round(errs, 0)
-    # The detection restarts' cooldown counts these frames as well (it is in frames, not in
-    # frames that run all the restarts: one in 20 at 100 Hz).
-    tracker._restart_wait = 2
-    tracker.process(depth, intr)
-    assert tracker._restart_wait == 1 and full == []
-
-
-def _count_maximise(tracker: Tracker) -> list[int]:
-    """Record the iterations of every fit ``tracker`` runs from now on (the list fills up)."""
-    calls: list[int] = []
-    fit = tracker._fit
-
-    def counted(obj_, x0, **kwargs):
-        calls.append(int(kwargs["iterations"]))
-        return fit(obj_, x0, **kwargs)
-
-    tracker._fit = counted  # type: ignore[method-assign]
-    return calls
+def _frame(tracker: Tracker, obj: Objective, res: OptimizeResult, data: ImageSoG, det: Detections) -> Frame:
+    """The search's view of a tracked frame fitted to ``res`` on ``obj``."""
+    return Frame(tracker.model, res, obj, plain(obj), data, det, tracker._limits())
 
 
 def _fit_wrong(
@@ -489,38 +418,24 @@ def _fit_wrong(
     return obj, tracker._maximise(obj, wrong, iterations=7), data, det
 
 
-def test_scheduled_shift_restart_is_spread_over_frames_and_undoes_a_shift_by_one() -> None:
+
+def test_the_shift_proposal_undoes_a_shift_by_one() -> None:
     # Counting "one": the index finger up, the others curled.  The track has every finger on
-    # its neighbour's articulation (the middle finger up on the index's data).  A scheduled
-    # shift candidate starts on a frame counted a multiple of SHIFT_EVERY, gets SHIFT_CHUNK
-    # iterations per frame (never a whole restart on one frame) and, after
-    # RESTART_ITERATIONS, replaces the fit because it explains the frame better.
+    # its neighbour's articulation (the middle finger up on the index's data).  The shift
+    # candidate, fitted on this very frame, replaces the fit: it explains the frame better.
     model = default_hand_model()
     truth, wrong = _counting_one_shifted()
     tracker = Tracker(TrackerConfig())
-    obj, res, _, det = _fit_wrong(tracker, truth, wrong)
-
-    calls = _count_maximise(tracker)
-    tracker._frame_count = SHIFT_EVERY  # the schedule's side +1: each finger takes the next one's
-    out = res
-    for frame in range(RESTART_ITERATIONS // SHIFT_CHUNK):
-        out = run(tracker._scheduled_shift(obj, res, det))
-        assert calls == [SHIFT_CHUNK] * (frame + 1)
-        if frame < RESTART_ITERATIONS // SHIFT_CHUNK - 1:
-            assert out is res and tracker._shift_pending is not None
-    assert tracker._shift_pending is None
+    obj, res, data, det = _fit_wrong(tracker, truth, wrong)
+    out, name = search(_frame(tracker, obj, res, data, det), (SHIFT,))
     err_wrong = np.linalg.norm(fingertips(tracker.model, res.x) - fingertips(model, truth), axis=1)
     err = np.linalg.norm(fingertips(tracker.model, out.x) - fingertips(model, truth), axis=1)
-    assert err_wrong[1:3].min() > 40.0 and err.max() < 15.0, (err_wrong.round(0), err.round(0))
-    # Off the schedule nothing runs.
-    tracker._frame_count = SHIFT_EVERY + 1
-    assert run(tracker._scheduled_shift(obj, res, det)) is res and len(calls) == RESTART_ITERATIONS // SHIFT_CHUNK
+    assert name == "shift" and err_wrong[1:3].min() > 40.0 and err.max() < 15.0, (err_wrong.round(0), err.round(0))
 
 
-def test_scheduled_shift_does_not_start_when_every_fingertip_is_seen_at_its_finger() -> None:
-    # An open hand, tracked at the truth: each fingertip has its own detection nearby, so no
-    # finger can be on its neighbour's place and the scheduled candidate is skipped.  Without
-    # one fingertip's detection the candidate starts as scheduled.
+def test_no_shift_is_proposed_when_every_fingertip_is_seen_at_its_finger() -> None:
+    # An open hand, fitted at the truth: each fingertip has its own detection nearby, so no
+    # finger can be on its neighbour's place; without detections nothing says where they are.
     intr = default_intrinsics()
     frame = next(iter(synthetic_sequence("fingerwave", 1, intrinsics=intr)))
     truth = frame.pose
@@ -530,48 +445,16 @@ def test_scheduled_shift_does_not_start_when_every_fingertip_is_seen_at_its_fing
     assert det.n >= 5
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(truth, det), silhouette=sil)
     res = tracker._maximise(obj, truth, iterations=7)
-    calls = _count_maximise(tracker)
-    tracker._frame_count = SHIFT_EVERY
-    assert run(tracker._scheduled_shift(obj, res, det)) is res
-    assert calls == [] and tracker._shift_pending is None
-    # The detection nearest the middle fingertip removed: the middle finger has no detection.
-    near = int(np.argmin(np.linalg.norm(det.points - fingertips(tracker.model, res.x)[2], axis=1)))
-    keep = np.arange(det.n) != near
-    fewer = Detections(det.points[keep], det.uv[keep], det.confidence[keep], det.end_on[keep])
-    assert run(tracker._scheduled_shift(obj, res, fewer)) is res
-    assert calls == [SHIFT_CHUNK] and tracker._shift_pending is not None
+    assert list(SHIFT.generate(_frame(tracker, obj, res, data, det))) == []
+    assert list(SHIFT.generate(_frame(tracker, obj, res, data, Detections.empty()))) == []
 
 
-def test_deferred_restarts_answer_before_the_restarts_and_the_track_is_the_same() -> None:
-    """defer_restarts (the node): a frame's result is its fit, its restarts run on finish_frame,
-    and a restart that wins there continues the track exactly as without deferral."""
-    from hand_sog_tracker.synth.mesh import mesh_sequence
-
-    intr = default_intrinsics()
-    plain, deferred = Tracker(), Tracker()
-    deferred.defer_restarts = True
-    won = []
-    for k, f in enumerate(mesh_sequence("fingercount", 38, intr, seed=4)):
-        a = plain.process(f.depth_mm, intr)
-        b = deferred.process(f.depth_mm, intr)
-        if deferred.finish_frame():
-            won.append(k)
-            assert b.pose is not None and a.pose is not None and not np.array_equal(b.pose, a.pose)
-        elif a.pose is not None:
-            assert b.pose is not None and np.array_equal(b.pose, a.pose)
-        assert np.array_equal(deferred.last_pose, plain.last_pose)  # the same track
-        assert not deferred.finish_frame()  # nothing left to run
-    assert won  # (a restart won on some frames, 15 and 35 here: the deferred path ran)
-
-
-def test_a_new_track_of_a_small_hand_with_two_fingers_on_one_moves_sideways_after_its_answer() -> None:
+def test_a_new_track_of_a_small_hand_with_two_fingers_on_one_moves_sideways() -> None:
     """The lateral restarts of a new track (issue 11): a small hand's first frame (index ..
-    little adducted) is initialised with the model's middle, ring and little fingers one
-    place over (two model fingers on the index, the little finger's data unexplained).  With
-    deferred restarts (the node) the answer is that pose and the restarts after it move the
-    hand sideways onto the right fingers; without deferral that pose is the answer, and both
-    trackers go on from the same pose.  (The trackers are given the default model: on their
-    own they start this hand on the small model, fingers right from the first answer.)"""
+    little adducted) is searched into the model's middle, ring and little fingers one place
+    over (two model fingers on the index, the little finger's data unexplained); the lateral
+    candidates move the hand sideways onto the right fingers before the first answer.  (The
+    tracker is given the default model: on its own it starts this hand on the small model.)"""
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, MeshShape, mesh_sequence
 
     intr = default_intrinsics()
@@ -579,77 +462,13 @@ def test_a_new_track_of_a_small_hand_with_two_fingers_on_one_moves_sideways_afte
     options = MeshRenderOptions("structured")
     frame = next(iter(mesh_sequence("abdadd", 2, intr, shape=shape, seed=7085, options=options)))
     depth = np.round(frame.depth_mm)  # (as a 16UC1 image)
-    deferred, plain = Tracker(model=default_hand_model(True)), Tracker(model=default_hand_model(True))
-    deferred.defer_restarts = True
-    first = deferred.process(depth, intr)
-    assert first.fingertips_mm is not None
-    before = np.linalg.norm(first.fingertips_mm - frame.fingertips_mm, axis=1)
-    assert before[2:].min() > 20.0  # middle, ring and little one place over (24-30 mm)
-    assert deferred.finish_frame()  # a lateral restart won
-    tips = fingertips(deferred.model, deferred.last_pose)
+    tracker = Tracker(model=default_hand_model(True))
+    first = tracker.process(depth, intr)
+    assert first.pose is not None
+    tips = fingertips(tracker.model, first.pose)
     apart = np.linalg.norm(tips[:, None] - frame.fingertips_mm[None], axis=2)  # (model, true)
     assert np.array_equal(apart.argmin(axis=1), np.arange(5))  # every fingertip on its own finger
     assert np.diag(apart).max() < 15.0  # (the default model, larger than this hand: 13 mm at most)
-    answer = plain.process(depth, intr)
-    assert answer.pose is not None and np.array_equal(answer.pose, deferred.last_pose)
-
-
-def test_a_stop_pauses_the_restarts_and_the_next_call_goes_on() -> None:
-    """finish_frame(stop): stop is asked after every iteration of the restarts; once True they
-    pause, and the next finish_frame goes on where they stopped: paused as often as asked,
-    they end exactly where they end in one go."""
-    from hand_sog_tracker.synth.mesh import mesh_sequence
-
-    intr = default_intrinsics()
-    whole, paused = Tracker(), Tracker()
-    whole.defer_restarts = paused.defer_restarts = True
-    asked = [0]
-
-    def every_other() -> bool:
-        asked[0] += 1
-        return asked[0] % 2 == 0
-
-    pauses = 0
-    for f in mesh_sequence("fingercount", 38, intr, seed=2):
-        whole.process(f.depth_mm, intr)
-        paused.process(f.depth_mm, intr)
-        won = whole.finish_frame()
-        calls = 1
-        while not (ended := paused.finish_frame(every_other)) and paused._running is not None:
-            calls += 1
-        pauses += calls - 1
-        assert ended == won and np.array_equal(paused.last_pose, whole.last_pose)
-    assert pauses > 100
-
-
-def test_restarts_that_end_after_the_track_moved_on_hand_their_winner_to_the_next_frame() -> None:
-    """Restarts paused on one frame and finished after the next one was tracked: their winner
-    does not replace the newer fit at once; it becomes a finger shift candidate that is nearly
-    done (anchored at its own frame's fit), refined and judged on the next frame."""
-    from hand_sog_tracker.synth.mesh import mesh_sequence
-
-    intr = default_intrinsics()
-    frames = list(mesh_sequence("fingercount", 38, intr, seed=4))
-    tracker = Tracker()
-    tracker.defer_restarts = True
-    for f in frames[:35]:
-        tracker.process(f.depth_mm, intr)
-        tracker.finish_frame()
-    tracker.process(frames[35].depth_mm, intr)  # a frame whose restarts win (see above)
-    fit35 = tracker.last_pose
-    assert not tracker.finish_frame(lambda: True) and tracker._running is not None  # paused at once
-    tracker.process(frames[36].depth_mm, intr)
-    fit36 = tracker.last_pose
-    assert tracker._running is not None  # frame 36 started no restarts of its own
-    assert not tracker.finish_frame()  # frame 35's restarts end: their winner is handed over
-    assert np.array_equal(tracker.last_pose, fit36) and tracker._running is None
-    pending = tracker._shift_pending
-    assert pending is not None and pending.iterations == RESTART_ITERATIONS - SHIFT_CHUNK
-    assert np.array_equal(pending.anchor, fit35) and not np.array_equal(pending.x, fit35)
-    tracker.process(frames[37].depth_mm, intr)
-    tracker.finish_frame()
-    assert tracker._shift_pending is None  # refined and judged on frame 37
-
 
 def test_the_joint_pull_sends_the_other_fingertips_to_their_own_detections() -> None:
     """The detection restart's whole-pose pull (issue 11): fingertip ``c`` onto the unexplained
@@ -663,15 +482,15 @@ def test_the_joint_pull_sends_the_other_fingertips_to_their_own_detections() -> 
     # little finger has none.
     points = np.array([tips[0] + 2.0, tips[1], tips[3] - 3.0, lonely])
     det = Detections(points, np.zeros((4, 2)), np.array([0.9, 0.8, 0.7, 0.95]), np.array([False, True, False, False]))
-    targets = tracker._joint_targets(theta, det, 2, 3)
+    targets = _joint_targets(tracker.model, theta, det, 2, 3)
     np.testing.assert_array_equal(targets.points[[0, 2, 3]], points[[0, 3, 2]])
     np.testing.assert_array_equal(targets.weights, [0.9, 0.0, 1.0, 0.7, 0.0])
 
 
-def test_a_detection_restart_of_a_hand_seen_edge_on_wins_only_by_a_margin(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_detection_candidate_of_a_hand_seen_edge_on_needs_a_margin() -> None:
     """Issue 11: edge-on, the fingers overlap in the image and the score cannot tell them
-    apart; a detection restart's candidate then needs ``EDGE_ON_MARGIN`` more than the pose it
-    would replace.  (The score is stubbed: a candidate scores half the margin higher.)"""
+    apart; a detection candidate then needs ``EDGE_ON_MARGIN`` more than the pose it would
+    replace, facing the camera none."""
     tracker = Tracker()
     truth, data, det, _ = _fist_data(tracker)
     obj = Objective(tracker.model, data, tracker.config)
@@ -682,13 +501,10 @@ def test_a_detection_restart_of_a_hand_seen_edge_on_wins_only_by_a_margin(monkey
     side[3:6] = [0.0, np.radians(70.0), 0.0]  # (turned about the image's vertical axis)
     edge = dataclasses.replace(facing, x=side)
     assert abs(global_rotation(facing.x)[2, 2]) > 0.9 and abs(global_rotation(side)[2, 2]) < EDGE_ON_PALM_COS
-    for res in (facing, edge):
-        monkeypatch.setattr(
-            tracker, "_score", lambda plain, x, det, value=None, r=res: 0.5 if x is r.x else 0.5 + EDGE_ON_MARGIN / 2
-        )
-        assert tracker._lonely(res.x, det).size == 1
-        out = run(tracker._detection_restarts(obj, res, det))
-        assert (out is res) == (res is edge)
+    for res, margin in ((facing, 0.0), (edge, EDGE_ON_MARGIN)):
+        assert lonely_detections(tracker.model, res.x, det).size == 1
+        made = list(DETECTION.generate(_frame(tracker, obj, res, data, det)))
+        assert len(made) == 4 and all(c.margin == margin for c in made)  # two fingers, two pulls each
 
 
 def test_a_finger_leaning_on_its_curled_neighbours_place_swaps_with_it() -> None:
@@ -705,26 +521,26 @@ def test_a_finger_leaning_on_its_curled_neighbours_place_swaps_with_it() -> None
     # Every detection explained, as on the mesh renders where this happens (here a weak
     # detection halfway along the index is far from every model fingertip and would set off the
     # shift restarts instead).
-    det = det.subset(np.isin(np.arange(det.n), tracker._lonely(res.x, det), invert=True))
-    assert det.n >= 2 and tracker._lonely(res.x, det).size == 0
-    assert tracker._swap_pair(res.x) == (2, 1)
-    tracker._frame_count = 1  # (off the shift schedule)
-    out = run(tracker._restarts(obj, res, data, det))
+    det = det.subset(np.isin(np.arange(det.n), lonely_detections(tracker.model, res.x, det), invert=True))
+    assert det.n >= 2 and lonely_detections(tracker.model, res.x, det).size == 0
+    lim = tracker._limits()
+    assert swap_pair(res.x, lim) == (2, 1)
+    out, _ = search(_frame(tracker, obj, res, data, det), TRACK_PROPOSALS)
     true_tips = fingertips(model, truth)
     err_wrong = np.linalg.norm(fingertips(tracker.model, res.x) - true_tips, axis=1)
     err = np.linalg.norm(fingertips(tracker.model, out.x) - true_tips, axis=1)
     assert err_wrong[1:3].min() > 40.0 and err.max() < 15.0, (err_wrong.round(0), err.round(0))
     # At the truth no finger leans on a neighbour: nothing to swap.  Nor with the hand seen from
     # the side (neighbouring fingers overlap in the image) or the leaning finger itself curled.
-    assert tracker._swap_pair(truth) is None
+    assert swap_pair(truth, lim) is None
     side = res.x.copy()
     side[4] += np.pi / 2
-    assert abs(global_rotation(side)[2, 2]) < 0.5 and tracker._swap_pair(side) is None
+    assert abs(global_rotation(side)[2, 2]) < 0.5 and swap_pair(side, lim) is None
     bent = res.x.copy()
     bent[chain_slice(1).start], bent[chain_slice(1).start + 2] = 1.6, 1.9  # index: fully curled
-    assert tracker._swap_pair(bent) == (2, 1)
+    assert swap_pair(bent, lim) == (2, 1)
     bent[chain_slice(2).start], bent[chain_slice(2).start + 2] = 1.15, 1.15  # middle: curled
-    assert tracker._swap_pair(bent) is None
+    assert swap_pair(bent, lim) is None
 
 
 def test_an_open_finger_on_its_neighbours_data_is_curled_into_the_palm() -> None:
@@ -734,7 +550,6 @@ def test_an_open_finger_on_its_neighbours_data_is_curled_into_the_palm() -> None
     Gaussian lies on data; the middle fingertip has no detection of its own (the ring's took it).
     The restarts curl the ring finger into the palm; at the truth, and with the hand seen from
     the side, nothing is tried."""
-    from hand_sog_tracker.core.restarts import CURL_WAIT
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, mesh_fingertips, render_mesh_depth
     from hand_sog_tracker.synth.motions import default_start_pose
 
@@ -754,21 +569,17 @@ def test_an_open_finger_on_its_neighbours_data_is_curled_into_the_palm() -> None
     res = tracker._maximise(obj, wrong, iterations=21)
     err_wrong = np.linalg.norm(fingertips(tracker.model, res.x) - true_tips, axis=1)
     assert err_wrong[3] > 100.0, err_wrong.round(0)  # the fit alone keeps it open
-    tracker._frame_count = 1  # (off the shift schedule)
-    out = run(tracker._restarts(obj, res, data, det))
+    assert len(list(CURL.generate(_frame(tracker, obj, res, data, det)))) >= 1
+    out, _ = search(_frame(tracker, obj, res, data, det), TRACK_PROPOSALS)
     err = np.linalg.norm(fingertips(tracker.model, out.x) - true_tips, axis=1)
     assert err.max() < 12.0, (err_wrong.round(0), err.round(0))
-    assert tracker._curl_wait == CURL_WAIT
-    # Tried once, then not for CURL_WAIT rounds of the restarts.
-    assert run(tracker._curl_restarts(obj, res, det)) is res and tracker._curl_wait == CURL_WAIT - 1
     # At the truth: the open fingers have their detections, the curled ones are not tried.
-    tracker._curl_wait = 0
     fit = tracker._maximise(obj, truth, iterations=7)
-    assert run(tracker._curl_restarts(obj, fit, det)) is fit and tracker._curl_wait == 0
+    assert list(CURL.generate(_frame(tracker, obj, fit, data, det))) == []
     # The hand seen from the side: the depth cannot tell a curled finger from an open one.
     side = dataclasses.replace(res, x=res.x.copy())
     side.x[4] += np.pi / 2
-    assert run(tracker._curl_restarts(obj, side, det)) is side and tracker._curl_wait == 0
+    assert list(CURL.generate(_frame(tracker, obj, side, data, det))) == []
 
 
 def test_a_fist_fitted_from_its_true_pose_stays_closer_when_curled_fingers_may_touch() -> None:
@@ -907,34 +718,6 @@ def test_a_tracked_curled_hand_publishes_the_refined_pose_and_tracks_on_from_its
     assert differed >= 5, differed
 
 
-def test_a_refinement_told_to_stop_answers_with_the_fit() -> None:
-    """``refine_stop`` (the node: a newer image waits) is asked before and after every
-    iteration of the refinement; once it says stop, the answer is the fit unrefined."""
-    tracker = Tracker(TrackerConfig())
-    truth, obj = _fist_frame(tracker)
-    res = tracker._maximise(obj, truth, iterations=7)
-    asked: list[int] = []
-
-    def stop_after(n: int) -> Callable[[], bool]:
-        def stop() -> bool:
-            asked.append(n)
-            return len(asked) > n
-
-        return stop
-
-    tracker.refine_stop = stop_after(0)
-    assert tracker._refined(obj, res, truth) is res.x and asked == [0]
-    asked.clear()
-    tracker.refine_stop = stop_after(1)
-    assert tracker._refined(obj, res, truth) is res.x and len(asked) == 2
-    asked.clear()
-    tracker.refine_stop = stop_after(100)
-    refined = tracker._refined(obj, res, truth)
-    assert refined is not res.x and 1 < len(asked) <= 1 + tracker.config.refine_iterations
-    tracker.refine_stop = None
-    np.testing.assert_array_equal(tracker._refined(obj, res, truth), refined)
-
-
 def test_a_refinement_starts_from_the_frame_befores_correction_when_the_track_went_on_from_it(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -945,13 +728,13 @@ def test_a_refinement_starts_from_the_frame_befores_correction_when_the_track_we
     truth, obj = _fist_frame(tracker)
     res = tracker._maximise(obj, truth, iterations=7)
     starts: list[NDArray[np.float64]] = []
-    fit = tracker._fit
+    fit = tracker._maximise
 
     def spy(obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> object:
         starts.append(x0)
         return fit(obj, x0, **kwargs)
 
-    monkeypatch.setattr(tracker, "_fit", spy)
+    monkeypatch.setattr(tracker, "_maximise", spy)
 
     def err(x: NDArray[np.float64]) -> float:
         return float(np.linalg.norm(fingertips(tracker.model, x) - fingertips(tracker.model, truth), axis=1).mean())
@@ -973,12 +756,6 @@ def test_a_refinement_starts_from_the_frame_befores_correction_when_the_track_we
     n = len(starts)
     tracker._refined(obj, res, open_hand)
     assert len(starts) == n + 1 and starts[-1] is res.x
-    # A refinement that was stopped leaves no correction.
-    tracker.refine_stop = lambda: len(starts) > n + 1
-    assert tracker._refined(obj, res, res.x) is res.x
-    tracker.refine_stop = None
-    tracker._refined(obj, res, res.x)
-    assert starts[-1] is res.x
 
 
 def test_the_search_stays_inside_the_image_whatever_the_intrinsics() -> None:

@@ -26,9 +26,9 @@ from hand_sog_tracker.core.hand_model import JOINT_NAMES, HandShape, default_han
 from hand_sog_tracker.core.kinematics import fingertips
 from hand_sog_tracker.core.model_io import load_hand_shape, save_hand_shape
 from hand_sog_tracker.core.tracker import Tracker
-from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.ros.conversions import stamp_to_ns
-from hand_sog_tracker.ros.node import IDLE_REFINE_PASSES, TrackerNode, make_executor
+from hand_sog_tracker.ros.node import TrackerNode, make_executor
 from hand_sog_tracker.synth.render import RenderOptions, render_depth
 
 #: Principal point at the exact image centre (159.5, 119.5), unlike helpers.INTR (160, 120).
@@ -157,15 +157,6 @@ class Rig:
         self.io.destroy_node()
 
 
-def single_image_answer(reference: Tracker, depth: np.ndarray) -> TrackResult:
-    """What the node answers for the image it finds the hand on when no newer image follows:
-    the core's result refined on the same image ``IDLE_REFINE_PASSES`` more times."""
-    result = reference.process(depth, INTR)
-    for _ in range(IDLE_REFINE_PASSES):
-        result = reference.process(depth, INTR)
-    return result
-
-
 @pytest.fixture
 def rig(ros_context, tmp_path: Path):
     r = Rig(ros_context, tmp_path)
@@ -182,7 +173,7 @@ def test_outputs_carry_the_input_stamp_and_frame_and_match_the_core(rig: Rig) ->
         stamp = T0_NS + i * 33_333_333
         rig.send(image_msg(depth, stamp))
         js = rig.wait_joint(stamp)
-        expected = single_image_answer(reference, depth) if i == 0 else reference.process(depth, INTR)
+        expected = reference.process(depth, INTR)  # (issue 45: the node answers what the core does)
         assert expected.status is TrackerStatus.TRACKING
         assert js.header.frame_id == FRAME and tuple(js.name) == JOINT_NAMES
         np.testing.assert_allclose(js.position, expected.pose[6:], atol=1e-9)
@@ -338,35 +329,6 @@ def test_no_backlog_under_a_burst(rig: Rig) -> None:
     assert s.processed + s.dropped + s.missed == 12, s
     got = [stamp_to_ns(m.header.stamp) for m, _ in rig.joints]
     assert got == sorted(got) and got[-1] == stamps[-1]
-
-
-def test_an_image_that_arrives_during_the_restarts_is_tracked_in_the_same_callback(rig: Rig) -> None:
-    """Issue 14: the restarts after a frame's answer pause for a newer image, and the node tracks
-    that image at once, in the same executor callback (without the executor's round trip)."""
-    rig.send_info()
-    frames = [hand_depth(th, seed=i) for i, th in enumerate(hand_poses(4))]
-    stamps = [T0_NS + i * 10**7 for i in range(4)]
-    for i in range(2):
-        rig.send(image_msg(frames[i], stamps[i]))
-    tracker = rig.node._tracker
-    finish = tracker.finish_frame
-    waited: list[bool] = []
-
-    def finish_after_a_newer_image(stop=None):  # the next image arrives during the restarts
-        if not waited:
-            rig.image_pub.publish(image_msg(frames[3], stamps[3]))
-            end = time.monotonic() + 5.0
-            while stop is not None and not stop() and time.monotonic() < end:
-                time.sleep(0.001)
-            waited.append(True)
-        return finish(stop)
-
-    tracker.finish_frame = finish_after_a_newer_image  # type: ignore[method-assign]
-    before = rig.node.stats.processed
-    rig.image_pub.publish(image_msg(frames[2], stamps[2]))
-    assert rig.spin_until(lambda: rig.node.stats.processed > before)
-    assert waited and rig.node.stats.processed == before + 2  # both in one callback
-    rig.wait_joint(stamps[3])
 
 
 def test_calibrate_fails_cleanly_without_frames(rig: Rig) -> None:

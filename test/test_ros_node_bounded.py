@@ -568,9 +568,8 @@ def _burst_then_30hz(b: Bench):
             missed0 = b.node.stats.missed
     b._stamp = max(b._stamp, t)
     grew = b.node.stats.missed - missed0
-    fast = b.node._tracker.restart_interval_s is not None
     problems = [f"{grew} frames counted missed at 30 Hz"] if grew else []
-    return [], [], problems + (["still a 'fast camera'"] if fast else [])
+    return [], [], problems
 
 
 kind("stamps", "200 Hz burst, then 30 Hz", "bounded")(_burst_then_30hz)
@@ -842,7 +841,7 @@ def _budget(b: Bench):
     return [], [], ([] if cut else ["no frame counted cut with a 10 ms budget"])
 
 
-kind("parameters", "frame_budget_ms 10 (frames cut)", "bounded", "its remaining work was cut")(_budget)
+kind("parameters", "frame_budget_ms 10 (frames over it counted)", "bounded", "over its budget")(_budget)
 
 
 def _refused(values: dict):
@@ -1064,6 +1063,8 @@ def test_battery_memory_and_time(bench: Bench) -> None:
                                     peak_rss=peak, after_rss=after, trimmed_rss=trimmed, worst=worst)) + "\n")
     assert peak - bench.steady_rss < 50.0
     # No bad input costs more than a small factor of a clean frame's initialisation (the clean
-    # frames after each kind, measured in the same run: the machine's load scales both).
+    # frames after each kind, measured in the same run: the machine's load scales both).  A frame
+    # runs its whole search, never cut (issue 45): intrinsics 10x too large (the hand 10x wider,
+    # its data at the cap) take 3-6 initialisations.
     init_ms = max(r["recover_ms"] for r in RESULTS)
-    assert worst["worst_ms"] <= 3.0 * init_ms, (worst, init_ms)
+    assert worst["worst_ms"] <= 8.0 * init_ms, (worst, init_ms)

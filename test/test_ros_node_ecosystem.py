@@ -23,7 +23,7 @@ from hand_sog_tracker.core.urdf import WRIST_JOINT_NAMES, hand_urdf
 from hand_sog_tracker.errors import InputError
 from hand_sog_tracker.ros.conversions import stamp_to_ns
 from hand_sog_tracker.ros.node import TrackerNode
-from test_ros_node import FRAME, INTR, T0_NS, Rig, hand_depth, hand_poses, image_msg, single_image_answer
+from test_ros_node import FRAME, INTR, T0_NS, Rig, hand_depth, hand_poses, image_msg
 
 HAVE_TF2 = importlib.util.find_spec("tf2_msgs") is not None
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -88,7 +88,7 @@ def test_compressed_depth_input_is_tracked_and_bad_payloads_are_rejected(ros_con
         d0 = hand_depth(poses[0], seed=0)
         rig.send(compressed_msg(d0, T0_NS, "16UC1", "png"))
         js = rig.wait_joint(T0_NS)
-        expected = single_image_answer(reference, d0)  # 16UC1 png is lossless: the same result as raw
+        expected = reference.process(d0, INTR)  # 16UC1 png is lossless: the same result as raw
         assert expected.status is TrackerStatus.TRACKING
         np.testing.assert_allclose(js.position, expected.pose[6:], atol=1e-9)
         assert js.header.frame_id == FRAME

@@ -1,39 +1,15 @@
 """Automatic initialisation: find the hand in a depth image and propose start poses.
 
-No rest pose is required.  The nearest sizeable blob of in-range depth is taken
-as hand (plus forearm), less what lies more than
-:data:`HAND_DEPTH_BAND_MM` behind its nearest points (an arm joins hand and body
-in one surface).  Its 3D principal axis gives the arm direction; the end
-of the blob that leaves the image in a run as wide as a forearm is the forearm, so the
-hand lies at the other end; else a side reaching far beyond the palm is the forearm (fingers
-leaving the image are no forearm; when both ends leave it, or nothing decides, both
-directions are tried).  Start
-poses then combine palm toward / away from the camera, open / closed hand and
-in-plane rotations; the tracker keeps the one with the best objective.  A wrist
-bent sideways turns hand and forearm apart, so open hands along the hand end's own axis
-(:attr:`HandBlob.hand_direction`) and pointing from the palm toward the fingertip detections
-(:func:`detection_direction`) are tried besides.
-
-The search runs in two stages (issue 14 aims at <= 50 ms per frame on one core; measured
-about 40 and 24 ms median on dev renders, 2026-11-27), see :meth:`hand_sog_tracker.core.tracker.Tracker._initialise`:
-
-1. *search* (:data:`INIT_SEARCH`): the start poses that score best at their start (``screened``
-   per palm side) are aligned rigidly for a few iterations
-   on one shared, coarse quadtree of the region around the palm (leaves of at least
-   ``coarse_quad_px``), the best by objective (both palm sides) are articulated on the full-resolution
-   quadtree of the same region (and the best of the start poses along the hand end's axis and
-   the detections, when there are such), and the best by the restarts' score (objective minus detection
-   assignment cost) become the finalists (:class:`InitFinalists`); when even the best scores poorly
-   (``combination_below``), start poses with single fingers curled (:func:`finger_combinations`)
-   are tried as well;
-   with a split initialisation those are tried at the start of the second stage instead (on
-   the first stage's frame and data: the same finalists), where there is more room: a search
-   that needs them no longer runs past 50 ms, the finish after them mostly stays under it;
-2. *finish*: the finalists are refined with the full objective (silhouette, fingertip
-   detections) on this frame or the next one, the best gets the finger and finger-shift
-   restarts, and tracking starts from it; the lateral restarts (the hand moved sideways, see
-   :meth:`~hand_sog_tracker.core.restarts.RestartStrategies._lateral_restarts`) follow, before
-   the answer or, in the node, after it.
+No rest pose is required.  The nearest sizeable blob of in-range depth is taken as hand (plus
+forearm), less what lies more than :data:`HAND_DEPTH_BAND_MM` behind its nearest points (an arm
+joins hand and body in one surface).  Its 3D principal axis gives the arm direction; the end of
+the blob that leaves the image in a run as wide as a forearm is the forearm, so the hand lies at
+the other end; else a side reaching far beyond the palm is the forearm (when both ends leave the
+image, or nothing decides, both directions are tried).  Start poses combine palm toward / away
+from the camera, open / closed hand and in-plane rotations; open hands along the hand end's own
+axis (:attr:`HandBlob.hand_direction`) and toward the fingertip detections
+(:func:`detection_direction`) are tried besides (a wrist bent sideways turns hand and forearm
+apart).  The search over them is :func:`hand_sog_tracker.core.search.start.start_search`.
 """
 
 from __future__ import annotations
@@ -53,7 +29,6 @@ from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 
 __all__ = [
     "HandBlob",
-    "InitFinalists",
     "InitSearch",
     "INIT_SEARCH",
     "DETECTION_DIRECTION_MIN_DETECTIONS",
@@ -74,16 +49,14 @@ MIN_BLOB_AREA_MM2 = 2500.0
 #: Largest: a blob larger than this (mm^2 at its median depth, after the cut at
 #: :data:`HAND_DEPTH_BAND_MM`) is a wall or a table, not a hand (hand and forearm measure
 #: 16,000-20,000 mm^2 in the RealSense frames and 38,000 in the NYU Kinect frame; a wall
-#: filling the view at 0.9 m, 750,000).
+#: filling the view at 0.9 m, 750,000). (measurements: doc/notes/search.md)
 MAX_BLOB_AREA_MM2 = 150_000.0
 #: A blob reaching this far beyond its thickest point (and 1.4x farther than
 #: on the other side) is taken to hold a forearm on that side (mm; a hand reaches about 135
 #: mm from its palm centre to the fingertips).
 FOREARM_MIN_EXTENT_MM = 150.0
 #: A run of blob pixels along the image border narrower than this (mm at its depth) is a finger
-#: leaving the view, not a forearm: it is no evidence of where the forearm is (a finger is 15-22 mm
-#: wide, a wrist or forearm 45-70 mm; two fingers side by side count as a forearm, which leaves
-#: the direction open, see :func:`_forearm_side`).
+#: leaving the view, not a forearm (a finger is 15-22 mm wide, a wrist or forearm 45-70 mm).
 FOREARM_MIN_WIDTH_MM = 30.0
 #: Runs along the border this close (px) count as one: a column of missing pixels splits no
 #: forearm in two (and fingers a pixel apart count as one run: as fingers pressed together).
@@ -97,100 +70,58 @@ HAND_DEPTH_BAND_MM = 250.0
 NARROW_BANDS_MM = (175.0, 120.0)
 #: Narrower bands still (mm), tried last, for a wall or a table top 50-120 mm behind the hand:
 #: the part within one is taken only when at most its share in :data:`SURFACE_GAP_SHARES` of
-#: its pixels lie in the band's last :data:`SURFACE_GAP_MM` (chosen here: hands 50 mm in front
-#: of a wall, 0.5-1.1%; the slice of a wall tilted by 14-18 deg, 16-24%: no hand).  With a wall
-#: 80 mm behind the wrist, 9 mesh dev renders scored 111 mm before, most frames without a hand
-#: found, 6.3 mm with these bands.  The narrowest band allows 12%: with the wrist bent away from
-#: the camera, a forearm receding into a wall 50 mm behind the wrist filled 8.7% of its last 15
-#: mm, and no band found the hand (renders of an open hand never tracked; on the first 24 dev
-#: and 24 validation renders 26.7 and 25.9 -> 16.6 and 16.3 mm mean error, 80 and 120 mm walls
-#: as before).  12% in the 90 mm band too took in a wall's slice with a hand (validation 5020,
-#: abduction, 4.9 -> 44.6 mm).
+#: its pixels lie in the band's last :data:`SURFACE_GAP_MM` (a wall's slice fills it; chosen
+#: here, measurements: doc/notes/search.md).
 SURFACE_BANDS_MM = (90.0, 60.0)
 SURFACE_GAP_MM = 15.0
 SURFACE_GAP_SHARES = (0.05, 0.12)
 #: The bands :func:`_nearest_blob` tries in turn: (band mm, gap share or None for no gap test,
-#: whether a part that fails the gap test is still taken when no narrower band passes).  The
-#: narrowest of :data:`NARROW_BANDS_MM` gets the 90 mm band's gap test that way: a wall right at
-#: its end, 120 mm behind the hand's nearest point, puts its near fringe in the band (validation
-#: render 5042 with a wall 80 mm behind the wrist, the thumb's tip toward the camera: 13% of the
-#: part in its last 15 mm; the track started with the fingers one place over, 37 mm for 7
-#: frames), and the 90 mm band holds the hand alone.  Before, the band was taken whatever its
-#: gap: so it still is when no narrower band passes (a hand and forearm reaching through the
-#: depth).  Walls 50, 80 and 120 mm behind the wrist (validation 5000-5047, dev 3000-3047 at 80
-#: mm): two renders changed, 5042 9.12 -> 4.80 and 5020 5.89 -> 4.66 mm; renders 9000-9047
-#: (score only) with the 80 mm wall 6.561 -> 6.329 mm, frames over 20 mm 26 -> 1.  Without a wall the
-#: four mesh sets, the labelled real frames and the NYU frame track as before, bit for bit.
+#: whether a part that fails the gap test is still taken when no narrower band passes).
+#: (measurements: doc/notes/search.md)
 _BANDS: tuple[tuple[float, float | None, bool], ...] = (
     *((band, None, False) for band in (HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM[:-1])),
     (NARROW_BANDS_MM[-1], SURFACE_GAP_SHARES[0], True),
     *((band, share, False) for band, share in zip(SURFACE_BANDS_MM, SURFACE_GAP_SHARES)),
 )
-#: A blob pixel is on a surface when it and its 8 neighbours all belong to the blob and lie within
-#: this depth range (mm): :attr:`HandBlob.far_mm` is the farthest such pixel.  Flying pixels (a
-#: ToF sensor's mixed returns between the hand and a wall behind it) join the blob in 1-2 px
-#: fringes at depths between the two: 80 mm in front of a wall, the blob's farthest pixel lay 60 mm
-#: behind the hand's, and the initialisation's window took in the wall (chosen here: over the
-#: inner pixels of 54 mesh dev frames at 400 mm without a wall, the 3 x 3 depth range is 1.3 mm
-#: median, 8 mm at the 99th percentile; 0.7% of them reach 15 mm, at the fingers' edges).
+#: A blob pixel is on a surface when it and its 8 neighbours all belong to the blob and lie
+#: within this depth range (mm): :attr:`HandBlob.far_mm` is the farthest such pixel.
+#: (measurements: doc/notes/search.md)
 SURFACE_RANGE_MM = 15.0
 #: The hand end's own axis (:attr:`HandBlob.hand_direction`) is the principal direction of the
-#: blob's points less than this far behind the palm centre along the blob's axis: hand, wrist and
-#: the start of the forearm (mm; chosen here, issue 11: on the 8 labelled real frames its in-plane
-#: angle to the tracked hand's axis was 3.7 degrees mean with 60 mm, 4.7 with 50, 6.3 with 80,
-#: 8.6 with 100, against 14.4 for the whole blob; with 0 mm, the hand beyond the palm only, 29:
-#: spread fingers make it wider than long).
+#: blob's points less than this far behind the palm centre along the blob's axis: hand, wrist
+#: and the start of the forearm (mm; chosen here, issue 11, on the labelled real frames).
 HAND_AXIS_BEHIND_PALM_MM = 60.0
 
 
 @dataclass(frozen=True)
 class InitSearch:
-    """Effort of the two initialisation stages (counts; chosen here, issue 14, against the dev
-    bags and the labelled real frames; on one core of the 2-core machine while other work ran,
-    the search took 63 ms median per frame, the finish 40 ms).
+    """Effort of a new track's search (counts; chosen here, issues 11 and 14, against the dev
+    bags and the labelled real frames; measurements: doc/notes/search.md).
 
     Attributes
     ----------
     coarse_quad_px : int
-        Smallest quadtree leaf (px) of the data the start poses are aligned to (an objective
-        evaluation costs about two thirds of one on the 4 px tracking quadtree).
+        Smallest quadtree leaf (px) of the data the start poses are aligned to.
     screened : int
-        Start poses of the blob's directions aligned per palm side (toward / away from the
-        camera): the best by the objective at the start pose itself, one evaluation each
-        (issue 14: with 4, a hand without a recognised forearm, 20 start poses, aligns 8; on
-        2 x 36 dev renders started at 4 frames each the first answers scored 16.20 and 16.16
-        mm against 16.21 and 16.22 with all aligned, the 112 perturbed real-frame runs the same,
-        and the search took 40 and 40 ms median against 43 and 47 ms; with 3: 19.0 mm).
-        The start poses along the hand end's axis and the detections are always aligned.
+        Start poses of the blob's directions aligned per palm side: the best by the objective
+        at the start pose itself (those along the hand end's axis and the detections always).
     rigid_iterations : int
         Rigid (wrist pose only) iterations of every start pose on the coarse data.
     kept : int
-        Start poses articulated after the rigid alignment: the best by objective, half of
-        them with the palm toward the camera and half with the back (the rigid fit alone
-        favours the back of the hand).
+        Start poses articulated after the rigid alignment, the best by objective, half per palm
+        side (the rigid fit alone favours the back of the hand).
     full_iterations : int
         Iterations (all parameters) of each kept pose on the full-resolution data.
     finalists : int
-        Best-scoring poses handed to the second stage (with the best of the other palm side
+        Best-scoring poses refined with the full objective (plus the best of the other palm side
         when none of them has it).
     final_iterations : int
-        Iterations of each finalist with the full objective in the second stage.
+        Iterations of each finalist with the full objective.
     combination_below : float
-        The start poses with single fingers curled (:func:`finger_combinations`) are tried only
-        when the best of the others scores below this (the restarts' score, unitless; chosen
-        here: the first frames of 144 dev renders, open hands, scored 0.356-0.50, 1% under 0.36;
-        432 starts in the middle of dev renders 0.18-0.48, and every start where a combination
-        won scored under 0.36).  They cost about 15 ms: 34 evaluations to pick them
-        (:func:`best_combination`), two fits (with a split initialisation they run at the
-        start of the second stage: on the benchmark's hard case the first stage then took
-        33-45 ms, 32-56 ms before).
+        Single fingers curled (:func:`finger_combinations`) are tried when the best pose scores
+        below this (the search's score, unitless: the first frames of open hands score 0.36-0.5).
     combination_margin : float
-        The start poses with single fingers curled (:func:`finger_combinations`) compete for
-        the finalists only when the best of them beats the best of the others by this much of
-        the restarts' score (unitless; chosen here, issue 11).  On 432 starts in the middle of
-        dev renders their best won 54 times, by 0.05 in the median (up to 0.1); on the labelled
-        real frames 20 times in 112 runs, by 0.015-0.04, and put fingers on their neighbours
-        (112 runs 8.3 -> 10.6 mm without a margin).
+        ... and compete when their best beats the others by this much (unitless).
     """
 
     coarse_quad_px: int = 8
@@ -206,43 +137,6 @@ class InitSearch:
 
 #: The effort the tracker uses.
 INIT_SEARCH = InitSearch()
-
-
-@dataclass(frozen=True, eq=False)
-class InitFinalists:
-    """Outcome of the first initialisation stage, waiting for the second.
-
-    Attributes
-    ----------
-    poses : list of arrays, shape (26,)
-        Finalist poses, best first.
-    model : HandModel
-        The model they were fitted with (a model change discards them).
-    config : TrackerConfig
-        The configuration they were fitted with (a change discards them).
-    pre : Preprocessed
-        The frame they were fitted to (the second stage runs on it when no newer frame
-        comes first).
-    end_mm : float
-        The depth (mm) where the search's window ended at the latest, a little behind the hand
-        blob (:attr:`HandBlob.far_mm`): what lies farther was cut off as a body or a wall, and
-        the second stage's window ends there too.
-    rest : callable or None
-        The search's last step when it was left to the second stage (the curled-finger
-        combinations, on the first stage's frame and data): returns the finalist poses, and
-        ``poses`` is empty until then.  None: ``poses`` are final.
-    """
-
-    poses: list[NDArray[np.float64]]
-    model: HandModel
-    config: TrackerConfig
-    pre: Preprocessed
-    end_mm: float = np.inf
-    rest: Callable[[], list[NDArray[np.float64]]] | None = None
-
-    def final_poses(self) -> list[NDArray[np.float64]]:
-        """The finalist poses, after the search's last step when it was left for later."""
-        return self.poses if self.rest is None else self.rest()
 
 
 @dataclass(frozen=True, eq=False)
@@ -354,17 +248,9 @@ def _in_plane(direction: NDArray[np.float64], angle: float) -> NDArray[np.float6
     return d / np.linalg.norm(d)
 
 
-#: Invalid pixels inside a blob in 4-connected groups up to this size (px) are filled before the
-#: palm is searched: a blob riddled with sensor dropouts has no thick part (chosen here: with 10%
-#: of the pixels dropped at random, 10 dev renders went from 15.7 to 7.1 mm and 10 others from
-#: 9.9 to 8.3 mm; up to 30 px gave 7.0 and 8.0 mm, but filled enclosed gaps between fingers
-#: too: the capsule random bag went from 4.0 to 6.6 mm).  Every such hole is filled: a few single
-#: dropped pixels in the palm already move the distance transform's maximum (a ToF sensor's 0.2%
-#: sparse dropout: the palm estimate's error along the hand had a standard deviation of 17 mm on
-#: 54 dev frames, 5 mm filled; fresh trackers on frames 10, 25 and 40 of 144 dev renders: 13.6 ->
-#: 10.3 mm on their first frame, 49 -> 26 starts over 25 mm).  Until this release they were
-#: filled only when they made up 1% of the blob: tracked from the first frame, the dev,
-#: validation and check sets were 0.06-0.29 mm better that way.
+#: Invalid pixels inside a blob in 4-connected groups up to this size (px) are filled before
+#: the palm is searched: a blob riddled with sensor dropouts has no thick part (chosen here;
+#: larger fills close the gaps between fingers; measurements: doc/notes/search.md).
 MAX_HOLE_PX = 4
 
 
@@ -435,9 +321,7 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     if hand_direction is not None and float(hand_direction @ main) > np.cos(np.deg2rad(DETECTION_DIRECTION_MIN_DEG)):
         hand_direction = None  # (the blob's own direction already)
     if hand_direction is not None:
-        # Its two start poses take the place of the four of the blob's most turned directions
-        # (+-1.2 rad; without them 360 perturbed runs of the labelled real frames tracked the
-        # same, 128 others 0.01 mm worse in the mean).
+        # Its two start poses take the place of the four of the blob's most turned directions.
         angles = angles[:3]
     return HandBlob(
         palm=palm,
@@ -519,9 +403,7 @@ def _hand_axis(
     :data:`HAND_AXIS_BEHIND_PALM_MM` behind ``palm_surface`` along ``main`` (the blob's unit
     direction toward the fingers), signed like ``main``; None with too few such points.
 
-    Issue 11: a forearm tilts the principal axis of the whole blob; on the labelled real frames
-    2, 3, 4 and 8 it lay 15-23 degrees off the hand's axis, so that no start pose reached the
-    right pose when the image moved by a pixel.
+    A forearm tilts the principal axis of the whole blob off the hand's (issue 11).
     """
     hand = pts[(pts - palm_surface) @ main > -HAND_AXIS_BEHIND_PALM_MM]
     if hand.shape[0] < 20:
@@ -548,10 +430,8 @@ def detection_direction(blob: HandBlob, points: NDArray[np.float64]) -> NDArray[
     """The in-plane unit direction (3,) from the palm to the mean of fingertip detections
     ``points`` (n, 3) mm, or None (too few detections, or a direction the blob offers already).
 
-    The blob's directions come from its principal axis, which a forearm tilts: on the labelled
-    real frames the axis of hand and forearm lies 15-23 degrees off the hand's own axis on
-    frames 2, 3, 4 and 8, and no start pose then reaches the right pose (issue 11).  The seen
-    fingertips point along the hand whatever the forearm does.
+    The blob's directions come from its principal axis, which a forearm tilts; the seen
+    fingertips point along the hand whatever the forearm does (issue 11).
     """
     if points.shape[0] < DETECTION_DIRECTION_MIN_DETECTIONS:
         return None
@@ -615,12 +495,8 @@ def finger_combinations(start: NDArray[np.float64]) -> list[NDArray[np.float64]]
     least one finger curled (a curled thumb as in :data:`CLOSED`), in the order of the bits
     of 1..31 (bit c: chain c curled).
 
-    Issue 11: a hand found in the middle of a motion (after a loss, or a camera started late)
-    often has some fingers curled and others extended (finger counting, a grasp); from the
-    open, closed and half-closed start poses the fit curled or extended whole hands, and the
-    best pose often had the hand turned palm-for-back with its thumb on the little finger's
-    data (dev renders of finger counting started at frame 40: 100-130 mm off, while a fit from
-    the true pose scored 0.33-0.39 against 0.23-0.25).
+    A hand found mid-motion (after a loss, a camera started late) often has some fingers
+    curled and others extended; the whole-hand start poses miss it (issue 11).
     """
     curled = (CLOSED[:4], *[FINGER_CURLED] * 4)  # (CLOSED[:4]: the thumb's joints)
     out = []
@@ -642,8 +518,7 @@ def best_combination(
     up per chain.
 
     The thumb's data lie apart from the fingers', so the fingers' best combination hardly
-    depends on the thumb (issue 14: about 6 ms less per initialisation that tries them; see
-    ``InitSearch.combination_below`` for what it did to the starts).
+    depends on the thumb (issue 14).
     """
     combos = finger_combinations(start)
     # combos[i] curls the chains of the bits of i + 1 (bit 0: the thumb).

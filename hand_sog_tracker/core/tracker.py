@@ -1,50 +1,31 @@
 """Frame-to-frame hand tracker: depth in, 26-DOF pose and fingertips out.
 
-One job: one frame's tracking (data near the hand, fit, restarts, loss) and the two-stage
-initialisation; kept together because both share the track's state (last poses, step lengths,
-the pending search); the restarts are in :mod:`.restarts`, the start poses in :mod:`.initialise`.
+Units: depth images and every position in millimetres, camera optical frame (x right, y down,
+z forward); angles in radians.
 
-Units: depth images and every position in millimetres, camera optical frame
-(x right, y down, z forward); angles in radians.
-
-Per frame (paper 000, sec. 5): preprocess and cluster the depth near the last
-hand position into Gaussians, start from the pose extrapolated from the last
-two frames, and run the adaptive gradient ascent on the objective.  When there
-is no track yet (first frame, or after a loss) the tracker finds the hand in
-the depth by itself and tries several starting poses (see :mod:`.initialise`).
-After each frame's fit the restart strategies of :mod:`.restarts` (a mixin of
-:class:`Tracker`) try ways out of local optima.  A frame whose hand has a curled finger
-answers with its fit refined on a model with Gaussians on the finger joints (see
-``REFINE_CURL_RAD``); the track goes on from the fit.
+Per frame (paper 000, sec. 5): the depth near the hand's extrapolated pose is clustered into
+Gaussians, the pose is fitted from there by the adaptive gradient ascent, and the search
+(:mod:`hand_sog_tracker.core.search`) fits the candidates its proposals make from that fit
+(fingers shifted, swapped, curled, pulled onto unexplained detections) as one batch; one
+score picks the frame's pose.  Without a track (the first frame, after a loss) the same
+search starts from the hand found in the depth (:mod:`.search.start`) with more candidates.
+A frame with a curled finger answers with its pose refined on a model with joint Gaussians
+(``REFINE_CURL_RAD``); the track goes on from the pose.  Nothing depends on the wall clock:
+the same frames give the same answers.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
-from hand_sog_tracker.core.energy import Objective, TipTargets, contact_shares, gaussian_support
-from hand_sog_tracker.core.hand_model import (
-    FINGER_MCP,
-    FINGER_PIP,
-    HandModel,
-    HandShape,
-    default_hand_model,
-)
-from hand_sog_tracker.core.initialise import (
-    INIT_SEARCH,
-    HandBlob,
-    InitFinalists,
-    best_combination,
-    detection_direction,
-    find_hand,
-    initial_hypotheses,
-)
+from hand_sog_tracker.core.energy import Objective, TipTargets, contact_shares
+from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, HandModel, HandShape, default_hand_model
+from hand_sog_tracker.core.initialise import INIT_SEARCH
 from hand_sog_tracker.core.kinematics import (
     fingertips,
     gaussian_centres,
@@ -52,264 +33,61 @@ from hand_sog_tracker.core.kinematics import (
     posed_centres,
     skeleton_points,
 )
-from hand_sog_tracker.core.optimizer import OptimizeResult, Steps, StepSizes, maximise, maximise_steps, run
-from hand_sog_tracker.core.restarts import (
-    ASSIGN_LAMBDA_MM,
-    RESTART_ITERATIONS,
-    SHIFT_CHUNK,
-    RestartStrategies,
-    ShiftCandidate,
-)
+from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
+from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
 from hand_sog_tracker.core.salient import Detections, assigned_targets, detect_fingertips
-from hand_sog_tracker.core.silhouette import Silhouette, silhouette
-from hand_sog_tracker.core.types import (
-    Intrinsics,
-    TrackerConfig,
-    TrackerStatus,
-    TrackResult,
+from hand_sog_tracker.core.search import (
+    ASSIGN_LAMBDA_MM,
+    NEW_TRACK_PROPOSALS,
+    TRACK_PROPOSALS,
+    Frame,
+    plain,
+    search,
 )
+from hand_sog_tracker.core.search.candidates import pull_target
+from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
+from hand_sog_tracker.core.silhouette import Silhouette, silhouette
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
 
-__all__ = ["Tracker", "before_surface", "coverage", "hand_roi"]
+__all__ = ["ALPHA", "ASSIGN_LAMBDA_MM", "Tracker", "before_surface", "coverage", "hand_roi"]
 
-# Tuning constants.  Each says what it is, its unit and where its value comes from: "paper 000"
-# (the tracker's paper), "seed 001/004" (the salient-point and restart papers) or "chosen
-# here" (set while developing this package against the synthetic bag sets; commit noted
-# where the value was last changed).  They are module constants, not TrackerConfig fields
-# (which become ROS parameters), because none is meant to be tuned per camera or user.
-# The restarts' constants (RESTART_TIP_MM, ASSIGN_LAMBDA_MM, ...) are in :mod:`.restarts`.
-
-#: Velocity extrapolation factor of the start pose (unitless; paper 000 sec. 5.3: alpha = 0.5).
+# Module constants, not TrackerConfig fields (which become ROS parameters): none is meant to be
+# tuned per camera or user.  The measurements behind them: doc/notes/search.md.
+#: Velocity extrapolation of the start pose (paper 000 sec. 5.3: alpha = 0.5).
 ALPHA = 0.5
-#: Warm start of the step lengths (unitless; chosen here): a tracked frame starts from the
-#: previous frame's final step lengths times ``WARM_GROW``, kept within ``[WARM_MIN, 1]`` x
-#: the optimiser's initial ones.  Parameters that settled start with small steps (a fresh
-#: start overshot in the first iterations of most frames: the best pose came only in the last
-#: iterations), parameters that keep moving keep theirs.  With it 7 iterations per frame
-#: track better than 10 without (dev renders 7.1 against 7.3 mm mean error).
+#: A tracked frame starts from the last frame's final step lengths x ``WARM_GROW``, within
+#: ``[WARM_MIN, 1]`` x the initial ones (settled parameters start small; chosen here).
 WARM_GROW = 2.0
 WARM_MIN = 0.1
-#: A tracked frame's fit still climbing after ``iterations`` gets up to this many more, one at
-#: a time while the last raised the objective by more than ``EXTRA_GAIN x |E(start)|`` (count,
-#: unitless; chosen here: fast rotations at 640x480 outran 7 iterations, 8.8 mm against 7.6
-#: with the previous release; with it 7.2 mm, at 5-8% more time per frame).
+#: A fit still climbing after ``iterations`` gets up to this many more while the last raised the
+#: objective by ``EXTRA_GAIN`` x |E(start)| (fast rotations outran 7 iterations; chosen here).
 EXTRA_ITERATIONS = 3
 EXTRA_GAIN = 0.002
-# The initialisation's effort (iterations, hypotheses kept, finalists) is
-# :data:`hand_sog_tracker.core.initialise.INIT_SEARCH`.
-#: Data farther than this beyond the wrist plane are treated as forearm (mm; chosen here: 0,
-#: the model has no forearm).
-WRIST_MARGIN_MM = 0.0
-#: A tracked frame's depth window ends this far behind the farthest Gaussian centre of its
-#: start pose (mm; chosen here), or ``roi_radius_mm`` behind the hand's centre when that is
-#: nearer: a wall or a table top closer behind the hand than the window's half depth would
-#: otherwise be data, and the silhouette of the window would be the whole image.
-WINDOW_BEHIND_MM = 70.0
-#: ... and before a surface behind the hand (:func:`before_surface`; chosen here): the first
-#: ``SURFACE_SLICE_MM`` slice of depths, from ``SURFACE_SEARCH_MM`` behind the farthest Gaussian
-#: centre on, whose pixels in the hand's region of interest cover more than
-#: ``SURFACE_SLICE_MM2`` ends it ``SURFACE_MARGIN_MM`` before that slice.  A wall or a table top
-#: fills one slice over the whole region (a fronto-parallel wall about 0.07 m^2); a forearm
-#: receding from the hand a strip of it (60 mm wide, 25-50 mm long per 15 mm of depth).  On
-#: the first 24 dev and 24 validation mesh renders (automatic calibration) with a wall 50 mm
-#: behind the wrist, the wall lay inside the 70 mm window: 16.6 and 16.3 mm mean error
-#: (with :data:`~hand_sog_tracker.core.initialise.SURFACE_GAP_SHARES`), 8.0 and 10.9 mm with
-#: it; a fixed 35 mm window did as well there (7.0 / 10.9) but moved renders of a rotating hand
-#: without a wall both ways (seeds 7000-7095: 5.86 -> 5.94 mm).
-SURFACE_SEARCH_MM = 15.0
-SURFACE_SLICE_MM = 15.0
-SURFACE_SLICE_MM2 = 5000.0
-SURFACE_MARGIN_MM = 5.0
-#: Bin width (mm) of :func:`before_surface`'s depth histogram.
-_SURFACE_BIN_MM = 5.0
-#: The initialisation's search window (and its finish's) ends this far behind the hand blob's
-#: farthest surface pixel (mm; chosen here: depth noise at the blob's edge), when that is nearer
-#: than ``roi_radius_mm`` behind the start poses' centre.
-BLOB_BEHIND_MM = 20.0
-#: Whether detections of fingers seen end-on (knuckles of a fist look the same) pull
-#: fingertips (chosen here: off; they only seed the curled restart candidates).
+#: Whether detections of fingers seen end-on pull fingertips (off: they only seed candidates).
 SALIENT_END_ON = False
-#: The refinement of a tracked frame's answer (issue 11; chosen here): when a finger's PIP is
-#: flexed over ``REFINE_CURL_RAD`` (rad), the answer is the track's pose refined
-#: ``TrackerConfig.refine_iterations`` (2) iterations on the objective of the model with joint
-#: Gaussians (:meth:`HandModel.with_joint_gaussians`); the track goes on from its own pose.
-#: The tracking model covers a bent joint's outer corner only with the tails of its segments'
-#: Gaussians, and its fit opens curled fingers into claws (dev renders: curled MCPs -12.4 deg,
-#: curled fingertips 11.3 mm off against 5.4 for open ones); tracking on the joint model
-#: removes most of that but loses fingers on the labelled real frames (112 runs: 9.45 -> 14.3
-#: mm), where its restarts and initialisation choose worse.  Refining only the answer keeps
-#: the track's choices.  From the track's pose, 4 iterations gained as much as 6 on the dev
-#: renders (curled fingertips 9.9 mm); from the frame before's correction 2 do
-#: (``REFINE_WARM_STEPS``).  Gated on MCP + PIP over 60 deg instead, real frame 3's ring
-#: finger (curled toward the camera, MCP 58 and PIP 53 deg) was refined 6 mm further off;
-#: without a gate open fingertips lost 0.2 mm.
+#: A PIP flexed over this (rad) has the answer refined on the joint-Gaussian model (issue 11:
+#: the tracking model opens curled fingers into claws; refining only the answer keeps the
+#: track's choices).
 REFINE_CURL_RAD = math.radians(60.0)
-#: When the frame before was refined too and the track went on from its pose (no restart
-#: replaced it), the refinement starts from the track's pose plus that frame's correction
-#: (answer - track pose), clipped to the limits, with its warm step lengths times this factor
-#: (unitless; chosen here, issue 14).  The correction changes little from frame to frame (the
-#: joint Gaussians straighten the same claw), so the refinement starts near its end: 2
-#: iterations from there do as well as 4 from the track's pose (mesh sets, mean error: dev
-#: 5.801 -> 5.790 without 3071, whose automatic fit was no longer accepted, 6.4 -> 11.3 mm;
-#: validation 5.913 -> 5.878, further 5.822 -> 5.801 mm) at half the cost.  After a restart won
-#: on the frame before, the refinement starts from the fit's pose.
+#: After a refined frame the refinement starts from the track's pose plus that frame's
+#: correction, its steps x this (issue 14: the correction changes little frame to frame).
 REFINE_WARM_STEPS = 0.5
-#: Whether the refinement weights each joint-model Gaussian's overlaps by its visibility at the
-#: fit's pose (:func:`~hand_sog_tracker.core.energy.visibility_weights`: the palm behind the
-#: fingers and the fingertips tucked behind their middle segments or the thumb count less;
-#: issue 11, chosen here).  In a fist facing the camera the hidden palm and fingertips
-#: otherwise earn overlap with the fingers' surface in front of them, and the fit settles with
-#: the MCPs half flexed and the fingertips 15-20 mm in front of where they are.  Only the
-#: answer: with the visibility in the track's own fits (weighted at the start pose, the
-#: thumb not an occluder) and in its restarts, the mesh sets scored about as well (dev 5.56,
-#: validation 5.65, further 5.71 mm) but the labelled real frames lost 4 runs more (112 runs:
-#: 8.30 -> 9.40 mm), where a wrong finger curled over the palm hides the palm's data from it
-#: and holds its place.
+#: The refinement weights the overlaps by visibility at the pose (a fist's hidden palm and tips).
 REFINE_VISIBILITY = True
-#: A tracker on its default model (none given, none set since) starts every track by also
-#: fitting the initialisation's finalists with the default model scaled to this length factor
-#: (unitless; chosen here, issue 11), and tracks with it when its best finalist scores
-#: ``SMALL_HAND_GAIN`` higher (:meth:`RestartStrategies._score`, unitless) than the default
-#: model's.  The default model's fingers are too long for a small hand, and a too long model
-#: finger explains the next longer finger's data better than its own: small hands started with
-#: the fingers one place over, for 8-10 frames, until a finger shift caught it.  The scores
-#: rise as the model shrinks on most hands (144 mesh dev renders, first frame: the 0.85 model
-#: scored 0.069 above the default on average on hands of length 0.79-0.83, 0.068 on 0.83-0.87,
-#: 0.044 on 0.87-0.91, 0.025 on 0.91-0.95, 0.003 on 0.95-1.0 and -0.028 on larger ones; over
-#: 0.04 on 16 of 17, 19 of 22, 8 of 17, 4 of 25 and none of the 63 others), hence a margin
-#: rather than the best score.  (0.03: dev renders 5.79 -> 5.71 mm, but labelled real frame 4,
-#: whose objective prefers its fingers one place over, went so in 4 of 14 runs instead of 2:
-#: 8.28 -> 8.86 mm over the 112 runs.)  Only between two fits of open fingers (``SMALL_HAND_MAX_FLEX``:
-#: mean MCP + PIP flexion of index .. little, rad, as the calibration's open frames): curled
-#: fingers do not show their length, and a fist seen from the back (labelled real frame 7) or a
-#: hand with a finger curled toward the camera (frame 2) scored 0.04-0.09 higher on the small
-#: model with its fingers opened onto the knuckles (the 112 runs of the labelled real frames
-#: 8.28 -> 10.58 mm without this rule).  The automatic calibration
-#: then starts from the model in use.
+#: On the default model a new track's finalists are also fitted on the model scaled to this
+#: length, which wins by ``SMALL_HAND_GAIN`` of the score with open fingers (mean MCP + PIP
+#: under ``SMALL_HAND_MAX_FLEX`` rad: curled fingers do not show their length), tried on the
+#: best ``SMALL_HAND_FINALISTS`` (issue 11: a small hand started with its fingers one over).
 SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
-#: The small model is tried on this many of the finalists, the default model's best by score
-#: (count; issue 14: the finalists are 2 or 3, each fit about 6 ms).  On 180 starts of mesh dev
-#: renders (frames 0, 20 and 40) where the small model was tried on all, its best was the
-#: default's best finalist 127 times and its second 53 times, never the third.
 SMALL_HAND_FINALISTS = 2
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
-
-
-def coverage(
-    model: HandModel,
-    theta: NDArray[np.float64],
-    data: ImageSoG,
-    centres: NDArray[np.float64] | None = None,
-    support: NDArray[np.float64] | None = None,
-) -> float:
-    """How well the data explain the model at ``theta``, in [0, 1].
-
-    The mean :func:`gaussian_support` over the best-supported two thirds of
-    the Gaussians (the rest may be legitimately occluded).  ``support``: that support (m,),
-    when already known (:meth:`Objective.support`).
-    """
-    if support is None:
-        support = gaussian_support(model, theta, data, centres)
-    support = np.sort(support)[::-1]
-    keep = max(1, (2 * support.size) // 3)
-    return float(np.add.reduce(support[:keep]) / keep)  # (= .mean(), without its Python layer)
-
-
-def hand_roi(
-    model: HandModel,
-    theta: NDArray[np.float64],
-    intr: Intrinsics,
-    radius_mm: float,
-    centres: NDArray[np.float64] | None = None,
-) -> tuple[tuple[int, int, int, int], tuple[float, float]]:
-    """Pixel box and depth window around the hand at ``theta`` (``centres``: its
-    :func:`posed_centres`, shape (m, 3) mm, when already computed).
-
-    Returns
-    -------
-    roi : (u0, v0, u1, v1)
-        End-exclusive pixel box at the resolution of ``intr``, clipped to the image (every
-        consumer clips it so: a radius of many image widths, from implausible intrinsics or a
-        large ``roi_radius_mm``, then costs no more than the whole image); empty
-        ``(0, 0, 0, 0)`` when the centre does not project (not finite).
-    window : (near_mm, far_mm)
-    """
-    P = posed_centres(model, theta) if centres is None else centres
-    c = np.add.reduce(P, axis=0) / P.shape[0]  # (= P.mean(axis=0), without its Python layer)
-    z = max(c[2], 50.0)
-    window = (c[2] - radius_mm, c[2] + radius_mm)
-    # The centre's pixel as Intrinsics.project computes it, by Python floats (the same IEEE
-    # operations in the same order).
-    x, y, zc = c.tolist()
-    if not zc > 0.0:
-        return (0, 0, 0, 0), window
-    u, v = intr.fx * x / zc + intr.cx, intr.fy * y / zc + intr.cy
-    r_px = radius_mm * max(intr.fx, intr.fy) / max(z - radius_mm * 0.5, 50.0)
-    if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r_px)):
-        return (0, 0, 0, 0), window
-    w, h = intr.width, intr.height
-    roi = (
-        min(max(math.floor(u - r_px), 0), w),
-        min(max(math.floor(v - r_px), 0), h),
-        max(min(math.ceil(u + r_px) + 1, w), 0),
-        max(min(math.ceil(v + r_px) + 1, h), 0),
-    )
-    return roi, window
-
-
-def before_surface(
-    depth_mm: NDArray[np.float32], intr: Intrinsics, roi: tuple[int, int, int, int], start_mm: float, end_mm: float
-) -> float:
-    """Where a depth window ending at ``end_mm`` should end instead, before a surface behind the
-    hand (a wall, a table top): see :data:`SURFACE_SLICE_MM2`.
-
-    Parameters
-    ----------
-    depth_mm : array, shape (H, W), float32
-        Depth (mm, 0 invalid) at the resolution of ``intr``.
-    intr : Intrinsics
-    roi : (u0, v0, u1, v1)
-        The hand's pixel box (:func:`hand_roi`; clipped to the image here).
-    start_mm, end_mm : float
-        The depths searched (mm): from ``start_mm`` (behind the hand) to ``end_mm``.
-
-    Returns
-    -------
-    float
-        ``SURFACE_MARGIN_MM`` before the nearest slice of ``SURFACE_SLICE_MM`` whose pixels (every
-        second row and column, counted four times) cover more than ``SURFACE_SLICE_MM2`` at
-        their depth, but not before ``start_mm``; ``end_mm`` when there is none.
-    """
-    h, w = depth_mm.shape
-    sub = depth_mm[max(roi[1], 0) : min(roi[3], h) : 2, max(roi[0], 0) : min(roi[2], w) : 2]
-    behind = sub[(sub > start_mm) & (sub <= end_mm)]
-    if behind.size == 0:
-        return end_mm
-    per_bin = _SURFACE_BIN_MM
-    n_bins = int(math.ceil((end_mm - start_mm) / per_bin))
-    counts = np.bincount(
-        np.minimum(((behind - start_mm) // per_bin).astype(np.int64), n_bins - 1), minlength=n_bins
-    ).astype(np.float64)
-    z = start_mm + per_bin * (np.arange(n_bins) + 0.5)
-    area = counts * (4.0 * z * z / (intr.fx * intr.fy))  # mm^2 (each counted pixel stands for 4)
-    k = int(round(SURFACE_SLICE_MM / per_bin))
-    slices = np.convolve(area, np.ones(k))[k - 1 :]  # slices[i]: bins i .. i + k - 1
-    hit = np.flatnonzero(slices > SURFACE_SLICE_MM2)
-    if hit.size == 0:
-        return end_mm
-    return max(start_mm, start_mm + per_bin * float(hit[0]) - SURFACE_MARGIN_MM)
-
-
-def _back_toward(theta: NDArray[np.float64]) -> bool:
-    """Whether the back of the hand at ``theta`` faces the camera (the palm normal, hand z,
-    points away from it): the side of a start pose (:func:`_balanced`)."""
-    return bool(global_rotation(theta)[2, 2] > 0)
+_NO_POINTS = np.zeros((0, 3))
 
 
 def _open(theta: NDArray[np.float64]) -> bool:
-    """Whether the fingers (index .. little) at ``theta`` are open enough to tell a hand's size:
-    mean MCP + PIP flexion under ``SMALL_HAND_MAX_FLEX``."""
+    """Whether the fingers at ``theta`` are open enough to tell a hand's size."""
     return float(np.mean(theta[FINGER_MCP] + theta[FINGER_PIP])) < SMALL_HAND_MAX_FLEX
 
 
@@ -319,18 +97,7 @@ def _size_models(right: bool) -> tuple[HandModel, HandModel]:
     return default, default.scaled(HandShape(length=SMALL_HAND_LENGTH))
 
 
-def _balanced(ranked: list[tuple], n: int) -> list[tuple]:
-    """The first ``n`` of ``ranked`` (best first, last item: which way the palm faces), half
-    of them from each side while both have enough (the rigid fit's objective prefers the
-    back of a hand to a palm it cannot yet articulate: keep both until articulated)."""
-    chosen: list[int] = []
-    for side in (True, False):
-        chosen += [k for k, a in enumerate(ranked) if a[-1] == side][: (n + 1) // 2 if side else n // 2]
-    chosen += [k for k in range(len(ranked)) if k not in chosen][: max(0, n - len(chosen))]
-    return [ranked[k] for k in sorted(chosen)]
-
-
-class Tracker(RestartStrategies):
+class Tracker:
     """Tracks one hand through a depth sequence.
 
     Parameters
@@ -355,51 +122,16 @@ class Tracker(RestartStrategies):
         self._steps: NDArray[np.float64] | None = None  # last frame's final step lengths (26,)
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
-        self._frame_count = 0
-        self._restart_wait = 0  # frames to skip the detection-triggered restarts
-        self._curl_wait = 0  # rounds of the restarts to skip the curl restarts
-        self._shift_pending: ShiftCandidate | None = None
-
-    #: Spread the initialisation over two frames (issue 14): the frame that finds the hand
-    #: runs the search and returns no pose, the next one (or :meth:`finish_initialisation`)
-    #: finishes it and starts the track.  Off: both stages run on the same frame.
-    split_initialisation: bool = False
-    #: Finalists of the first initialisation stage while the second is pending.
-    _pending: InitFinalists | None = None
-    #: Shortest wall time (s) between two frames that run the restarts, or None (the default:
-    #: every frame as scheduled, results independent of timing).  The restarts are optional
-    #: work of 5-20 ms; the node sets this for cameras faster than it can track with them
-    #: every frame, so that it keeps up and runs them a few times a second.  The frames in
-    #: between still run the scheduled finger shift (:meth:`_scheduled_restarts`, about 1 ms
-    #: on the frames that have a candidate), so that its schedule counts camera frames.
-    restart_interval_s: float | None = None
-    _last_restarts_s: float = -np.inf
-    #: Run a tracked frame's restarts after its result instead of before (issue 14): the
-    #: result of :meth:`process` is the frame's fit, and the restarts run on
-    #: :meth:`finish_frame` (or at the start of the next :meth:`process`); a candidate that wins
-    #: there continues the track from the next frame on.  The node sets it: it answers a frame
-    #: before the restarts (up to 5-20 ms on the frames where they fire; the lateral restarts of
-    #: a new track, after its first answer, about 35 ms); off (the default), a frame's result
-    #: includes its restarts.
-    defer_restarts: bool = False
-    #: Asked before and after every iteration of an answer's refinement (:meth:`_refined`,
-    #: about 0.45 ms each); once it returns True the frame answers with its fit unrefined.
-    #: The node sets it to "a newer image waits" (issue 14: at 100 Hz the refinement's 2-2.5
-    #: ms on frames with a curled finger would otherwise cost answered frames); None (the
-    #: default): always refined, results independent of timing.
-    refine_stop: Callable[[], bool] | None = None
-    #: (the restarts' steps, not started yet; the fit of their frame; the pose before it, None
-    #: on the frame a track starts on) of the frame whose restarts are due.
-    _deferred: tuple[Steps[OptimizeResult], OptimizeResult, NDArray[np.float64] | None] | None = None
-    #: Restarts that :meth:`finish_frame` paused: the same three.
-    _running: tuple[Steps[OptimizeResult], OptimizeResult, NDArray[np.float64] | None] | None = None
-    #: (model, low, high) of :meth:`_maximise`: the joint limits as bounds (26,) each, read-only.
-    _bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
-    #: (tracking model, its :meth:`HandModel.with_joint_gaussians`) of :meth:`_refined`.
-    _joint_model: tuple[HandModel, HandModel] | None = None
-    #: (track pose, answer) (26,) each of the frame before, when it was refined to its end
-    #: (:meth:`_refined`).
-    _refine_last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+        #: (model, low, high): the joint limits as bounds (26,) each, read-only.
+        self._bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
+        #: (tracking model, its :meth:`HandModel.with_joint_gaussians`) of :meth:`_refined`.
+        self._joint_model: tuple[HandModel, HandModel] | None = None
+        #: (track pose, answer) (26,) each of the frame before, when it was refined.
+        self._refine_last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+        #: The proposal the last frame's pose came from (None: its fit), for the tools.
+        self.last_proposal: str | None = None
+        #: The detection (1, 3) mm whose pulls lost on the last frame, or none (0, 3).
+        self._lost_pulls = _NO_POINTS
 
     @property
     def config(self) -> TrackerConfig:
@@ -425,50 +157,6 @@ class Tracker(RestartStrategies):
         """Use another hand model (e.g. after calibration); keeps the track."""
         self._model = model.mirrored(self._config.right_hand)
         self._sizes = None
-        self._shift_pending = None
-        self._deferred = None
-        self._running = None
-
-    def finish_frame(self, stop: Callable[[], bool] | None = None) -> bool:
-        """Run the restarts that :attr:`defer_restarts` left for after the last frame's result.
-
-        Returns whether a restart won on the frame they belong to: the track then continues
-        from its pose.  Nothing to do (False) when none are due.  ``stop``: asked after every
-        optimiser iteration of the restarts (about 0.3 ms); once it returns True they pause,
-        and the next call goes on with them (e.g. the node when a newer image waits: the
-        restarts of one frame can take 10-60 ms, issue 14).  While they are paused the frames
-        in between run no restarts of their own (their scheduled finger shift waits; the
-        schedule counts them); when they end after the track has moved on, a winner is
-        handed to the next frame as a finger shift candidate that is nearly done
-        (:class:`~hand_sog_tracker.core.restarts.ShiftCandidate`): its wrist moved as the
-        track's, refined ``SHIFT_CHUNK`` iterations on that frame and judged there.
-        """
-        deferred, self._deferred = self._deferred, None
-        if deferred is not None:
-            if self._running is None:
-                self._running = deferred
-            else:
-                deferred[0].close()  # (never started: its frame runs no restarts of its own)
-                self._frame_count += 1  # (the schedule of the shift candidates goes on)
-        if self._running is None:
-            return False
-        steps, res, p1 = self._running
-        while True:
-            if stop is not None and stop():
-                return False
-            try:
-                next(steps)
-            except StopIteration as done:
-                best: OptimizeResult = done.value
-                break
-        self._running = None
-        if best is res or self._prev is None:
-            return False
-        if self._prev[0] is res.x:
-            self._prev = (best.x, best.x if p1 is None else p1)
-            return True
-        self._shift_pending = ShiftCandidate(best.x, best.steps, RESTART_ITERATIONS - SHIFT_CHUNK, res.x)
-        return False
 
     def set_config(self, config: TrackerConfig) -> None:
         """Change the configuration; a handedness change also resets the track."""
@@ -484,9 +172,7 @@ class Tracker(RestartStrategies):
         self._prev = None
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
-        self._pending = None
-        self._deferred = None
-        self._running = None
+        self._lost_pulls = _NO_POINTS
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
         """Track the hand in one depth frame.
@@ -503,21 +189,15 @@ class Tracker(RestartStrategies):
         DepthImageError, IntrinsicsError
             When the frame cannot be used; the track is left untouched.
         """
-        if self._deferred is not None:  # (the last frame's restarts, unless the caller ran them)
-            self.finish_frame()
-        t0 = time.perf_counter()
-        cfg = self._config
-        pre = preprocess(depth_mm, intrinsics, cfg)  # raises before any change of this frame's state
+        t0 = time.perf_counter()  # (timings only: nothing below depends on the clock)
+        pre = preprocess(depth_mm, intrinsics, self._config)  # raises before any change of state
         t1 = time.perf_counter()
         if self._prev is not None:
             result = self._track(pre)
         else:
             self._steps = None  # a new track starts with fresh step lengths
-            self._shift_pending = None
-            self._running = None  # (restarts paused on the lost track's last frame)
-            self._restart_wait = 0
-            self._curl_wait = 0
-            if self._sizes is not None and self._pending is None:
+            self._lost_pulls = _NO_POINTS
+            if self._sizes is not None:
                 self._model = self._sizes[0]  # (a new track on the default model: its size is chosen again)
             result = self._initialise(pre)
         t2 = time.perf_counter()
@@ -539,16 +219,11 @@ class Tracker(RestartStrategies):
     ) -> tuple[ImageSoG, Detections, Silhouette | None]:
         """Data Gaussians around the hand at ``theta``, without the forearm.
 
-        Quads beyond the wrist (more than ``WRIST_MARGIN_MM`` on the arm side of
-        the plane through the wrist normal to the hand's long axis) are
-        dropped: the model has no forearm, and forearm data would pull the palm
-        down the arm.  With ``detect``, also the fingertip detections in the same
-        region (used by the salient term and the restarts), else none; and with
-        ``outline`` the silhouette of the depth in the same depth window (None
-        without it or when ``w_sil`` is 0).  With ``end_mm`` the depth window ends there at the
-        latest (mm): a wall or a table top behind the hand is then no data, and the silhouette
-        of the window is the hand's.  ``roi_window``: :func:`hand_roi` at ``theta`` when already
-        computed.
+        Quads and (with ``detect``) fingertip detections beyond the wrist plane at ``theta``
+        are dropped (the model has no forearm); with ``outline`` also the silhouette of the
+        depth window (None without it or when ``w_sil`` is 0).  ``end_mm``: the window ends
+        there at the latest (a wall behind the hand is no data).  ``roi_window``:
+        :func:`hand_roi` at ``theta`` when already computed.
         """
         if roi_window is None:
             roi_window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
@@ -563,13 +238,11 @@ class Tracker(RestartStrategies):
         if detect:
             det = detect_fingertips(pre, roi, window)
             if det.n:
-                along = (det.points - theta[:3]) @ axis
-                det = det.subset(along > -WRIST_MARGIN_MM)
+                det = det.subset((det.points - theta[:3]) @ axis > 0.0)
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf)
         if data.n == 0:
             return data, det, sil
-        along = (data.points - theta[:3]) @ axis
-        keep = along > -WRIST_MARGIN_MM
+        keep = (data.points - theta[:3]) @ axis > 0.0
         return (data if keep.all() else data.subset(keep)), det, sil
 
     def _targets(self, theta: NDArray[np.float64], det: Detections) -> TipTargets | None:
@@ -582,8 +255,8 @@ class Tracker(RestartStrategies):
         cfg = self._config
         assert self._prev is not None
         p1, p2 = self._prev
-        # The paper prints Theta_{t-1} + alpha Theta_{t-2}; we read it as a
-        # constant-velocity extrapolation damped by alpha.
+        # The paper prints Theta_{t-1} + alpha Theta_{t-2}; we read it as a constant-velocity
+        # extrapolation damped by alpha.
         x0 = p1 + ALPHA * (p1 - p2)
         tq = time.perf_counter()
         start_centres = posed_centres(self._model, x0)
@@ -593,71 +266,51 @@ class Tracker(RestartStrategies):
             pre.depth_mm, pre.intrinsics, roi_window[0], far + SURFACE_SEARCH_MM, far + WINDOW_BEHIND_MM
         )
         data, det, sil = self._data_near(pre, x0, detect=True, end_mm=end, roi_window=roi_window)
-        tq2 = time.perf_counter()
-        targets = self._targets(x0, det)
+        timings = {"quadtree": (time.perf_counter() - tq) * 1e3}
         obj = Objective(
-            self._model, data, cfg, previous=(p1, p2), targets=targets, silhouette=sil, contact=contact_shares(p1)
+            self._model, data, cfg, previous=(p1, p2), targets=self._targets(x0, det), silhouette=sil,
+            contact=contact_shares(p1),
         )
         base = _INITIAL_STEPS
-        # (np.clip's values by two ufunc calls, without its wrapper.)
         start = base if self._steps is None else np.minimum(np.maximum(self._steps * WARM_GROW, base * WARM_MIN), base)
-        res = self._maximise(
+        fit = self._maximise(
             obj, x0, iterations=cfg.iterations, initial_steps=start,
             extra_iterations=EXTRA_ITERATIONS, extra_gain=EXTRA_GAIN,
         )
-        self._steps = res.steps if WARM_GROW > 0 else None
-        now = time.perf_counter()
-        restarts = self._running is None and (
-            self.restart_interval_s is None or now - self._last_restarts_s >= self.restart_interval_s
-        )
-        if restarts:
-            self._last_restarts_s = now
-        fit = res
-        if not self.defer_restarts:
-            res = run(self._restarts(obj, res, data, det) if restarts else self._scheduled_restarts(obj, res, det))
+        self._steps = fit.steps
+        frame = Frame(self._model, fit, obj, plain(obj), data, det, self._limits(), lost_pulls=self._lost_pulls)
+        res, self.last_proposal = search(frame, TRACK_PROPOSALS)
+        # A detection whose pulls lost is not pulled onto again while it stays where it is.
+        target = pull_target(frame)
+        lost = target is not None and self.last_proposal != "detection"
+        self._lost_pulls = det.points[[target]] if lost else _NO_POINTS
         centres = gaussian_centres(self._model, res.x)
         conf = coverage(self._model, res.x, data, centres, obj.support(res.x))
-        if conf < cfg.lost_confidence:
-            self._low_frames += 1
-        else:
-            self._low_frames = 0
+        self._low_frames = self._low_frames + 1 if conf < cfg.lost_confidence else 0
         if self._low_frames >= cfg.lost_frames or data.n == 0:
             self._prev = None
             self._low_frames = 0
             self._status = TrackerStatus.LOST
-            return self._result(None, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3})
+            return self._result(None, conf, res.fun, data.n, timings)
         self._prev = (res.x, p1)
         self._status = TrackerStatus.TRACKING
-        if self.defer_restarts:
-            steps = self._restarts(obj, res, data, det) if restarts else self._scheduled_restarts(obj, res, det)
-            self._deferred = (steps, res, p1)
         answer = self._refined(obj, res, p1)
         if res is not fit:
-            # A restart won before the answer: the next frame's refinement starts from its fit's
-            # pose, as with deferred restarts, where the restart wins after the answer (the
-            # answers do not depend on the deferral).
-            self._refine_last = None
+            self._refine_last = None  # (a candidate won: the next refinement starts from its pose)
         if answer is not res.x:
             centres = gaussian_centres(self._model, answer)
-        return self._result(answer, conf, res.fun, data.n, {"quadtree": (tq2 - tq) * 1e3}, centres)
+        return self._result(answer, conf, res.fun, data.n, timings, centres)
 
     def _refined(self, obj: Objective, res: OptimizeResult, p1: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The answer of a tracked frame whose fit is ``res`` on ``obj``: ``res.x`` (26,), or,
-        when a finger's PIP is flexed over ``REFINE_CURL_RAD``, ``res.x`` refined
-        ``refine_iterations`` iterations on the same frame's objective with the joint model
-        (see ``REFINE_CURL_RAD``), from the fit's last step lengths warmed as a tracked
-        frame's are; from ``res.x`` plus the frame before's correction when that frame was
-        refined and the track went on from its pose ``p1`` (26,) (``REFINE_WARM_STEPS``);
-        the overlaps weighted by their visibility at ``res.x`` (``REFINE_VISIBILITY``).
-        ``res.x`` also when :attr:`refine_stop` says stop, before or after any iteration of
-        the refinement."""
+        """The answer of a tracked frame whose pose is ``res`` on ``obj``: ``res.x`` (26,), or,
+        with a PIP flexed over ``REFINE_CURL_RAD``, ``res.x`` refined ``refine_iterations`` on the
+        same frame's objective of the joint model (warm steps as a tracked frame's; from
+        ``res.x`` plus the frame before's correction when that frame was refined and the track
+        went on from its pose ``p1``, ``REFINE_WARM_STEPS``; overlaps weighted by visibility)."""
         x = res.x
         iterations = self._config.refine_iterations
         last, self._refine_last = self._refine_last, None
         if iterations <= 0 or np.max(x[FINGER_PIP]) <= REFINE_CURL_RAD:
-            return x
-        stop = self.refine_stop
-        if stop is not None and stop():
             return x
         joint = self._joint_model
         if joint is None or joint[0] is not self._model:
@@ -672,27 +325,17 @@ class Tracker(RestartStrategies):
             lo, hi = self._limits()
             x0 = np.minimum(np.maximum(x + (last[1] - last[0]), lo), hi)
             steps *= REFINE_WARM_STEPS
-        fit = self._fit(refine, x0, iterations=iterations, initial_steps=steps)
-        while True:
-            try:
-                next(fit)
-            except StopIteration as done:
-                self._refine_last = (x, done.value.x)
-                return done.value.x
-            if stop is not None and stop():
-                return x
+        fit = self._maximise(refine, x0, iterations=iterations, initial_steps=steps)
+        self._refine_last = (x, fit.x)
+        return fit.x
 
     def _maximise(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> OptimizeResult:
         """:func:`maximise` with the joint angles projected into the model's limits."""
         return maximise(obj, x0, bounds=self._limits(), **kwargs)  # type: ignore[arg-type]
 
-    def _fit(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> Steps[OptimizeResult]:
-        """:meth:`_maximise` that pauses after every iteration (:func:`maximise_steps`)."""
-        return maximise_steps(obj, x0, bounds=self._limits(), **kwargs)  # type: ignore[arg-type]
-
     def _limits(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The model's joint limits as bounds (low, high), shape (26,) each, read-only
-        (computed once per model: several fits per frame)."""
+        (+-inf for the wrist; computed once per model)."""
         m = self._model
         cached = self._bounds
         if cached is None or cached[0] is not m:
@@ -703,266 +346,68 @@ class Tracker(RestartStrategies):
             cached = self._bounds = (m, lo, hi)
         return cached[1:]
 
-    @property
-    def initialising(self) -> bool:
-        """Whether the first initialisation stage has run and the second is pending.
-
-        Only with :attr:`split_initialisation`: the next :meth:`process` (or
-        :meth:`finish_initialisation`) completes it.
-        """
-        return self._pending is not None
-
-    def finish_initialisation(self) -> TrackResult | None:
-        """Run the pending second initialisation stage on the frame the first one saw.
-
-        For a caller that has time before the next frame (e.g. the node when no newer image
-        is waiting, or a single image): the track then starts on this frame.  Returns None
-        when nothing is pending.
-        """
-        if self._pending is None:
-            return None
-        t0 = time.perf_counter()
-        pending, self._pending = self._pending, None
-        result = self._init_finish(pending.pre, pending)
-        result.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
-        return result
-
     def _initialise(self, pre: Preprocessed) -> TrackResult:
-        """Find the hand when there is no track (first frame, after a loss): two stages.
-
-        The search (:meth:`_init_search`) and the finish (:meth:`_init_finish`) each cost
-        about one tracked frame's budget (issue 14).  Without :attr:`split_initialisation`
-        both run on this frame; with it the search runs now and returns no pose, and the
-        next frame (or :meth:`finish_initialisation`) finishes from the finalists.
-        """
-        pending, self._pending = self._pending, None
-        if pending is not None and pending.model is self._model and pending.config == self._config:
-            return self._init_finish(pre, pending)
-        found = self._init_search(pre)
+        """A new track (first frame, after a loss): the start search's finalists
+        (:func:`~hand_sog_tracker.core.search.start.start_search`) refined
+        ``final_iterations`` with the full objective on one data extraction around the first
+        (its window ending where the search's did); the best by the score, after the new
+        track's candidates (:data:`NEW_TRACK_PROPOSALS`), starts the track.  On the default
+        model the best ``SMALL_HAND_FINALISTS`` are also fitted on the small model, which the
+        track starts on when it scores ``SMALL_HAND_GAIN`` higher with open fingers."""
+        self.last_proposal = None
+        found = start_search(pre, self._model, self._config, self._limits())
         if found is None:
-            self._status = TrackerStatus.NO_HAND
-            return self._result(None, 0.0, 0.0, 0, {})
-        if self.split_initialisation:
-            self._pending = found
-            self._status = TrackerStatus.NO_HAND
-            return self._result(None, 0.0, 0.0, 0, {})
-        return self._init_finish(pre, found)
-
-    def _init_search(self, pre: Preprocessed) -> InitFinalists | None:
-        """First stage: the finalist poses (26,) for the hand in ``pre``, best first, or None.
-
-        One quadtree (coarse) and one detection pass around the palm serve every start pose;
-        each pose drops the data beyond its own wrist.  No silhouette term while the poses
-        are still far off: it would pull them into the outline before the depth has placed
-        them (a hand flipped palm-for-back has the same outline).  When the best start pose
-        scores poorly, the curled-finger combinations (:func:`finger_combinations`) are tried
-        too (``INIT_SEARCH.combination_below``, about 15 ms more; with
-        :attr:`split_initialisation` at the start of the second stage, see
-        :attr:`InitFinalists.rest`).
-        """
-        cfg, eff = self._config, INIT_SEARCH
-        blob = find_hand(pre, cfg)
-        if blob is None:
-            return None
-        starts = initial_hypotheses(self._model, blob, cfg.init_hypotheses)
-        roi, window = hand_roi(self._model, starts[0], pre.intrinsics, cfg.roi_radius_mm)
-        # (The leaves follow the window's centre; the window ends behind the blob: what lies
-        # farther was cut off as a body or a wall.)
-        fine_px = leaf_px(cfg.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
-        window = (window[0], min(window[1], blob.far_mm + BLOB_BEHIND_MM))
-        coarse = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, max(eff.coarse_quad_px, cfg.min_quad_px))
-        # (The coarse data keep their leaves for a far hand too: the search was tuned on them.)
-        fine = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, fine_px)
-        det = detect_fingertips(pre, roi, window)
-        if det.n:
-            det = det.subset(self._on_hand_side(det.points, starts[0]))
-        n_blob = len(starts)
-        # Open hands along the hand end's own axis and toward the detections, palm toward and
-        # away (issue 11: a wrist bent sideways turns the blob's axis off the hand's).
-        for d in (blob.hand_direction, detection_direction(blob, det.points)):
-            if d is not None:
-                starts += initial_hypotheses(self._model, HandBlob(blob.palm, [d]), 2)
-        rigid = np.zeros(starts[0].size, dtype=bool)
-        rigid[:6] = True
-
-        def align(i: int, x0: NDArray[np.float64], data: ImageSoG) -> tuple[float, int, NDArray[np.float64], bool]:
-            """Rigid alignment (seed 004's coarse-to-fine: before the articulation)."""
-            res = self._maximise(
-                Objective(self._model, data, cfg), x0,
-                iterations=eff.rigid_iterations, initial_scale=2.0, active=rigid,
-            )
-            return res.fun, -i, res.x, _back_toward(x0)
-
-        def articulate(kept: list[tuple[float, int, NDArray[np.float64], bool]]) -> list[tuple[float, int, NDArray]]:
-            """(score, rank, pose) of each kept pose articulated on the fine data."""
-            out = []
-            for _, rank, x, _ in kept:
-                data = self._hand_side(fine, x)
-                if data.n == 0:
-                    continue
-                obj = Objective(self._model, data, cfg)
-                res = self._maximise(obj, x, iterations=eff.full_iterations, initial_scale=2.0)
-                # :meth:`_score` without evaluating the objective again (no salient term here).
-                out.append((res.fun - cfg.w_sal * self._assignment_cost(res.x, det, hidden_tips=False), rank, res.x))
-            return out
-
-        parts = [self._hand_side(coarse, x0) for x0 in starts]
-        screened = self._screened(starts[:n_blob], parts[:n_blob], eff.screened)
-        aligned = [
-            align(i, x0, data)
-            for i, (x0, data) in enumerate(zip(starts, parts))
-            if (i >= n_blob or i in screened) and data.n
-        ]
-        # The blob's start poses compete for ``kept``; the best of the hand axis' and the
-        # detection direction's is articulated besides them (taking a slot, the detection
-        # direction's had displaced the right pose of a far hand whose detections missed two
-        # fingers).
-        blob_aligned = [a for a in aligned if -a[1] < n_blob]
-        kept = _balanced(sorted(blob_aligned, key=lambda a: a[:2], reverse=True), eff.kept)
-        if len(blob_aligned) < len(aligned):
-            kept.append(max((a for a in aligned if -a[1] >= n_blob), key=lambda a: a[:2]))
-        scored = articulate(kept)
-        if not scored:
-            return None
-        scored.sort(key=lambda s: s[:2], reverse=True)
-
-        def finalists() -> list[NDArray[np.float64]]:
-            """The finalist poses (26,), best first, after the curled-finger combinations when
-            the best pose scores poorly (the search's last step)."""
-            ranked = scored
-            if ranked[0][0] < eff.combination_below:
-                # A poor best: maybe a hand found mid-motion, some fingers curled and others not
-                # (issue 11).  From the open hands of the blob's main direction (palm toward and
-                # away), the combination of curled fingers that scores best at its start pose on
-                # each palm side is aligned and articulated; they replace the others only when the
-                # best of them scores higher by ``combination_margin``.
-                n = len(starts)
-                combos = []
-                for k, (x0, part) in enumerate(zip(starts[:2], parts)):
-                    if part.n:  # (the start's data serve every combination: the same wrist)
-                        screen = Objective(self._model, part, cfg)
-                        best = best_combination(x0, lambda c, s=screen: s(c, gradient=False)[0])
-                        combos.append(align(n + k, best, part))
-                tried = sorted(articulate(combos), key=lambda s: s[:2], reverse=True)
-                if tried and tried[0][0] >= ranked[0][0] + eff.combination_margin:
-                    ranked = sorted(ranked + tried, key=lambda s: s[:2], reverse=True)
-            # The best of the other palm side joins the finalists when none of them has it: the
-            # search scores without the silhouette, so a hand flipped palm-for-back can score
-            # highest there, and the finish's full objective tells the two apart (issue 11: a
-            # finger counting hand found mid-motion, index and thumb out, ended with its thumb on
-            # the little finger's side).
-            poses = [x for _, _, x in ranked[: eff.finalists]]
-            sides = {_back_toward(x) for x in poses}
-            return poses + [x for _, _, x in ranked if _back_toward(x) not in sides][:1]
-
-        # With a split initialisation the combinations (about 15 ms) are left to the second
-        # stage, on this frame's data: the first stage stays within its budget, the finalists
-        # are the same.
-        later = self.split_initialisation and scored[0][0] < eff.combination_below
-        return InitFinalists(
-            poses=[] if later else finalists(),
-            model=self._model,
-            config=cfg,
-            pre=pre,
-            end_mm=blob.far_mm + BLOB_BEHIND_MM,
-            rest=finalists if later else None,
-        )
-
-    def _screened(self, starts: list[NDArray[np.float64]], parts: list[ImageSoG], n: int) -> set[int]:
-        """Indices of the ``n`` start poses (26,) of ``starts`` with the palm toward the camera
-        and the ``n`` with its back toward it that score best by the objective on their data
-        ``parts`` (each start's :meth:`_hand_side`) at the start pose itself (one evaluation
-        each, no gradient; the first on a tie)."""
-        scored = []
-        for i, (x0, part) in enumerate(zip(starts, parts)):
-            value = Objective(self._model, part, self._config)(x0, gradient=False)[0] if part.n else -np.inf
-            scored.append((value, -i, _back_toward(x0)))
-        chosen: set[int] = set()
-        for side in (True, False):
-            chosen.update(-s[1] for s in sorted((s for s in scored if s[2] == side), reverse=True)[:n])
-        return chosen
-
-    def _init_finish(self, pre: Preprocessed, found: InitFinalists) -> TrackResult:
-        """Second stage: refine the finalists ``found`` on ``pre``; the track starts from the best.
-
-        One data extraction (quadtree, detections, silhouette) around the first finalist serves
-        all, in a depth window that ends where the search's did at the latest (behind the hand
-        blob: a wall there was data, and the silhouette the whole image); each finalist gets
-        ``final_iterations`` with the full objective, the best by score gets the finger and
-        (forced) finger-shift restarts, then the lateral restarts (:meth:`_lateral_restarts`,
-        about 75 objective evaluations: with :attr:`defer_restarts` after the answer, as a
-        tracked frame's restarts).  The detection restarts are left to the tracked frames that
-        follow.  On the default model its best ``SMALL_HAND_FINALISTS`` finalists are also refined
-        on the small model, which the track starts on when it scores ``SMALL_HAND_GAIN`` higher
-        with open fingers.
-        """
-        cfg = self._config
-        poses = found.final_poses()
+            return self._no_hand({})
         tq = time.perf_counter()
-        data, det, sil = self._data_near(pre, poses[0], detect=True, end_mm=found.end_mm)
+        data, det, sil = self._data_near(pre, found.poses[0], detect=True, end_mm=found.end_mm)
         timings = {"quadtree": (time.perf_counter() - tq) * 1e3}
         if data.n == 0:
-            self._status = TrackerStatus.NO_HAND
-            return self._result(None, 0.0, 0.0, 0, timings)
-        fits = self._finalist_fits(poses, data, det, sil)
+            return self._no_hand(timings)
+        fits = self._finalist_fits(found, data, det, sil)
         best = fits[0][1] if fits else None
-        if best is not None and self._sizes is not None and _open(best[1].x):
+        if best is not None and self._sizes is not None and _open(best[1].fit.x):
             default = self._model
             self._model = self._sizes[1]
             tried = sorted(k for k, _ in fits[:SMALL_HAND_FINALISTS])  # (in the finalists' order)
-            small_fits = self._finalist_fits([poses[k] for k in tried], data, det, sil)
+            small_fits = self._finalist_fits(Finalists([found.poses[k] for k in tried]), data, det, sil)
             small = small_fits[0][1] if small_fits else None
-            if small is not None and small[0] > best[0] + SMALL_HAND_GAIN and _open(small[1].x):
+            if small is not None and small[0] > best[0] + SMALL_HAND_GAIN and _open(small[1].fit.x):
                 best = small
             else:
                 self._model = default
         if best is None:
-            self._status = TrackerStatus.NO_HAND
-            return self._result(None, 0.0, 0.0, 0, timings)
-        _, res, data, obj = best
-        res = run(self._finger_restarts(obj, res, data))
-        res = run(self._shift_restarts(obj, res, det, force=True))
-        if not self.defer_restarts:
-            res = run(self._lateral_restarts(obj, res, det))
-        conf = coverage(self._model, res.x, data)
-        if conf < cfg.lost_confidence:
-            self._status = TrackerStatus.NO_HAND
-            return self._result(None, conf, res.fun, data.n, timings)
+            return self._no_hand(timings)
+        frame = best[1]
+        res, self.last_proposal = search(frame, NEW_TRACK_PROPOSALS)
+        conf = coverage(self._model, res.x, frame.data)
+        if conf < self._config.lost_confidence:
+            return self._no_hand(timings, conf, res.fun, frame.data.n)
         self._prev = (res.x, res.x)
-        if self.defer_restarts:
-            self._deferred = (self._lateral_restarts(obj, res, det), res, None)
         self._low_frames = 0
         self._status = TrackerStatus.TRACKING
-        return self._result(res.x, conf, res.fun, data.n, timings)
+        return self._result(res.x, conf, res.fun, frame.data.n, timings)
+
+    def _no_hand(self, timings: dict[str, float], conf: float = 0.0, energy: float = 0.0, n: int = 0) -> TrackResult:
+        self._status = TrackerStatus.NO_HAND
+        return self._result(None, conf, energy, n, timings)
 
     def _finalist_fits(
-        self, poses: list[NDArray[np.float64]], data: ImageSoG, det: Detections, sil: Silhouette | None
-    ) -> list[tuple[int, tuple[float, OptimizeResult, ImageSoG, Objective]]]:
-        """The initialisation's finalists ``poses`` (26,) each refined ``final_iterations`` on
-        the tracker's model with the full objective, best first by :meth:`_score` (the earlier
-        finalist first on a tie): (index in ``poses``, (score, fit, its data, its objective));
-        the finalists without data on their hand side are left out."""
+        self, found: Finalists, data: ImageSoG, det: Detections, sil: Silhouette | None
+    ) -> list[tuple[int, tuple[float, Frame]]]:
+        """Each finalist of ``found`` refined ``final_iterations`` on the tracker's model with
+        the full objective of its hand side of ``data``: (index, (score, its :class:`Frame`)),
+        best first by score (the earlier on a tie); finalists without data left out."""
         fits = []
-        for k, x in enumerate(poses):
-            data_x = self._hand_side(data, x)
+        for k, x in enumerate(found.poses):
+            data_x = hand_side(data, x)
             if data_x.n == 0:
                 continue
             obj = Objective(self._model, data_x, self._config, targets=self._targets(x, det), silhouette=sil)
-            cand = self._maximise(obj, x, iterations=INIT_SEARCH.final_iterations)
-            fits.append((k, (self._score(self._plain(obj), cand.x, det, hidden_tips=False), cand, data_x, obj)))
+            fit = self._maximise(obj, x, iterations=INIT_SEARCH.final_iterations)
+            frame = Frame(self._model, fit, obj, plain(obj), data_x, det, self._limits(), new_track=True)
+            fits.append((k, (frame.score(fit.x), frame)))
         fits.sort(key=lambda f: f[1][0], reverse=True)  # (stable: the earlier first on a tie)
         return fits
-
-    def _on_hand_side(self, points: NDArray[np.float64], theta: NDArray[np.float64]) -> NDArray[np.bool_]:
-        """Which ``points`` (n, 3) mm lie on the hand side of the wrist plane at ``theta``."""
-        return (points - theta[:3]) @ global_rotation(theta)[:, 1] > -WRIST_MARGIN_MM
-
-    def _hand_side(self, data: ImageSoG, theta: NDArray[np.float64]) -> ImageSoG:
-        """``data`` without the Gaussians beyond the wrist at ``theta`` (see :meth:`_data_near`)."""
-        if data.n == 0:
-            return data
-        keep = self._on_hand_side(data.points, theta)
-        return data if keep.all() else data.subset(keep)
 
     def _result(
         self,
@@ -974,18 +419,8 @@ class Tracker(RestartStrategies):
         centres: NDArray[np.float64] | None = None,
     ) -> TrackResult:
         if theta is None:
-            return TrackResult(
-                status=self._status,
-                pose=None,
-                fingertips_mm=None,
-                skeleton_mm=None,
-                confidence=float(conf),
-                energy=float(energy),
-                n_image_gaussians=n,
-                timings_ms=dict(timings),
-            )
-        # Forward kinematics once: fingertips are the tip Gaussians' centres.
-        if centres is None:
+            return TrackResult(self._status, None, None, None, float(conf), float(energy), n, dict(timings))
+        if centres is None:  # (forward kinematics once: the fingertips are the tip Gaussians' centres)
             centres = gaussian_centres(self._model, theta)
         return TrackResult(
             status=self._status,

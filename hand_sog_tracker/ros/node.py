@@ -30,9 +30,10 @@ Every output is stamped with the input image's header (stamp and frame_id).
 Real time: the subscriptions use sensor-data QoS with depth 1 (overridable via
 ``qos_overrides.*`` parameters), so DDS keeps only the newest image while a
 frame is being processed and there is never a backlog.  The image callback
-takes a CameraInfo waiting in its subscription and tracks the image at once; an image
-that arrives meanwhile is taken from the subscription by the tracking itself (a frame
-that finds the hand is answered on the next one).  Frames that are never processed are counted: ``dropped``
+takes a CameraInfo waiting in its subscription and tracks the image at once, with the
+core tracker's whole search (the same answers as ``evaluate_bag``'s core mode; an image
+re-sent with the stamp of the last one gets the same answer again).  A machine that cannot
+keep up drops whole frames, never part of a frame's search.  Frames that are never processed are counted: ``dropped``
 (received but replaced by a newer one before processing) and ``missed`` (replaced inside
 DDS, so never received; estimated from gaps in the image stamps against the camera period,
 the running median of the last :data:`RATE_WINDOW` intervals, learned anew after a pause or
@@ -45,8 +46,9 @@ skipped with a throttled warning naming the problem and counted as rejected;
 the tracker state is reset only where the track cannot continue.  Every frame is bounded:
 images above ``max_image_pixels`` are refused before anything of their size is allocated,
 implausible CameraInfo is refused (:func:`~hand_sog_tracker.interface.camera_info_to_intrinsics`),
-the core clips its search to the image and caps its data, and the work a frame can do without
-stops when ``frame_budget_ms`` is spent (``frames_cut``, ``worst_frame_ms`` in /diagnostics).
+the core clips its search to the image and caps its data, and a frame over ``frame_budget_ms``
+is warned about and counted (``frames_cut``, ``worst_frame_ms`` in /diagnostics; its search is
+never cut, issue 45).
 An image without ``frame_id`` is tracked in :data:`DEFAULT_FRAME_ID` (with a warning); stamps
 more than :data:`STAMP_SKEW_S` from the node's clock are warned about and left out of
 ``latency_ms``.
@@ -162,24 +164,6 @@ DEFAULT_FRAME_ID = "camera_depth_optical_frame"
 #: Image stamps further than this from the node's clock (s) are warned about and left out of the
 #: latency in /diagnostics (a bag replayed without use_sim_time, unsynchronised clocks).
 STAMP_SKEW_S = 30.0
-#: Cameras faster than this (Hz) get the tracker's restarts at most every
-#: ``FAST_CAMERA_RESTART_INTERVAL_S`` (a frame whose restarts an unexplained detection or a
-#: dangling finger sets off takes 5-20 ms more; at 30 Hz the node keeps up without the limit).
-#: The scheduled finger shift (about 1 ms on 4 frames in 12) still runs on every frame
-#: (``Tracker.restart_interval_s``).
-FAST_CAMERA_HZ = 45.0
-FAST_CAMERA_RESTART_INTERVAL_S = 0.2
-#: Images tracked in a row in one executor callback: an image that arrived while the last one
-#: was tracked (its restarts pause for it) is tracked at once, without the executor's round
-#: trip (which added 0.5-1 ms to one frame in five at 100 Hz); after this many the executor
-#: runs its other callbacks first.
-DIRECT_FRAMES = 4
-#: When the hand was found on an image and no newer image has arrived (a single image, a
-#: slow stream), the new track is refined on the same image this many more times before the
-#: answer is published, as the tracker would be on a static scene; a newer image stops it.
-#: Each pass costs one tracked frame; a finger-shift candidate needs 4 passes to be judged
-#: (the choice of 9, measured on the labelled real frames: design notes, "Constants").
-IDLE_REFINE_PASSES = 9
 #: Seconds a fingertip marker stays in RViz without a newer one (so a stopped node's hand goes).
 MARKER_LIFETIME_S = 1.0
 #: ~/calibrate requests kept while the executor is busy with a frame (each is then answered at
@@ -206,7 +190,7 @@ class NodeStats:
     rejected : int
         Frames skipped because of bad input.
     cut : int
-        Processed frames whose optional work was stopped by ``frame_budget_ms``.
+        Processed frames that took longer than ``frame_budget_ms`` (never cut: reported).
     last_problem : str
         Why the last frame was rejected ("" if none was).
     status : TrackerStatus
@@ -281,18 +265,17 @@ class TrackerNode(CalibrationService, Node):
         self._rx_stamp_ns: int | None = None  # stamp of the last received image
         self._period_ns: int | None = None  # camera period: median of the recent intervals
         self._intervals: collections.deque[int] = collections.deque(maxlen=RATE_WINDOW)
-        self._deadline = math.inf  # perf_counter() at which the current frame's budget is spent
-        self._last_step_at = 0.0  # perf_counter() of the last _image_waiting() call in the frame
-        self._frame_cut = False
         self._intrinsics: Intrinsics | None = None
         self._intrinsics_problem = ""
         # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).
         user_model = self._initial_model()
+        # The node runs the core tracker as evaluate_bag's core mode does: every frame's whole
+        # search, nothing timed by the wall clock (issue 45).  A frame that arrives meanwhile
+        # replaces the one waiting in the depth-1 subscription: whole frames are dropped.
         self._tracker = Tracker(self._settings.tracker, user_model)
-        self._tracker.split_initialisation = True  # issue 14: see _process
-        self._tracker.defer_restarts = True  # issue 14: a frame is answered before its restarts
-        # ... and unrefined once a newer image waits (issue 14, Tracker.refine_stop).
-        self._tracker.refine_stop = self._image_waiting
+        # (stamp, result, depth, intrinsics, hand decision) of the last processed frame: an image
+        # re-sent with its stamp is answered again, not tracked (nor checked) twice.
+        self._last_answer: tuple[int, TrackResult, NDArray[np.float32], Intrinsics, HandDecision] | None = None
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
         self._last_intr: Intrinsics | None = None  # of the last frame that passed the checks
@@ -363,8 +346,6 @@ class TrackerNode(CalibrationService, Node):
         self._calib_wake = self.create_guard_condition(lambda: None)
         self._fit_worker = FitWorker()  # the fits' child process, started with tracking
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
-        # Wakes the executor to track an image the tracking took from the subscription.
-        self._frame_ready = self.create_guard_condition(self._track_pending)
         self.get_logger().info(
             f"tracking the {'right' if self._settings.tracker.right_hand else 'left'} hand from "
             f"{self._image_sub.topic_name} + {self._info_sub.topic_name}"
@@ -432,17 +413,15 @@ class TrackerNode(CalibrationService, Node):
 
     # -- input ------------------------------------------------------------------
     def _on_image_message(self, msg: Image | CompressedImage) -> None:
-        """The image subscription's callback: track the image now (issue 14).
+        """The image subscription's callback: track the image now.
 
         A CameraInfo waiting in its subscription is taken first (it may belong to this image).
-        Tracking in this callback, not in one the executor runs next, saves an executor round
-        trip per frame; an image that arrives meanwhile waits in the subscription (depth 1:
-        the newest) and is taken by the tracking itself (:meth:`_image_waiting`) or by the
-        executor afterwards.
+        An image that arrives meanwhile waits in the subscription (depth 1: the newest; older
+        ones are dropped whole, counted as ``missed``) for the executor's next turn.
         """
         self._on_image(msg)
         self._take_waiting(self._info_sub, self._on_camera_info)
-        self._track_pending()
+        self._process_pending()
 
     def _on_image(self, msg: Image | CompressedImage) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -455,18 +434,6 @@ class TrackerNode(CalibrationService, Node):
         )
         self._window.received += 1
         self._pending = msg
-
-    def _track_pending(self) -> None:
-        """Track the pending image, and an image that the tracking took from the subscription
-        meanwhile (the restarts pause for it) right after it, up to ``DIRECT_FRAMES`` in a
-        row; one after those is tracked when the executor has done its other work
-        (:attr:`_frame_ready`: services, parameters and timers get their turn)."""
-        for _ in range(DIRECT_FRAMES):
-            self._process_pending()
-            if self._pending is None:
-                return
-            self._take_waiting(self._info_sub, self._on_camera_info)
-        self._frame_ready.trigger()
 
     def _missed_before(self, stamp: int) -> int:
         """Frames the camera must have sent between the last received image and this one.
@@ -558,8 +525,6 @@ class TrackerNode(CalibrationService, Node):
         if msg is None:
             return
         t0 = time.perf_counter()
-        self._deadline, self._frame_cut = t0 + self._settings.frame_budget_ms * 1e-3, False
-        self._last_step_at = t0
         try:
             with self._tracker_lock:
                 answered_at = self._process(msg, intr, intr_problem)
@@ -568,11 +533,13 @@ class TrackerNode(CalibrationService, Node):
                 self._window.proc_ms += ms
                 self._window.answer_ms += (answered_at - t0) * 1e3
                 self._window.worst_ms = max(self._window.worst_ms, ms)
-                if self._frame_cut:
+                if ms > self._settings.frame_budget_ms:
+                    # (Reported, never cut: a frame runs its whole search, issue 45; the frames
+                    # the camera sent meanwhile are dropped whole and counted as missed.)
                     self._stats = replace(self._stats, cut=self._stats.cut + 1)
                     self._warn(
-                        f"frame took {ms:.0f} ms, its budget is {self._settings.frame_budget_ms:.0f} ms "
-                        "(frame_budget_ms): its remaining work was cut"
+                        f"frame took {ms:.0f} ms, over its budget of {self._settings.frame_budget_ms:.0f} ms "
+                        "(frame_budget_ms); the frames that arrived meanwhile are dropped"
                     )
         except Exception as err:  # noqa: BLE001 - a bug in one frame must not kill the node
             if not self.context.ok():
@@ -587,8 +554,6 @@ class TrackerNode(CalibrationService, Node):
                 throttle_duration_sec=WARN_THROTTLE_S,
             )
             self.get_logger().debug(traceback.format_exc())
-        finally:
-            self._deadline = math.inf
 
     def _warn(self, text: str) -> None:
         """Per-frame warning, throttled per kind of problem (the text with its numbers masked).
@@ -691,37 +656,28 @@ class TrackerNode(CalibrationService, Node):
                 self._warn(f"{unit_problem}: frame skipped")
                 return None
 
-        fast = self._period_ns is not None and self._period_ns * 1e-9 * FAST_CAMERA_HZ < 1.0
-        self._tracker.restart_interval_s = FAST_CAMERA_RESTART_INTERVAL_S if fast else None
+        last = self._last_answer
         try:
-            result = self._tracker.process(depth, intr)
-            # -- initialisation over two frames (issue 14) -----------------------------------
-            # A frame that finds the hand only runs the search and returns no pose; a newer
-            # image finishes it (tracked from the second frame on).  When none is waiting (a
-            # single image, a slow stream), this frame is finished and answered now.
-            if self._tracker.initialising and not self._image_waiting():
-                result = self._tracker.finish_initialisation() or result
-                # Still nothing newer (a single image, a slow stream): refine the new track on
-                # this image, as the tracker would on a static scene, before answering.
-                for _ in range(IDLE_REFINE_PASSES):
-                    if result.pose is None or self._image_waiting():
-                        break
-                    result = self._tracker.process(depth, intr)
-            # ---------------------------------------------------------------------------------
+            if last is not None and last[0] == stamp and last[3] == intr and np.array_equal(last[2], depth):
+                result, decision = last[1], last[4]  # (the same image again: the same answer)
+            else:
+                result, decision = self._tracker.process(depth, intr), None
         except HandSogError as err:
             self._reject(f"tracker rejected the frame: {err}")
             self._warn(f"tracker rejected the frame: {err}")
             return None
 
-        # -- the hand check (issue 46): a tracked frame that is no hand is answered "no hand",
-        # with no pose and no markers, and the track is reset (the next frame searches afresh).
-        decision = self._hand_gate.decide(self._tracker, depth, intr, self._tracker.model, result)
-        if result.pose is not None and not decision.present:
-            result = replace(
-                result, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,
-                gaussians_mm=None, gaussian_radii_mm=None,
-            )
-        # ---------------------------------------------------------------------------------
+        if decision is None:
+            # -- the hand check (issue 46): a tracked frame that is no hand is answered "no
+            # hand", with no pose and no markers, and the track is reset (the next frame
+            # searches afresh).
+            decision = self._hand_gate.decide(self._tracker, depth, intr, self._tracker.model, result)
+            if result.pose is not None and not decision.present:
+                result = replace(
+                    result, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,
+                    gaussians_mm=None, gaussian_radii_mm=None,
+                )
+            self._last_answer = (stamp, result, depth, intr, decision)
         self._frame_id = header.frame_id
         self._publish_result(header, result, depth, intr, decision)
         answered_at = time.perf_counter()
@@ -738,10 +694,6 @@ class TrackerNode(CalibrationService, Node):
         if abs(skew_s) <= STAMP_SKEW_S:
             self._window.latency_ms += latency_ms
             self._window.latency_frames += 1
-        # This frame's restarts, after its answer (defer_restarts); they pause as soon as a
-        # newer image waits and go on after it (issue 14: the detection restarts of one frame
-        # can take 60 ms; cut after 10 ms, they held up the next frame by up to 8 ms).
-        self._tracker.finish_frame(self._image_waiting)
         return answered_at
 
     def _unit_problem(self, msg: Image | CompressedImage, depth: NDArray[np.float32], top: float) -> str:
@@ -764,30 +716,13 @@ class TrackerNode(CalibrationService, Node):
                 )
         return ""
 
-    def _image_waiting(self) -> bool:
-        """Whether the work on the current frame should stop: a newer image than the one being
-        processed has arrived, or the frame's ``frame_budget_ms`` would be overrun by another
-        step as long as the last one (the frame is cut).
-
-        The budget does not hold back the second half of an initialisation when no newer image
-        comes (a single image is answered; a stream's next image finishes it anyway).
-        """
-        if self._pending is not None or self._take_waiting(self._image_sub, self._on_image):
-            return True
-        now = time.perf_counter()
-        step, self._last_step_at = now - self._last_step_at, now
-        if now + step > self._deadline and not self._tracker.initialising:
-            self._frame_cut = True
-            return True
-        return False
-
     @staticmethod
     def _take_waiting(sub: Subscription, callback: Callable[[Any], None]) -> bool:
         """Hand a message waiting in ``sub`` to ``callback``; whether there was one.
 
         The single-threaded executor runs one callback at a time, so a message that arrived
-        while a frame was processed is still in its subscription (issue 14); the executor
-        takes from it the same way and finds it empty afterwards.
+        while a frame was processed is still in its subscription; the executor takes from it
+        the same way and finds it empty afterwards.
         """
         try:
             with sub.handle:
@@ -801,6 +736,7 @@ class TrackerNode(CalibrationService, Node):
 
     def _reset_track(self, header: Header) -> None:
         self._tracker.reset()
+        self._last_answer = None
         if self._markers_shown:
             self._marker_pub.publish(delete_all_markers(header))
             self._markers_shown = False

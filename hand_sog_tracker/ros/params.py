@@ -234,9 +234,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = _tracker_specs() + (
     ParamSpec(
         "frame_budget_ms",
         200.0,
-        "Time budget of one frame (ms): the work a frame can do without (the refinement on a "
-        "still image, the restarts after the answer) stops when it is spent, and the frame "
-        "counts as cut in /diagnostics.",
+        "Time budget of one frame (ms): a frame that takes longer is warned about and counted "
+        "in /diagnostics (frames_cut); its search is never cut, the frames that arrive meanwhile "
+        "are dropped whole.",
         10.0,
         10000.0,
     ),

@@ -106,8 +106,9 @@ def _frames(motion: str, frames: int, intr, renderer: str, seed: int) -> list:
 
 def _init_times(config: TrackerConfig, depth_frames: list, intr) -> tuple[list[float], list[float]]:
     """Milliseconds of each frame in which initialisation runs, for fresh trackers started
-    every ``INIT_EVERY`` frames (with a split initialisation, both of its frames), and of the
-    restarts the new track runs after its first answer (as in the node: deferred)."""
+    every ``INIT_EVERY`` frames, and of the restarts the new track runs after its first answer.
+    (An older tree, under ``--compare``, ran the initialisation over two frames, both counted,
+    with its restarts deferred, as its node did; this tree runs all of it on one frame.)"""
     out, after = [], []
     for k in range(0, len(depth_frames) - 1, INIT_EVERY):
         tracker = Tracker(config)
@@ -191,9 +192,9 @@ def run_benchmark(
 
         config = tracker_config(params)
     tracker = Tracker(config)
-    # As the node: a frame is answered before its restarts, which run after it (the same track
-    # and the same work as without; "answer" times the first part, "total" both).  A tracker
-    # without deferred restarts (another tree's, --compare) answers with its restarts.
+    # As each tree's node: an older tree (--compare) answered a frame before its restarts, which
+    # ran after it ("answer" times the first part, "total" both); this tree has no deferral
+    # (the attributes set here are unused) and answers with its whole search.
     tracker.defer_restarts = True
     finish_frame = getattr(tracker, "finish_frame", lambda: False)
     stages = (

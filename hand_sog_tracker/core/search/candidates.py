@@ -1,0 +1,354 @@
+"""A frame's candidates: the proposals, small generators with a name and a reason.
+
+Each proposal looks at the frame's fit (:class:`Frame`) and yields start poses
+(:class:`Candidate`) for a way out of a local optimum the fit may be in; the search
+(:func:`~hand_sog_tracker.core.search.fit.search`) fits them all as one batch and the score
+(:mod:`.score`) picks the answer.  A proposal yields nothing when its reason does not apply
+to the frame: there are no schedules, waits or cooldowns.  ``margin`` is how much a
+candidate must beat the fit's score by where the score cannot tell the two apart well (the
+measurements behind each value: ``doc/notes/search.md``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Callable, Iterator
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
+from hand_sog_tracker.core.depth_sog import ImageSoG
+from hand_sog_tracker.core.energy import Objective, TipTargets
+from hand_sog_tracker.core.hand_model import (
+    ABD,
+    CHAIN_JOINTS,
+    FINGER_ABD,
+    FINGER_DIP,
+    FINGER_MCP,
+    FINGER_PIP,
+    JOINTS,
+    HandModel,
+    chain_slice,
+)
+from hand_sog_tracker.core.kinematics import fingertips, global_rotation
+from hand_sog_tracker.core.optimizer import OptimizeResult
+from hand_sog_tracker.core.salient import Detections, assign_detections
+from hand_sog_tracker.core.search.score import (
+    ASSIGN_LAMBDA_MM,
+    assignment_cost,
+    lonely_detections,
+    own_detections,
+    score,
+    sq_distances,
+)
+
+__all__ = [
+    "Candidate",
+    "Frame",
+    "Proposal",
+    "TRACK_PROPOSALS",
+    "NEW_TRACK_PROPOSALS",
+    "pull_target",
+    "shifted",
+    "swapped",
+]
+
+#: A fingertip this far from all data (mm) hangs in empty space (seed 004's restarts); its
+#: candidates must win by ``DANGLING_MARGIN`` (tried on every such frame, they won by 0.002-0.017
+#: on rotating hands, wrongly; chosen here).
+DANGLING_TIP_MM = 25.0
+DANGLING_MARGIN = 0.02
+#: Swap: a finger within 0.5 deg of its abduction limit toward a neighbour curled more by this
+#: much (MCP + PIP, rad), itself curled at most ``SWAP_MAX_CURL_RAD`` (issue 11).
+SWAP_ABD_MARGIN_RAD = float(np.radians(0.5))
+SWAP_CURL_GAP_RAD = 0.8
+SWAP_MAX_CURL_RAD = 2.2
+#: Swaps and curls need the palm or the back toward the camera (|palm normal . view| at least
+#: this): seen from the side the score cannot tell neighbouring fingers apart.
+FACING_COS = 0.85
+SWAP_MARGIN = 0.02
+#: Curl: an open finger (MCP + PIP + DIP under this, rad) without a detection of its own.
+CURL_MAX_FLEX_RAD = 1.5
+CURL_MARGIN = 0.04
+#: A hand nearly edge-on (|palm normal . view| under this) overlaps its fingers in the image:
+#: a detection pull must then win by ``EDGE_ON_MARGIN`` (issue 11).
+EDGE_ON_PALM_COS = 0.6
+EDGE_ON_MARGIN = SWAP_MARGIN
+#: A detection within this of one whose pulls lost on the frame before is the same one (mm;
+#: a few frames' motion of a fingertip at 30 Hz; chosen here).
+SAME_DETECTION_MM = 10.0
+#: The salient weight of a detection pull: 20 x ``w_sal`` (at least 20).
+PULL_WEIGHT = 20.0
+#: A shift that only the assignment calls for (no unexplained detection) must win by this
+#: (on a hand seen at an angle fingers one place over score alike; chosen here).
+SHIFT_MARGIN = 0.02
+#: A new track's lateral candidates move the hand this far across the palm (mm: about one
+#: finger's spacing) and must win by ``LATERAL_MARGIN`` (issue 11).
+LATERAL_MM = 15.0
+LATERAL_MARGIN = 0.01
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """What the proposals look at: one frame's fit and data.
+
+    Attributes
+    ----------
+    model : HandModel
+    fit : OptimizeResult
+        The frame's fit (a tracked frame's, or a new track's best finalist).
+    obj : Objective
+        The frame's objective (with the salient term's targets).
+    plain : Objective
+        ``obj`` without its salient term: candidates are fitted and scored on it.
+    data : ImageSoG
+    det : Detections
+    limits : (low, high) arrays, shape (26,) each
+        The model's joint limits (+-inf for the wrist).
+    new_track : bool
+        A new track's first frame: scored without the hidden-tip discount, with the lateral
+        candidates and both finger shifts.
+    lost_pulls : array, shape (k, 3), mm
+        Detections whose pulls lost on the frame before (see :func:`pull_target`).
+    """
+
+    model: HandModel
+    fit: OptimizeResult
+    obj: Objective
+    plain: Objective
+    data: ImageSoG
+    det: Detections
+    limits: tuple[NDArray[np.float64], NDArray[np.float64]]
+    new_track: bool = False
+    lost_pulls: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def score(self, theta: NDArray[np.float64], value: float | None = None) -> float:
+        """:func:`~hand_sog_tracker.core.search.score.score` of ``theta`` (26,) on this frame."""
+        return score(self.plain, theta, self.det, self.obj.config.w_sal, not self.new_track, value)
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """One start pose of the search.
+
+    Attributes
+    ----------
+    proposal : str
+        Name of the proposal that made it.
+    x0 : array, shape (26,)
+        Start pose.
+    margin : float
+        Score it must beat the frame's fit by (unitless, score units).
+    pull : Objective or None
+        When given, the candidate is first fitted on this objective (a detection pulling a
+        finger), with only ``active`` parameters free, then released into the plain objective.
+    active : bool array, shape (26,), or None
+    """
+
+    proposal: str
+    x0: NDArray[np.float64]
+    margin: float = 0.0
+    pull: Objective | None = None
+    active: NDArray[np.bool_] | None = None
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """A named generator of candidates: ``generate(frame)`` yields them when ``reason`` applies."""
+
+    name: str
+    reason: str
+    generate: Callable[[Frame], Iterator[Candidate]]
+
+
+def shifted(theta: NDArray[np.float64], side: int) -> NDArray[np.float64]:
+    """``theta`` (26,) with index .. little given the flexions of their neighbour on ``side``
+    (+1: toward the little finger; the last keeps its own) and neutral abductions."""
+    q = theta[JOINTS].reshape(5, CHAIN_JOINTS)
+    moved = q[np.clip(np.arange(1, 5) + side, 1, 4)].copy()
+    moved[:, 1] = 0.0
+    x0 = theta.copy()
+    x0[chain_slice(1).start :] = moved.ravel()
+    return x0
+
+
+def swapped(theta: NDArray[np.float64], a: int, b: int) -> NDArray[np.float64]:
+    """``theta`` (26,) with chains ``a`` and ``b`` (1-4) exchanging their flexions, both with
+    neutral abductions."""
+    x0 = theta.copy()
+    sa, sb = chain_slice(a), chain_slice(b)
+    x0[sa], x0[sb] = theta[sb], theta[sa]
+    x0[sa.start + ABD] = 0.0
+    x0[sb.start + ABD] = 0.0
+    return x0
+
+
+def _with_chain(theta: NDArray[np.float64], c: int, joints: NDArray[np.float64]) -> NDArray[np.float64]:
+    x0 = theta.copy()
+    x0[chain_slice(c)] = joints
+    return x0
+
+
+def _facing(theta: NDArray[np.float64]) -> bool:
+    """Whether the palm or the back of the hand faces the camera (``FACING_COS``)."""
+    return abs(global_rotation(theta)[2, 2]) >= FACING_COS
+
+
+def _dangling(f: Frame) -> Iterator[Candidate]:
+    if f.data.n == 0:
+        return
+    x = f.fit.x
+    far = np.sqrt(sq_distances(fingertips(f.model, x), f.data.points).min(axis=1))
+    c = int(np.argmax(far))
+    if far[c] < DANGLING_TIP_MM:
+        return
+    yield Candidate("dangling", _with_chain(x, c, FINGER_EXTENDED), DANGLING_MARGIN)
+    yield Candidate("dangling", _with_chain(x, c, FINGER_CURLED), DANGLING_MARGIN)
+    if c > 0:
+        others = np.mean([x[chain_slice(k)] for k in range(1, 5) if k != c], axis=0)
+        yield Candidate("dangling", _with_chain(x, c, others), DANGLING_MARGIN)
+
+
+def swap_pair(theta: NDArray[np.float64], limits: tuple[NDArray, NDArray]) -> tuple[int, int] | None:
+    """``(finger, neighbour)`` (chains 1-4) for the swap at ``theta`` (26,), or None: a finger
+    at its abduction limit toward a neighbour curled more (see ``SWAP_*``); of several, the
+    pair with the largest difference in curl."""
+    if not _facing(theta):
+        return None
+    lo, hi = limits
+    abd = theta[FINGER_ABD]
+    at_limit = {1: hi[FINGER_ABD] - abd <= SWAP_ABD_MARGIN_RAD, -1: abd - lo[FINGER_ABD] <= SWAP_ABD_MARGIN_RAD}
+    curl = theta[FINGER_MCP] + theta[FINGER_PIP]  # index .. little (4,), rad
+    best, best_gap = None, SWAP_CURL_GAP_RAD
+    for i in np.flatnonzero(curl <= SWAP_MAX_CURL_RAD):
+        for side in (1, -1):
+            n = i + side
+            if 0 <= n < 4 and at_limit[side][i] and curl[n] - curl[i] > best_gap:
+                best, best_gap = (int(i) + 1, int(n) + 1), curl[n] - curl[i]
+    return best
+
+
+def _swap(f: Frame) -> Iterator[Candidate]:
+    pair = swap_pair(f.fit.x, f.limits)
+    if pair is not None:
+        yield Candidate("swap", swapped(f.fit.x, *pair), SWAP_MARGIN)
+
+
+def _curl(f: Frame) -> Iterator[Candidate]:
+    x = f.fit.x
+    if f.det.n == 0 or not _facing(x):
+        return
+    flex = x[FINGER_MCP] + x[FINGER_PIP] + x[FINGER_DIP]  # index .. little (4,)
+    fingers = [c for c in range(1, 5) if flex[c - 1] < CURL_MAX_FLEX_RAD]
+    if fingers and not own_detections(f.model, x, f.det)[fingers].all():
+        for c in fingers:
+            yield Candidate("curl", _with_chain(x, c, FINGER_CURLED), CURL_MARGIN)
+
+
+def _shift(f: Frame) -> Iterator[Candidate]:
+    x = f.fit.x
+    margin = SHIFT_MARGIN
+    if f.new_track or lonely_detections(f.model, x, f.det).size:
+        sides: tuple[int, ...] = (1, -1)
+        margin = 0.0
+    elif f.det.n == 0 or abs(global_rotation(x)[2, 2]) < EDGE_ON_PALM_COS:
+        return  # no detection says where the fingers are, or they overlap in the image (edge-on)
+    elif f.det.n >= 5 and own_detections(f.model, x, f.det).all():
+        return  # each fingertip has a detection of its own
+    else:
+        # The side whose shifted pose the detections explain better than the fit, if any.
+        cost = {s: assignment_cost(f.model, shifted(x, s), f.det, True) for s in (0, 1, -1)}
+        sides = tuple(s for s in (1, -1) if cost[s] < cost[0] and cost[s] <= cost[-s])
+    for side in sides:
+        yield Candidate("shift", shifted(x, side), margin)
+
+
+def _joint_targets(model: HandModel, theta: NDArray[np.float64], det: Detections, c: int, s: int) -> TipTargets:
+    """Targets for fingertip ``c`` on detection ``s`` (weight 1) and for the other fingertips
+    at ``theta`` (26,) on the detections the optimal assignment gives them among the others
+    (their confidence; none for a detection seen end-on)."""
+    rest = np.ones(det.n, dtype=bool)
+    rest[s] = False
+    others = np.flatnonzero(np.arange(5) != c)
+    sub = det.subset(rest)
+    assigned = assign_detections(fingertips(model, theta)[others], sub, ASSIGN_LAMBDA_MM)
+    points, weights = np.zeros((5, 3)), np.zeros(5)
+    points[c], weights[c] = det.points[s], 1.0
+    for o, a in zip(others, assigned):
+        if a >= 0 and not sub.end_on[a]:
+            points[o], weights[o] = sub.points[a], sub.confidence[a]
+    return TipTargets(points, weights)
+
+
+def pull_target(f: Frame) -> int | None:
+    """The detection the detection proposal pulls fingers onto: the most confident one that no
+    fingertip explains, unless its pulls lost on the frame before where it still is (within
+    ``SAME_DETECTION_MM`` of one of ``f.lost_pulls``: the score already preferred the fit
+    there); None when there is none."""
+    lonely = lonely_detections(f.model, f.fit.x, f.det)
+    if lonely.size and f.lost_pulls.shape[0]:
+        near = np.sqrt(sq_distances(f.det.points[lonely], f.lost_pulls)).min(axis=1) < SAME_DETECTION_MM
+        lonely = lonely[~near]
+    return int(lonely[np.argmax(f.det.confidence[lonely])]) if lonely.size else None
+
+
+def _detection(f: Frame) -> Iterator[Candidate]:
+    x, det = f.fit.x, f.det
+    s = pull_target(f)
+    if s is None:
+        return
+    dist = np.linalg.norm(det.points[s] - fingertips(f.model, x), axis=1)
+    cfg = f.obj.config
+    margin = EDGE_ON_MARGIN if abs(global_rotation(x)[2, 2]) < EDGE_ON_PALM_COS else 0.0
+    strong = replace(cfg, w_sal=max(cfg.w_sal, 1.0) * PULL_WEIGHT)
+    for c in np.argsort(dist)[:2]:
+        c = int(c)
+        pts, w = np.zeros((5, 3)), np.zeros(5)
+        pts[c], w[c] = det.points[s], 1.0
+        finger = np.zeros(x.size, dtype=bool)
+        finger[chain_slice(c)] = True
+        # The finger alone pulled onto it, and the whole pose with every other fingertip
+        # pulled onto its own detection (a model finger on its neighbour's data moves back).
+        yield Candidate("detection", x, margin, f.obj.variant(strong, TipTargets(pts, w)), finger)
+        yield Candidate("detection", x, margin, f.obj.variant(strong, _joint_targets(f.model, x, det, c, s)))
+        if det.end_on[s] and c > 0:  # a finger seen end-on is curled toward the camera
+            yield Candidate("detection", _with_chain(x, c, FINGER_CURLED), margin)
+
+
+def _lateral(f: Frame) -> Iterator[Candidate]:
+    if not f.new_track:
+        return
+    x = f.fit.x
+    across = global_rotation(x)[:, 0] * LATERAL_MM
+    for sign in (1.0, -1.0):
+        for side in (0, 1, -1):
+            x0 = x.copy() if side == 0 else shifted(x, side)
+            x0[:3] += sign * across
+            yield Candidate("lateral", x0, LATERAL_MARGIN)
+
+
+DANGLING = Proposal(
+    "dangling", "a fingertip hangs in empty space: its finger extended, curled, like the others", _dangling
+)
+SWAP = Proposal(
+    "swap", "a finger held at its abduction limit over a more curled neighbour's place: the two swap flexions", _swap
+)
+CURL = Proposal("curl", "an open finger without a detection of its own: each open finger curled into the palm", _curl)
+SHIFT = Proposal(
+    "shift",
+    "an unexplained detection, or detections that a pose with every finger on its neighbour's place explains better",
+    _shift,
+)
+DETECTION = Proposal(
+    "detection",
+    "a detection no fingertip explains (and whose pulls did not lose on the frame before): the two nearest"
+    " fingers pulled onto it",
+    _detection,
+)
+LATERAL = Proposal(
+    "lateral", "a new track: the hand moved one finger's spacing sideways, fingers as they are and shifted", _lateral
+)
+#: The proposals of a tracked frame and of a new track's first frame.
+TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SWAP, CURL, SHIFT, DETECTION)
+NEW_TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SHIFT, LATERAL)

@@ -1,0 +1,104 @@
+"""The one search (issue 45): proposals with names and reasons, one batch, one score."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
+from hand_sog_tracker.core.optimizer import OptimizeResult
+from hand_sog_tracker.core.search import NEW_TRACK_PROPOSALS, TRACK_PROPOSALS, Candidate, Frame, Proposal, search
+from hand_sog_tracker.core.search import fit as fit_module
+from hand_sog_tracker.core.tracker import Tracker
+from hand_sog_tracker.core.types import TrackerConfig
+from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
+
+
+def test_every_proposal_has_a_name_and_a_reason() -> None:
+    names = [p.name for p in (*TRACK_PROPOSALS, *NEW_TRACK_PROPOSALS)]
+    assert len(set(names)) == 6 and all(p.reason for p in (*TRACK_PROPOSALS, *NEW_TRACK_PROPOSALS))
+    assert {"lateral"} == {p.name for p in NEW_TRACK_PROPOSALS} - {p.name for p in TRACK_PROPOSALS}
+
+
+class _Fit:
+    """A stand-in for the batch fit: each candidate ends where it starts, its value given."""
+
+    def __init__(self, values: dict[float, float]) -> None:
+        self.values = values
+
+    def __call__(self, fun, x0, **kwargs):
+        return [OptimizeResult(x, self.values[float(x[0])], 0, True, 0, "", np.zeros(1)) for x in x0]
+
+
+@pytest.mark.parametrize(
+    "values, margins, expected",
+    [
+        ({1.0: 0.55, 2.0: 0.60}, (0.0, 0.0), 2.0),  # the highest score wins
+        ({1.0: 0.55, 2.0: 0.60}, (0.0, 0.2), 1.0),  # ... that beats the fit by its margin
+        ({1.0: 0.45, 2.0: 0.52}, (0.0, 0.05), None),  # none does: the fit is the answer
+    ],
+)
+def test_the_highest_score_that_beats_the_fit_by_its_margin_wins(
+    monkeypatch: pytest.MonkeyPatch, values: dict, margins: tuple, expected: float | None
+) -> None:
+    monkeypatch.setattr(fit_module, "maximise_batch", _Fit(values))
+    monkeypatch.setattr(Frame, "score", lambda self, x, value=None: 0.5 if value is None else value)
+    base = rest_pose()
+    fit = OptimizeResult(base, 0.5, 7, True, 0, "", np.zeros(1))
+    starts = []
+    for k, margin in zip((1.0, 2.0), margins):
+        x = base.copy()
+        x[0] = k
+        starts.append(Candidate(f"c{int(k)}", x, margin))
+    proposal = Proposal("test", "two candidates", lambda f: iter(starts))
+    plain = SimpleNamespace(batch=None)  # (the stand-in fit does not evaluate it)
+    frame = Frame(default_hand_model(), fit, None, plain, None, None, (None, None))  # type: ignore[arg-type]
+    res, name = search(frame, (proposal,))
+    if expected is None:
+        assert res is fit and name is None
+    else:
+        assert res.x[0] == expected and name == f"c{int(expected)}"
+
+
+def test_no_candidate_no_fit() -> None:
+    fit = OptimizeResult(rest_pose(), 0.5, 7, True, 0, "", np.zeros(1))
+    frame = Frame(default_hand_model(), fit, None, None, None, None, (None, None))  # type: ignore[arg-type]
+    assert search(frame, (Proposal("none", "never applies", lambda f: iter(())),)) == (fit, None)
+
+
+def test_two_trackers_give_the_same_answers_and_proposals() -> None:
+    """Nothing in the search depends on timing or on earlier trackers: the same frames give the
+    same poses and the same winning proposals."""
+    intr = default_intrinsics()
+    frames = list(synthetic_sequence("fingercount", 20, intrinsics=intr, seed=2))
+    runs = []
+    for _ in range(2):
+        tracker = Tracker(TrackerConfig())
+        out = []
+        for f in frames:
+            res = tracker.process(f.depth_mm, intr)
+            out.append((None if res.pose is None else res.pose.tobytes(), tracker.last_proposal))
+        runs.append(out)
+    assert runs[0] == runs[1]
+
+
+def test_a_detection_whose_pulls_lost_is_not_pulled_onto_again_where_it_stays() -> None:
+    from hand_sog_tracker.core.kinematics import fingertips
+    from hand_sog_tracker.core.salient import Detections
+    from hand_sog_tracker.core.search.candidates import SAME_DETECTION_MM, pull_target
+
+    model = default_hand_model()
+    theta = rest_pose((0.0, 20.0, 400.0))
+    lonely = fingertips(model, theta)[2] + np.array([0.0, -60.0, -30.0])
+    det = Detections(lonely[None], np.zeros((1, 2)), np.array([0.95]), np.array([False]))
+    fit = OptimizeResult(theta, 0.5, 7, True, 0, "", np.zeros(1))
+
+    def target(lost: np.ndarray) -> int | None:
+        frame = Frame(model, fit, None, None, None, det, (None, None), lost_pulls=lost)  # type: ignore[arg-type]
+        return pull_target(frame)
+
+    assert target(np.zeros((0, 3))) == 0
+    assert target(lonely[None] + 0.5 * SAME_DETECTION_MM) is None  # (within it: the same detection)
+    assert target(lonely[None] + [2 * SAME_DETECTION_MM, 0.0, 0.0]) == 0  # moved on: another one
