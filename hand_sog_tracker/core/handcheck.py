@@ -444,6 +444,23 @@ class HandGate:
             self._confirmed = False
         return HandDecision(present, conf, dec.fingers * (conf > 0), dec.evidence)
 
+    def gate(
+        self, tracker: _Resettable, depth_mm: NDArray, intrinsics: Intrinsics, result: TrackResult
+    ) -> tuple[TrackResult, HandDecision]:
+        """:meth:`decide` on ``result`` of ``tracker`` (which has a ``model``), and the result to
+        publish: status ``NO_HAND`` and no pose when the frame is no hand (node and core mode alike)."""
+        from dataclasses import replace
+
+        from hand_sog_tracker.core.types import TrackerStatus
+
+        dec = self.decide(tracker, depth_mm, intrinsics, tracker.model, result)  # type: ignore[attr-defined]
+        if result.pose is not None and not dec.present:
+            result = replace(
+                result, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,
+                gaussians_mm=None, gaussian_radii_mm=None,
+            )
+        return result, dec
+
 
 class CheckedTracker:
     """A :class:`~hand_sog_tracker.core.tracker.Tracker` whose results pass :class:`HandGate`, as
@@ -463,17 +480,7 @@ class CheckedTracker:
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
         """Track the frame (see ``Tracker.process``) and gate its result."""
-        from dataclasses import replace
-
-        from hand_sog_tracker.core.types import TrackerStatus
-
         t = self._tracker
         res = t.process(depth_mm, intrinsics)  # type: ignore[attr-defined]
-        dec = self._gate.decide(t, depth_mm, intrinsics, t.model, res)  # type: ignore[arg-type, attr-defined]
-        self.last_decision = dec
-        if res.pose is not None and not dec.present:
-            res = replace(
-                res, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,
-                gaussians_mm=None, gaussian_radii_mm=None,
-            )
+        res, self.last_decision = self._gate.gate(t, depth_mm, intrinsics, res)  # type: ignore[arg-type]
         return res

@@ -671,12 +671,7 @@ class TrackerNode(CalibrationService, Node):
             # -- the hand check (issue 46): a tracked frame that is no hand is answered "no
             # hand", with no pose and no markers, and the track is reset (the next frame
             # searches afresh).
-            decision = self._hand_gate.decide(self._tracker, depth, intr, self._tracker.model, result)
-            if result.pose is not None and not decision.present:
-                result = replace(
-                    result, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,
-                    gaussians_mm=None, gaussian_radii_mm=None,
-                )
+            result, decision = self._hand_gate.gate(self._tracker, depth, intr, result)
             self._last_answer = (stamp, result, depth, intr, decision)
         self._frame_id = header.frame_id
         self._publish_result(header, result, depth, intr, decision)
