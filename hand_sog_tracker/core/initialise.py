@@ -49,7 +49,7 @@ MIN_BLOB_AREA_MM2 = 2500.0
 #: Largest: a blob larger than this (mm^2 at its median depth, after the cut at
 #: :data:`HAND_DEPTH_BAND_MM`) is a wall or a table, not a hand (hand and forearm measure
 #: 16,000-20,000 mm^2 in the RealSense frames and 38,000 in the NYU Kinect frame; a wall
-#: filling the view at 0.9 m, 750,000). (measurements: doc/notes/search.md)
+#: filling the view at 0.9 m, 750,000). (measurements: doc/design/search.md)
 MAX_BLOB_AREA_MM2 = 150_000.0
 #: A blob reaching this far beyond its thickest point (and 1.4x farther than
 #: on the other side) is taken to hold a forearm on that side (mm; a hand reaches about 135
@@ -71,13 +71,13 @@ NARROW_BANDS_MM = (175.0, 120.0)
 #: Narrower bands still (mm), tried last, for a wall or a table top 50-120 mm behind the hand:
 #: the part within one is taken only when at most its share in :data:`SURFACE_GAP_SHARES` of
 #: its pixels lie in the band's last :data:`SURFACE_GAP_MM` (a wall's slice fills it; chosen
-#: here, measurements: doc/notes/search.md).
+#: here, measurements: doc/design/search.md).
 SURFACE_BANDS_MM = (90.0, 60.0)
 SURFACE_GAP_MM = 15.0
 SURFACE_GAP_SHARES = (0.05, 0.12)
 #: The bands :func:`_nearest_blob` tries in turn: (band mm, gap share or None for no gap test,
 #: whether a part that fails the gap test is still taken when no narrower band passes).
-#: (measurements: doc/notes/search.md)
+#: (measurements: doc/design/search.md)
 _BANDS: tuple[tuple[float, float | None, bool], ...] = (
     *((band, None, False) for band in (HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM[:-1])),
     (NARROW_BANDS_MM[-1], SURFACE_GAP_SHARES[0], True),
@@ -85,7 +85,7 @@ _BANDS: tuple[tuple[float, float | None, bool], ...] = (
 )
 #: A blob pixel is on a surface when it and its 8 neighbours all belong to the blob and lie
 #: within this depth range (mm): :attr:`HandBlob.far_mm` is the farthest such pixel.
-#: (measurements: doc/notes/search.md)
+#: (measurements: doc/design/search.md)
 SURFACE_RANGE_MM = 15.0
 #: The hand end's own axis (:attr:`HandBlob.hand_direction`) is the principal direction of the
 #: blob's points less than this far behind the palm centre along the blob's axis: hand, wrist
@@ -96,7 +96,7 @@ HAND_AXIS_BEHIND_PALM_MM = 60.0
 @dataclass(frozen=True)
 class InitSearch:
     """Effort of a new track's search (counts; chosen here, issues 11 and 14, against the dev
-    bags and the labelled real frames; measurements: doc/notes/search.md).
+    bags and the labelled real frames; measurements: doc/design/search.md).
 
     Attributes
     ----------
@@ -250,7 +250,7 @@ def _in_plane(direction: NDArray[np.float64], angle: float) -> NDArray[np.float6
 
 #: Invalid pixels inside a blob in 4-connected groups up to this size (px) are filled before
 #: the palm is searched: a blob riddled with sensor dropouts has no thick part (chosen here;
-#: larger fills close the gaps between fingers; measurements: doc/notes/search.md).
+#: larger fills close the gaps between fingers; measurements: doc/design/search.md).
 MAX_HOLE_PX = 4
 
 

@@ -52,7 +52,7 @@ from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 __all__ = ["ALPHA", "ASSIGN_LAMBDA_MM", "Tracker", "before_surface", "coverage", "hand_roi"]
 
 # Module constants, not TrackerConfig fields (which become ROS parameters): none is meant to be
-# tuned per camera or user.  The measurements behind them: doc/notes/search.md.
+# tuned per camera or user.  The measurements behind them: doc/design/search.md.
 #: Velocity extrapolation of the start pose (paper 000 sec. 5.3: alpha = 0.5).
 ALPHA = 0.5
 #: A tracked frame starts from the last frame's final step lengths x ``WARM_GROW``, within

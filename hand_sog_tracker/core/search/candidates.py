@@ -6,7 +6,7 @@ Each proposal looks at the frame's fit (:class:`Frame`) and yields start poses
 (:mod:`.score`) picks the answer.  A proposal yields nothing when its reason does not apply
 to the frame: there are no schedules, waits or cooldowns.  ``margin`` is how much a
 candidate must beat the fit's score by where the score cannot tell the two apart well (the
-measurements behind each value: ``doc/notes/search.md``).
+measurements behind each value: ``doc/design/search.md``).
 """
 
 from __future__ import annotations
