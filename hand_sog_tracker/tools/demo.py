@@ -480,7 +480,7 @@ def run_demo(
         say(f"  {k:<{width}}  {_fmt(rates[k]):>6} Hz  ({counts[k]} message{'s' if counts[k] != 1 else ''})")
     say(f"end-to-end latency (image published -> hand/fingertips received): "
         f"median {_fmt(lat.median_ms)} ms, p95 {_fmt(lat.p95_ms)} ms")
-    say(f"processing inside the node (its /diagnostics, restarts after the answer included): {_fmt(processing)} ms/frame")
+    say(f"processing inside the node (its /diagnostics: the whole search of each frame): {_fmt(processing)} ms/frame")
     say(f"frames answered: {n_out} of {len(records)} published ({n_track} with a hand, "
         f"{n_out - n_track} hand lost, dropped by the node: {'?' if dropped is None else dropped})")
     say("")
