@@ -34,7 +34,7 @@ from hand_sog_tracker.core.kinematics import (
     posed_centres,
     skeleton_points,
 )
-from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise, maximise_batch
+from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
 from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
 from hand_sog_tracker.core.salient import Detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.search import (
@@ -46,7 +46,7 @@ from hand_sog_tracker.core.search import (
     search,
 )
 from hand_sog_tracker.core.search.candidates import pull_target
-from hand_sog_tracker.core.search.fit import MAX_BATCH
+from hand_sog_tracker.core.search.fit import fit_batch
 from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
@@ -425,13 +425,10 @@ class Tracker:
             shared = Objective(self._model, group[0][1], self._config, silhouette=sil)
             targets = [obj.targets for _, _, obj in group]
             starts = np.array([found.poses[k] for k, _, _ in group])
-            results: list[OptimizeResult] = []
-            for c in range(0, len(group), MAX_BATCH):
-
-                results += maximise_batch(
-                    _with_targets(shared, targets[c : c + MAX_BATCH]), starts[c : c + MAX_BATCH],
-                    iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
-                )
+            results = fit_batch(
+                _with_targets(shared, targets), starts, shared.data.n,
+                iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
+            )
             for (k, data_x, obj), fit in zip(group, results):
                 frame = Frame(self._model, fit, obj, plain(obj), data_x, det, self._limits(), new_track=True)
                 fits.append((k, (frame.score(fit.x), frame)))

@@ -107,7 +107,7 @@ def fit_each(
     out: list[OptimizeResult | None] = [None] * len(items)
     for ks in groups.values():
         obj = Objective(model, items[ks[0]][1], config)
-        fits = fit_batch(obj.batch, np.array([items[k][0] for k in ks]), bounds=bounds, **kwargs)
+        fits = fit_batch(obj.batch, np.array([items[k][0] for k in ks]), obj.data.n, bounds=bounds, **kwargs)
         for k, res in zip(ks, fits):
             out[k] = res
     return out  # type: ignore[return-value]
