@@ -233,15 +233,18 @@ def test_the_best_combination_is_found_fingers_first_then_the_thumb() -> None:
         curled = [not np.array_equal(x[chain_slice(c)], FINGER_EXTENDED) for c in range(5)]
         return float(gain @ np.array(curled, dtype=float))
 
+    def scores(xs: np.ndarray) -> np.ndarray:
+        return np.array([score(x) for x in xs])
+
     for _ in range(40):  # (draws where the thumb alone beats every finger alone included)
         gain[:] = rng.normal(size=5)
         calls[0] = 0
-        best = best_combination(start, score)
+        best = best_combination(start, scores)
         assert calls[0] == 17
         values = [score(c) for c in combos]
         np.testing.assert_array_equal(best, combos[int(np.argmax(values))])
     # Equal scores: the first, as max over all 31 would pick.
-    np.testing.assert_array_equal(best_combination(start, lambda x: 0.0), combos[0])
+    np.testing.assert_array_equal(best_combination(start, lambda xs: np.zeros(len(xs))), combos[0])
 
 
 def test_a_hand_whose_fingertips_leave_the_image_is_found_fingers_up_not_on_its_forearm() -> None:

@@ -53,7 +53,7 @@ def test_the_highest_score_that_beats_the_fit_by_its_margin_wins(
         x[0] = k
         starts.append(Candidate(f"c{int(k)}", x, margin))
     proposal = Proposal("test", "two candidates", lambda f: iter(starts))
-    plain = SimpleNamespace(batch=None)  # (the stand-in fit does not evaluate it)
+    plain = SimpleNamespace(batch=None, data=SimpleNamespace(n=100))  # (the stand-in fit does not evaluate it)
     frame = Frame(default_hand_model(), fit, None, plain, None, None, (None, None))  # type: ignore[arg-type]
     res, name = search(frame, (proposal,))
     if expected is None:

@@ -509,21 +509,23 @@ def finger_combinations(start: NDArray[np.float64]) -> list[NDArray[np.float64]]
 
 
 def best_combination(
-    start: NDArray[np.float64], value: Callable[[NDArray[np.float64]], float]
+    start: NDArray[np.float64], values: Callable[[NDArray[np.float64]], NDArray[np.float64]]
 ) -> NDArray[np.float64]:
-    """The pose of :func:`finger_combinations` at ``start`` (26,) that ``value`` scores highest,
+    """The pose of :func:`finger_combinations` at ``start`` (26,) that ``values`` scores highest,
     looked for with 17 evaluations instead of 31: the 15 combinations of the fingers index ..
     little with the thumb extended, the thumb alone curled, and the best of the 15 with the
     thumb curled as well (the first of equal scores, as ``max``).  Exact when the score adds
-    up per chain.
+    up per chain.  ``values``: the scores (k,) of poses (k, 26), e.g. ``Objective.batch``'s
+    values (two calls: the 15, then the 2).
 
     The thumb's data lie apart from the fingers', so the fingers' best combination hardly
     depends on the thumb (issue 14).
     """
     combos = finger_combinations(start)
     # combos[i] curls the chains of the bits of i + 1 (bit 0: the thumb).
-    scored = {i: value(combos[i]) for i in range(31) if (i + 1) % 2 == 0}
+    first = [i for i in range(31) if (i + 1) % 2 == 0]
+    scored = dict(zip(first, np.asarray(values(np.array([combos[i] for i in first]))).tolist()))
     fingers = max(scored, key=lambda i: (scored[i], -i))  # (the first of equal scores)
-    for i in (0, fingers + 1):  # the thumb alone, and with the best fingers
-        scored[i] = value(combos[i])
+    then = (0, fingers + 1)  # the thumb alone, and with the best fingers
+    scored.update(zip(then, np.asarray(values(np.array([combos[i] for i in then]))).tolist()))
     return combos[max(scored, key=lambda i: (scored[i], -i))]

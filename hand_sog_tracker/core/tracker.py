@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,6 +46,7 @@ from hand_sog_tracker.core.search import (
     search,
 )
 from hand_sog_tracker.core.search.candidates import pull_target
+from hand_sog_tracker.core.search.fit import fit_batch
 from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
@@ -84,6 +86,19 @@ SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 _NO_POINTS = np.zeros((0, 3))
+
+
+def _with_targets(obj: Objective, targets: list[TipTargets | None]) -> Callable[..., tuple]:
+    """``obj.batch`` as :func:`maximise_batch` calls it ``with_index``: candidate ``i`` of the
+    batch with ``targets[i]``."""
+
+    def fun(
+        thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        assert index is not None
+        return obj.batch(thetas, gradient, targets=[targets[i] for i in index.tolist()])
+
+    return fun
 
 
 def _open(theta: NDArray[np.float64]) -> bool:
@@ -397,15 +412,27 @@ class Tracker:
         """Each finalist of ``found`` refined ``final_iterations`` on the tracker's model with
         the full objective of its hand side of ``data``: (index, (score, its :class:`Frame`)),
         best first by score (the earlier on a tie); finalists without data left out."""
-        fits = []
+        # The finalists keeping the same data share one objective and are fitted as one batch,
+        # each with its own targets (the same iterates as one by one).
+        groups: dict[int, list[tuple[int, ImageSoG, Objective]]] = {}
         for k, x in enumerate(found.poses):
             data_x = hand_side(data, x)
-            if data_x.n == 0:
-                continue
-            obj = Objective(self._model, data_x, self._config, targets=self._targets(x, det), silhouette=sil)
-            fit = self._maximise(obj, x, iterations=INIT_SEARCH.final_iterations)
-            frame = Frame(self._model, fit, obj, plain(obj), data_x, det, self._limits(), new_track=True)
-            fits.append((k, (frame.score(fit.x), frame)))
+            if data_x.n:
+                obj = Objective(self._model, data_x, self._config, targets=self._targets(x, det), silhouette=sil)
+                groups.setdefault(id(data_x), []).append((k, data_x, obj))
+        fits = []
+        for group in groups.values():
+            shared = Objective(self._model, group[0][1], self._config, silhouette=sil)
+            targets = [obj.targets for _, _, obj in group]
+            starts = np.array([found.poses[k] for k, _, _ in group])
+            results = fit_batch(
+                _with_targets(shared, targets), starts, shared.data.n,
+                iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
+            )
+            for (k, data_x, obj), fit in zip(group, results):
+                frame = Frame(self._model, fit, obj, plain(obj), data_x, det, self._limits(), new_track=True)
+                fits.append((k, (frame.score(fit.x), frame)))
+        fits.sort(key=lambda f: f[0])
         fits.sort(key=lambda f: f[1][0], reverse=True)  # (stable: the earlier first on a tie)
         return fits
 

@@ -107,7 +107,7 @@ def fit_each(
     out: list[OptimizeResult | None] = [None] * len(items)
     for ks in groups.values():
         obj = Objective(model, items[ks[0]][1], config)
-        fits = fit_batch(obj.batch, np.array([items[k][0] for k in ks]), bounds=bounds, **kwargs)
+        fits = fit_batch(obj.batch, np.array([items[k][0] for k in ks]), obj.data.n, bounds=bounds, **kwargs)
         for k, res in zip(ks, fits):
             out[k] = res
     return out  # type: ignore[return-value]
@@ -126,11 +126,18 @@ def _balanced(ranked: list[tuple], n: int) -> list[tuple]:
 
 def _screened(model: HandModel, config: TrackerConfig, starts: list, parts: list[ImageSoG], n: int) -> set[int]:
     """Indices of the ``n`` start poses per palm side that score best by the objective at the
-    start pose itself (one evaluation each, no gradient; the first on a tie)."""
-    scored = []
-    for i, (x0, part) in enumerate(zip(starts, parts)):
-        value = Objective(model, part, config)(x0, gradient=False)[0] if part.n else -np.inf
-        scored.append((value, -i, back_toward(x0)))
+    start pose itself (one evaluation each, no gradient, those sharing a part as one batch;
+    the first on a tie)."""
+    values = [-np.inf] * len(starts)
+    groups: dict[int, list[int]] = {}
+    for i, part in enumerate(parts):
+        if part.n:
+            groups.setdefault(id(part), []).append(i)
+    for ks in groups.values():
+        batch = Objective(model, parts[ks[0]], config).batch(np.array([starts[i] for i in ks]), gradient=False)[0]
+        for i, value in zip(ks, batch.tolist()):
+            values[i] = value
+    scored = [(value, -i, back_toward(x0)) for i, (x0, value) in enumerate(zip(starts, values))]
     chosen: set[int] = set()
     for side in (True, False):
         chosen.update(-s[1] for s in sorted((s for s in scored if s[2] == side), reverse=True)[:n])
@@ -205,7 +212,7 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
         for k, (x0, part) in enumerate(zip(starts[:2], parts)):
             if part.n:
                 screen = Objective(model, part, cfg)
-                combos.append((n + k, best_combination(x0, lambda c, s=screen: s(c, gradient=False)[0]), part))
+                combos.append((n + k, best_combination(x0, lambda c, s=screen: s.batch(c, gradient=False)[0]), part))
         tried = sorted(articulate(align(combos)), key=lambda s: s[:2], reverse=True)
         if tried and tried[0][0] >= ranked[0][0] + eff.combination_margin:
             ranked = sorted(ranked + tried, key=lambda s: s[:2], reverse=True)
