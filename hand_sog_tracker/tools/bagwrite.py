@@ -31,7 +31,7 @@ from hand_sog_tracker.tools.bagmsgs import (
     typestore,
 )
 
-__all__ = ["StorageName", "BagWriter", "DepthSample", "write_depth_bag"]
+__all__ = ["StorageName", "BagWriter", "DepthSample", "check_bag_target", "write_depth_bag"]
 
 StorageName = Literal["mcap", "sqlite3"]
 
@@ -127,6 +127,22 @@ class DepthSample:
     intrinsics: Intrinsics | None
     truth_mm: NDArray[np.float64] | None = None
 
+
+
+def check_bag_target(out: Path, force: bool) -> None:
+    """Refuse to write a bag at ``out`` when something is there, unless ``force`` and it is a
+    rosbag2 directory (a bag written before, safe to replace).
+
+    Raises
+    ------
+    BagError
+        ``out`` exists (without ``force``, or is not a bag).
+    """
+    if out.exists():
+        if not force:
+            raise BagError(f"{out} exists already (use --force to replace it)")
+        if not (out.is_dir() and (out / "metadata.yaml").is_file()):
+            raise BagError(f"{out} exists and is not a rosbag2 directory; not replacing it")
 
 def write_depth_bag(
     path: str | Path,

@@ -66,7 +66,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Literal, Sequence
 
 from hand_sog_tracker.core.types import Intrinsics
-from hand_sog_tracker.errors import BagError, HandSogError, InputError
+from hand_sog_tracker.errors import HandSogError, InputError
 from hand_sog_tracker.synth.mesh import SENSORS, MeshRenderOptions, MeshShape, mesh_sequence
 from hand_sog_tracker.synth.motions import ALL_MOTIONS, MOTIONS
 from hand_sog_tracker.synth.render import RenderOptions
@@ -78,6 +78,7 @@ from hand_sog_tracker.tools.bagio import (
     open_bag,
     write_depth_bag,
 )
+from hand_sog_tracker.tools.bagwrite import check_bag_target
 from hand_sog_tracker.tools.twohand_bags import TWOHAND_SETS, write_twohand_set
 
 __all__ = [
@@ -207,11 +208,7 @@ def write_sample_bag(
         shape = MeshShape() if shape is None else shape
     seed_used = motion_seed(motion) if seed is None else int(seed)
     out = Path(path)
-    if out.exists():
-        if not force:
-            raise BagError(f"{out} exists already (use --force to replace it)")
-        if not (out.is_dir() and (out / "metadata.yaml").is_file()):
-            raise BagError(f"{out} exists and is not a rosbag2 directory; not replacing it")
+    check_bag_target(out, force)
     t0 = time.perf_counter()
     intr = default_intrinsics(width, height)
     # Write into a scratch directory next to the target, under the final name

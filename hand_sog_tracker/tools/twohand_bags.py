@@ -52,6 +52,7 @@ from hand_sog_tracker.tools.bagio import (
     open_bag,
 )
 from hand_sog_tracker.tools.bagmsgs import ns_to_stamp, points_from_msg, points_msg, typestore
+from hand_sog_tracker.tools.bagwrite import check_bag_target
 
 __all__ = [
     "TWOHAND_SETS",
@@ -181,11 +182,7 @@ def write_twohand_bag(
         ``path`` exists (without ``force``, or is not a bag), or writing fails.
     """
     out = Path(path)
-    if out.exists():
-        if not force:
-            raise BagError(f"{out} exists already (use --force to replace it)")
-        if not (out.is_dir() and (out / "metadata.yaml").is_file()):
-            raise BagError(f"{out} exists and is not a rosbag2 directory; not replacing it")
+    check_bag_target(out, force)
     t0 = time.perf_counter()
     intr = default_intrinsics(spec.width, spec.height)
     topics = BagTopics()
