@@ -7,10 +7,11 @@ Re-exported by :mod:`hand_sog_tracker.tools.bagio`; the messages come from
 from __future__ import annotations
 
 import shutil
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Iterable, Literal
+from typing import Any, Iterable, Iterator, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,7 +32,7 @@ from hand_sog_tracker.tools.bagmsgs import (
     typestore,
 )
 
-__all__ = ["StorageName", "BagWriter", "DepthSample", "check_bag_target", "write_depth_bag"]
+__all__ = ["StorageName", "BagWriter", "DepthSample", "bag_in_place", "check_bag_target", "write_depth_bag"]
 
 StorageName = Literal["mcap", "sqlite3"]
 
@@ -143,6 +144,32 @@ def check_bag_target(out: Path, force: bool) -> None:
             raise BagError(f"{out} exists already (use --force to replace it)")
         if not (out.is_dir() and (out / "metadata.yaml").is_file()):
             raise BagError(f"{out} exists and is not a rosbag2 directory; not replacing it")
+
+
+@contextmanager
+def bag_in_place(out: Path, force: bool) -> Iterator[Path]:
+    """Write a bag at ``out`` through a scratch directory: yields the path to write the bag
+    (and its sidecar) to, under the final name (rosbags names the storage file after the bag
+    directory); on success it replaces ``out``, and the scratch directory always goes.
+
+    Raises
+    ------
+    BagError
+        As :func:`check_bag_target`.
+    """
+    check_bag_target(out, force)
+    scratch = out.parent / f".{out.name}.partial"
+    if scratch.exists():
+        shutil.rmtree(scratch)
+    scratch.mkdir(parents=True)
+    tmp = scratch / out.name
+    try:
+        yield tmp
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
 
 def write_depth_bag(
     path: str | Path,

@@ -57,7 +57,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import shutil
 import sys
 import time
 import zlib
@@ -78,7 +77,7 @@ from hand_sog_tracker.tools.bagio import (
     open_bag,
     write_depth_bag,
 )
-from hand_sog_tracker.tools.bagwrite import check_bag_target
+from hand_sog_tracker.tools.bagwrite import bag_in_place
 from hand_sog_tracker.tools.twohand_bags import TWOHAND_SETS, write_twohand_set
 
 __all__ = [
@@ -208,17 +207,9 @@ def write_sample_bag(
         shape = MeshShape() if shape is None else shape
     seed_used = motion_seed(motion) if seed is None else int(seed)
     out = Path(path)
-    check_bag_target(out, force)
     t0 = time.perf_counter()
     intr = default_intrinsics(width, height)
-    # Write into a scratch directory next to the target, under the final name
-    # (rosbags names the storage file after the bag directory), then move it.
-    scratch = out.parent / f".{out.name}.partial"
-    if scratch.exists():
-        shutil.rmtree(scratch)
-    scratch.mkdir(parents=True)
-    tmp = scratch / out.name
-    try:
+    with bag_in_place(out, force) as tmp:
         if renderer == "capsule":
             seq = synthetic_sequence(
                 motion, frames, intrinsics=intr, right=right, seed=seed_used,
@@ -256,11 +247,6 @@ def write_sample_bag(
         if fps != FPS:  # (the 30 fps bags' sidecars stay as they were)
             sample["fps"] = float(fps)
         (tmp / SIDECAR).write_text(json.dumps(sample, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-        if out.exists():
-            shutil.rmtree(out)
-        tmp.rename(out)
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
     return SampleBag(
         path=out,
         motion=motion,

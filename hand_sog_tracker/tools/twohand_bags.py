@@ -23,7 +23,6 @@ the wrong hand.  The sidecar has ``hands: 2``.
 from __future__ import annotations
 
 import json
-import shutil
 import time
 import zlib
 from dataclasses import dataclass
@@ -52,7 +51,7 @@ from hand_sog_tracker.tools.bagio import (
     open_bag,
 )
 from hand_sog_tracker.tools.bagmsgs import ns_to_stamp, points_from_msg, points_msg, typestore
-from hand_sog_tracker.tools.bagwrite import check_bag_target
+from hand_sog_tracker.tools.bagwrite import bag_in_place
 
 __all__ = [
     "TWOHAND_SETS",
@@ -182,16 +181,10 @@ def write_twohand_bag(
         ``path`` exists (without ``force``, or is not a bag), or writing fails.
     """
     out = Path(path)
-    check_bag_target(out, force)
     t0 = time.perf_counter()
     intr = default_intrinsics(spec.width, spec.height)
     topics = BagTopics()
-    scratch = out.parent / f".{out.name}.partial"
-    if scratch.exists():
-        shutil.rmtree(scratch)
-    scratch.mkdir(parents=True)
-    tmp = scratch / out.name
-    try:
+    with bag_in_place(out, force) as tmp:
         with BagWriter(tmp, storage="mcap", compress=True) as w:
             for f in two_hand_sequence(spec.scene, spec.frames, intr, seed=spec.seed, sensor=spec.sensor, fps=fps):
                 ns = _BASE_STAMP_NS + int(round(f.index * 1e9 / fps))
@@ -227,11 +220,6 @@ def write_twohand_bag(
         if fps != _FPS:
             sample["fps"] = float(fps)
         (tmp / _SIDECAR).write_text(json.dumps(sample, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-        if out.exists():
-            shutil.rmtree(out)
-        tmp.rename(out)
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     return out, size, time.perf_counter() - t0
 
