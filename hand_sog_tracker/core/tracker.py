@@ -147,6 +147,10 @@ class Tracker:
         self.last_proposal: str | None = None
         #: The detection (1, 3) mm whose pulls lost on the last frame, or none (0, 3).
         self._lost_pulls = _NO_POINTS
+        #: ``(data, detections, theta) -> (data, detections)``: what of the data near the hand
+        #: at ``theta`` (26,) is this hand's (the multi-hand tracker drops what another hand's
+        #: model explains, :mod:`.hands`); None: all of it.
+        self.data_filter: Callable[[ImageSoG, Detections, NDArray[np.float64]], tuple[ImageSoG, Detections]] | None = None
 
     @property
     def config(self) -> TrackerConfig:
@@ -206,6 +210,14 @@ class Tracker:
         """
         t0 = time.perf_counter()  # (timings only: nothing below depends on the clock)
         pre = preprocess(depth_mm, intrinsics, self._config)  # raises before any change of state
+        result = self.process_preprocessed(pre)
+        result.timings_ms["preprocess"] = (time.perf_counter() - t0) * 1e3 - result.timings_ms["total"]
+        result.timings_ms["total"] += result.timings_ms["preprocess"]
+        return result
+
+    def process_preprocessed(self, pre: Preprocessed) -> TrackResult:
+        """:meth:`process` of a frame already preprocessed with this tracker's configuration
+        (several hands share one preprocessing, :mod:`.hands`); ``timings_ms["preprocess"]`` 0."""
         t1 = time.perf_counter()
         if self._prev is not None:
             result = self._track(pre)
@@ -216,10 +228,10 @@ class Tracker:
                 self._model = self._sizes[0]  # (a new track on the default model: its size is chosen again)
             result = self._initialise(pre)
         t2 = time.perf_counter()
-        result.timings_ms["preprocess"] = (t1 - t0) * 1e3
+        result.timings_ms["preprocess"] = 0.0
         result.timings_ms.setdefault("quadtree", 0.0)
         result.timings_ms["optimise"] = (t2 - t1) * 1e3 - result.timings_ms["quadtree"]
-        result.timings_ms["total"] = (t2 - t0) * 1e3
+        result.timings_ms["total"] = (t2 - t1) * 1e3
         return result
 
     # -- internals -----------------------------------------------------------
@@ -255,10 +267,12 @@ class Tracker:
             if det.n:
                 det = det.subset((det.points - theta[:3]) @ axis > 0.0)
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf)
-        if data.n == 0:
-            return data, det, sil
-        keep = (data.points - theta[:3]) @ axis > 0.0
-        return (data if keep.all() else data.subset(keep)), det, sil
+        if data.n:
+            keep = (data.points - theta[:3]) @ axis > 0.0
+            data = data if keep.all() else data.subset(keep)
+        if self.data_filter is not None:
+            data, det = self.data_filter(data, det, theta)
+        return data, det, sil
 
     def _targets(self, theta: NDArray[np.float64], det: Detections) -> TipTargets | None:
         """Detections assigned to the fingertips at ``theta`` (seed 001, Table 1)."""

@@ -54,6 +54,7 @@ __all__ = [
     "position_match",
     "score_two_hands",
     "one_hand_predictor",
+    "multi_hand_predictor",
     "evaluate_two_hands_core",
     "evaluate_two_hands_node",
     "format_two_hand_table",
@@ -246,6 +247,26 @@ def one_hand_predictor(config: TrackerConfig | None = None) -> Predictor:
         if res.status is not TrackerStatus.TRACKING or res.fingertips_mm is None:
             return []
         return [HandPrediction(side, np.asarray(res.fingertips_mm, dtype=np.float64), float(res.confidence))]
+
+    return predict
+
+
+def multi_hand_predictor(
+    config: TrackerConfig | None = None, max_hands: int = 2, handedness: str | None = None
+) -> Predictor:
+    """The core :class:`~hand_sog_tracker.core.hands.MultiHandTracker` as a :data:`Predictor`:
+    one prediction per tracked hand, labelled with its track's handedness."""
+    from hand_sog_tracker.core.hands import MultiHandTracker
+
+    tracker = MultiHandTracker(config, max_hands=max_hands, handedness=handedness)
+
+    def predict(depth_mm: NDArray, intrinsics: Intrinsics) -> list[HandPrediction]:
+        out = tracker.process(depth_mm, intrinsics)
+        return [
+            HandPrediction(h.handedness, np.asarray(h.result.fingertips_mm, dtype=np.float64), float(h.result.confidence))
+            for h in out.hands
+            if h.result.fingertips_mm is not None
+        ]
 
     return predict
 

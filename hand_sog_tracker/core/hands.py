@@ -1,0 +1,394 @@
+"""Up to ``max_hands`` hands in one depth stream, each tracked by its own :class:`Tracker`.
+
+Units: millimetres, camera optical frame, as in :mod:`.tracker`.
+
+Per frame the depth is preprocessed once and shared:
+
+* **Tracked hands** are fitted nearest first (the front hand is the one not hidden).  Each
+  hand's data are the quadtree Gaussians near it *minus those another hand explains*: a data
+  point belongs to another hand when it lies within :data:`OWN_MARGIN_MM` of that hand's skin
+  (its model posed this frame, or its last pose when not fitted yet, plus a forearm capsule)
+  and nearer to that skin than to this hand's (at this hand's start pose).  Fingertip
+  detections are divided the same way.  The silhouette stays the whole image's: another hand
+  in front is an occluder the hidden parts may project onto.
+* **New hands**: with fewer than ``max_hands`` tracked, the hand finder of a new track
+  (:mod:`.search.start`) runs on the depth with every tracked hand's pixels (its skin and
+  forearm, :data:`PIXEL_MARGIN_MM`) removed, so a second hand starts its own track without
+  touching the first.  Without any track it runs every frame; with one, every
+  :data:`SEARCH_EVERY` frames (a one-hand user does not pay for it on every frame).
+* **Handedness** is fixed when a track starts and held while it lasts.  A free label is given
+  when the other one is taken (one person, two hands); with both free it comes from the data:
+  the new track is started with the right and the mirrored (left) model and the one with the
+  higher objective (:attr:`TrackResult.energy`) wins, unless ``handedness`` fixes it.
+* A new track that lands on a tracked hand (palms closer than :data:`SAME_HAND_MM`) is
+  dropped; two tracks that converge on one hand keep the older.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Final, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess
+from hand_sog_tracker.core.hand_model import HandModel
+from hand_sog_tracker.core.kinematics import global_rotation, posed_centres
+from hand_sog_tracker.core.region import hand_roi
+from hand_sog_tracker.core.salient import Detections
+from hand_sog_tracker.core.tracker import Tracker
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
+from hand_sog_tracker.errors import InputError
+
+__all__ = [
+    "HANDS",
+    "OWN_MARGIN_MM",
+    "PIXEL_MARGIN_MM",
+    "SAME_HAND_MM",
+    "SEARCH_EVERY",
+    "TRIAL_FRAMES",
+    "TRIAL_LEAD",
+    "HandTrack",
+    "HandsResult",
+    "MultiHandTracker",
+    "skin_distance",
+]
+
+HANDS: Final[tuple[str, str]] = ("left", "right")
+#: A data point within this of another hand's skin (and nearer to it than to this hand's) is
+#: that hand's (mm: depth noise plus the model's fit error at the skin; chosen here).
+OWN_MARGIN_MM: Final[float] = 12.0
+#: A pixel within this of a tracked hand's skin or forearm is that hand's for the finder of a
+#: new hand (mm; wider than :data:`OWN_MARGIN_MM`: the finder must not see a fringe of it).
+PIXEL_MARGIN_MM: Final[float] = 20.0
+#: The forearm capsule: from the wrist back along the hand's long axis this far, this thick
+#: (radius, mm); the hand model has no forearm, and another hand's forearm is not this hand.
+FOREARM_LENGTH_MM: Final[float] = 300.0
+FOREARM_RADIUS_MM: Final[float] = 35.0
+#: Two tracks whose palm centres (the mean of the model's Gaussians) are closer are one hand (mm).
+SAME_HAND_MM: Final[float] = 40.0
+#: With at least one hand tracked, a new hand is searched for every this many frames.
+SEARCH_EVERY: Final[int] = 5
+#: A track started with both labels free is tracked with both models (its trial) until the
+#: summed energy of one model leads by ``TRIAL_LEAD``, at most ``TRIAL_FRAMES`` frames, and
+#: reported from then on with the label whose model explained it better.
+TRIAL_FRAMES: Final[int] = 10
+TRIAL_LEAD: Final[float] = 0.03
+
+
+def skin_distance(model: HandModel, theta: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Distance (mm) of ``points`` (n, 3) mm from the skin of the hand at ``theta`` (26,) and
+    its forearm: the minimum over the model's Gaussians of (distance to the centre - sigma) and
+    over the forearm capsule (see :data:`FOREARM_LENGTH_MM`); negative inside.  Shape (n,)."""
+    if points.shape[0] == 0:
+        return np.zeros(0)
+    centres = posed_centres(model, theta)
+    d2 = (
+        np.einsum("ij,ij->i", points, points)[:, None]
+        - 2.0 * points @ centres.T
+        + np.einsum("ij,ij->i", centres, centres)[None, :]
+    )
+    skin = (np.sqrt(np.maximum(d2, 0.0)) - model.g_sigmas[None, :]).min(axis=1)
+    axis = global_rotation(theta)[:, 1]  # wrist -> fingers
+    rel = points - theta[:3]
+    t = np.clip(-(rel @ axis), 0.0, FOREARM_LENGTH_MM)  # along the forearm, from the wrist
+    lateral = np.linalg.norm(rel + t[:, None] * axis[None, :], axis=1)
+    return np.minimum(skin, lateral - FOREARM_RADIUS_MM)
+
+
+@dataclass(frozen=True, eq=False)
+class HandTrack:
+    """One tracked hand in one frame: its label, its track's id (new per track) and result."""
+
+    handedness: str
+    track_id: int
+    result: TrackResult
+
+
+@dataclass(frozen=True, eq=False)
+class HandsResult:
+    """Output of :meth:`MultiHandTracker.process`: the hands tracked in this frame (those whose
+    status is TRACKING), in track order (oldest first), and the frame's wall times (ms:
+    ``preprocess``, ``track``, ``search``, ``total``)."""
+
+    hands: tuple[HandTrack, ...]
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def hand(self, side: str) -> HandTrack | None:
+        """The tracked hand labelled ``side``, or None."""
+        return next((h for h in self.hands if h.handedness == side), None)
+
+
+@dataclass(eq=False)
+class _Slot:
+    """A live track: its tracker, label, id and result of the current frame; during its trial
+    (:data:`TRIAL_FRAMES`) also the tracker of the other label, its result, the summed energy
+    lead of ``tracker`` over it and the frames tracked so far."""
+
+    tracker: Tracker
+    side: str
+    track_id: int
+    result: TrackResult | None = None
+    alt: Tracker | None = None
+    alt_result: TrackResult | None = None
+    lead: float = 0.0
+    age: int = 0
+
+    def swap(self) -> None:
+        """Make the other label's tracker the track's (during the trial)."""
+        assert self.alt is not None
+        self.tracker, self.alt = self.alt, self.tracker
+        self.result, self.alt_result = self.alt_result, self.result
+        self.side = "left" if self.side == "right" else "right"
+        self.lead = -self.lead
+
+
+def _palm(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The mean of the posed model's Gaussian centres (3,) mm."""
+    return posed_centres(model, theta).mean(axis=0)
+
+
+class MultiHandTracker:
+    """Tracks up to ``max_hands`` hands (see the module docstring).
+
+    Parameters
+    ----------
+    config : TrackerConfig, optional
+        Shared by the hands (``right_hand`` is set per hand).
+    max_hands : int
+        1 or 2 (a person's two hands; labels are left and right).
+    handedness : {"left", "right"} or None
+        The label of a new track when both are free; None: from the data.
+    """
+
+    def __init__(self, config: TrackerConfig | None = None, max_hands: int = 2, handedness: str | None = None) -> None:
+        if max_hands not in (1, 2):
+            raise InputError(f"max_hands must be 1 or 2, got {max_hands}")
+        if handedness is not None and handedness not in HANDS:
+            raise InputError(f"handedness must be 'left', 'right' or None, got {handedness!r}")
+        self._config = config or TrackerConfig()
+        self.max_hands = max_hands
+        self.handedness = handedness
+        self._models: dict[str, HandModel | None] = {s: None for s in HANDS}
+        self._slots: list[_Slot] = []
+        self._next_id = 0
+        self._frame = 0
+        self._searched = -SEARCH_EVERY  # frame of the last search for a new hand
+
+    @property
+    def config(self) -> TrackerConfig:
+        """The shared configuration."""
+        return self._config
+
+    @property
+    def tracks(self) -> tuple[tuple[str, int], ...]:
+        """(label, track id) of the live tracks, oldest first."""
+        return tuple((s.side, s.track_id) for s in self._slots)
+
+    def set_model(self, side: str, model: HandModel) -> None:
+        """Use ``model`` (e.g. a calibration) for the hand labelled ``side`` from now on."""
+        self._models[side] = model
+        for s in self._slots:
+            if s.side == side:
+                s.tracker.set_model(model)
+
+    def reset(self) -> None:
+        """Forget every track."""
+        self._slots = []
+        self._searched = -SEARCH_EVERY
+
+    def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> HandsResult:
+        """Track the hands in one depth frame (``depth_mm`` (H, W) mm, as :meth:`Tracker.process`).
+
+        Raises
+        ------
+        DepthImageError, IntrinsicsError
+            When the frame cannot be used; the tracks are left untouched.
+        """
+        import time
+
+        t0 = time.perf_counter()
+        pre = preprocess(depth_mm, intrinsics, self._config)
+        t1 = time.perf_counter()
+        self._track(pre)
+        t2 = time.perf_counter()
+        if len(self._slots) < self.max_hands and (
+            not self._slots or self._frame - self._searched >= SEARCH_EVERY
+        ):
+            self._searched = self._frame
+            self._search(pre)
+        self._decide()
+        t3 = time.perf_counter()
+        self._frame += 1
+        hands = tuple(
+            HandTrack(s.side, s.track_id, s.result)
+            for s in self._slots
+            if s.alt is None and s.result is not None and s.result.status is TrackerStatus.TRACKING
+        )
+        ms = {"preprocess": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3}
+        ms["total"] = (t3 - t0) * 1e3
+        return HandsResult(hands, ms)
+
+    # -- internals -----------------------------------------------------------
+    def _pose(self, slot: _Slot) -> NDArray[np.float64] | None:
+        """The slot's pose of this frame when fitted, else its last one (26,), or None."""
+        if slot.result is not None and slot.result.pose is not None:
+            return slot.result.pose
+        return slot.tracker.last_pose
+
+    def _track(self, pre: Preprocessed) -> None:
+        """Fit every live track, nearest first, each on its share of the data; drop the lost
+        ones and the younger of two on one hand."""
+        for s in self._slots:
+            s.result = None
+        order = sorted(self._slots, key=lambda s: float(s.tracker.last_pose[2]))  # type: ignore[index]
+        for slot in order:
+            others = [o for o in self._slots if o is not slot]
+            for tracker in (slot.tracker, slot.alt):
+                if tracker is not None:
+                    tracker.data_filter = self._filter(tracker, others) if others else None
+            slot.result = slot.tracker.process_preprocessed(pre)
+            if slot.alt is not None:
+                slot.alt_result = slot.alt.process_preprocessed(pre)
+                self._judge(slot)
+        self._slots = [s for s in self._slots if s.result is not None and s.result.status is TrackerStatus.TRACKING]
+        kept: list[_Slot] = []
+        for s in self._slots:  # (oldest first)
+            if not any(self._same_hand(s, k) for k in kept):
+                kept.append(s)
+        self._slots = kept
+
+    def _judge(self, slot: _Slot) -> None:
+        """One frame of ``slot``'s trial: its energy lead summed, its leader the track's
+        tracker; a model that lost the hand is out of the trial (the other decides it)."""
+        main, alt = slot.result, slot.alt_result
+        assert main is not None and alt is not None
+        ok_main, ok_alt = main.status is TrackerStatus.TRACKING, alt.status is TrackerStatus.TRACKING
+        if ok_main and ok_alt:
+            slot.lead += main.energy - alt.energy
+        if (ok_alt and not ok_main) or (ok_main and ok_alt and slot.lead < 0.0):
+            slot.swap()
+        slot.age += 1
+        if not (ok_main and ok_alt):
+            slot.alt = slot.alt_result = None
+
+    def _decide(self) -> None:
+        """End the trials that are decided.  A trial beside a decided track takes the free
+        label; two trials are decided together (the labels differ: the pair's summed preference
+        for right on the first, left on the second, or the other way); a trial is decided when
+        its (the pair's) lead exceeds :data:`TRIAL_LEAD` or after :data:`TRIAL_FRAMES`."""
+        trials = [s for s in self._slots if s.alt is not None]
+        if not trials:
+            return
+        decided = [s for s in self._slots if s.alt is None]
+        if decided:
+            taken = {s.side for s in decided}
+            for t in trials:
+                if t.side in taken:
+                    t.swap()
+                t.alt = t.alt_result = None
+            return
+        if len(trials) == 1:
+            t = trials[0]
+            if abs(t.lead) > TRIAL_LEAD or t.age >= TRIAL_FRAMES:
+                t.alt = t.alt_result = None
+            return
+        a, b = trials
+        pref = (a.lead if a.side == "right" else -a.lead) - (b.lead if b.side == "right" else -b.lead)
+        if abs(pref) > TRIAL_LEAD or min(a.age, b.age) >= TRIAL_FRAMES:
+            if (a.side == "right") != (pref >= 0.0):
+                a.swap()
+            if (b.side == "right") == (pref >= 0.0):
+                b.swap()
+            a.alt = a.alt_result = b.alt = b.alt_result = None
+
+    def _same_hand(self, a: _Slot, b: _Slot) -> bool:
+        pa, pb = self._pose(a), self._pose(b)
+        if pa is None or pb is None:
+            return False
+        d = np.linalg.norm(_palm(a.tracker.model, pa) - _palm(b.tracker.model, pb))
+        return bool(d < SAME_HAND_MM)
+
+    def _filter(self, tracker: Tracker, others: Sequence[_Slot]):
+        """The :attr:`Tracker.data_filter` of ``tracker``: drop data and detections that one of
+        ``others`` explains (see the module docstring)."""
+        poses = [(o.tracker.model, self._pose(o)) for o in others]
+        poses = [(m, x) for m, x in poses if x is not None]
+        model = tracker.model
+
+        def filt(data: ImageSoG, det: Detections, theta: NDArray[np.float64]) -> tuple[ImageSoG, Detections]:
+            def theirs(points: NDArray[np.float64]) -> NDArray[np.bool_]:
+                own = skin_distance(model, theta, points)
+                out = np.zeros(points.shape[0], dtype=bool)
+                for m, x in poses:
+                    d = skin_distance(m, x, points)
+                    out |= (d < OWN_MARGIN_MM) & (d < own)
+                return out
+
+            if data.n:
+                drop = theirs(data.points)
+                if drop.any():
+                    data = data.subset(~drop)
+            if det.n:
+                drop = theirs(det.points)
+                if drop.any():
+                    det = det.subset(~drop)
+            return data, det
+
+        return filt
+
+    def _masked(self, pre: Preprocessed) -> Preprocessed:
+        """``pre`` without the pixels of the live tracks' hands and forearms (a new copy)."""
+        depth = pre.depth_mm.copy()
+        intr = pre.intrinsics
+        for s in self._slots:
+            x = self._pose(s)
+            if x is None:
+                continue
+            roi, _ = hand_roi(s.tracker.model, x, intr, self._config.roi_radius_mm + FOREARM_LENGTH_MM)
+            u0, v0, u1, v1 = roi
+            box = depth[v0:v1, u0:u1]
+            vs, us = np.nonzero(box > 0)
+            if vs.size == 0:
+                continue
+            uv = np.stack([us + u0, vs + v0], 1).astype(np.float64)
+            pts = intr.backproject(uv, box[vs, us].astype(np.float64))
+            near = skin_distance(s.tracker.model, x, pts) < PIXEL_MARGIN_MM
+            box[vs[near], us[near]] = 0.0
+        return Preprocessed(depth_mm=depth, intrinsics=intr, decimation=pre.decimation)
+
+    def _new_tracker(self, side: str) -> Tracker:
+        cfg = replace(self._config, right_hand=side == "right")
+        return Tracker(cfg, self._models[side])
+
+    def _search(self, pre: Preprocessed) -> None:
+        """Start tracks on the hands that no live track holds, until ``max_hands``."""
+        while len(self._slots) < self.max_hands:
+            masked = self._masked(pre) if self._slots else pre
+            free = [s for s in HANDS if s not in {t.side for t in self._slots if t.alt is None}]
+            if len(free) == 1 or self.handedness is not None:
+                sides = free if len(free) == 1 else [self.handedness]
+            else:
+                sides = ["right", "left"]  # (a trial: see _judge)
+            started = []
+            for side in sides:
+                tracker = self._new_tracker(side)
+                started.append((side, tracker, tracker.process_preprocessed(masked)))
+            ok = [k for k, (_, _, r) in enumerate(started) if r.status is TrackerStatus.TRACKING]
+            if not ok:
+                return
+            side, tracker, res = started[ok[0]]
+            slot = _Slot(tracker, side, self._next_id, res)
+            if len(ok) == 2:
+                slot.alt, slot.alt_result = started[1][1], started[1][2]
+                slot.age = 1
+                if res.energy < slot.alt_result.energy:
+                    slot.swap()
+                # The trial compares mirror images of one shape (the size each start chose
+                # would decide it otherwise): both on the leader's.
+                slot.alt.set_model(slot.tracker.model)
+            if any(self._same_hand(slot, s) for s in self._slots):
+                return
+            self._next_id += 1
+            self._slots.append(slot)
