@@ -104,6 +104,7 @@ class HandTrack:
     handedness: str
     track_id: int
     result: TrackResult
+    model: HandModel
 
 
 @dataclass(frozen=True, eq=False)
@@ -222,7 +223,7 @@ class MultiHandTracker:
         t3 = time.perf_counter()
         self._frame += 1
         hands = tuple(
-            HandTrack(s.side, s.track_id, s.result)
+            HandTrack(s.side, s.track_id, s.result, s.tracker.model)
             for s in self._slots
             if s.alt is None and s.result is not None and s.result.status is TrackerStatus.TRACKING
         )

@@ -85,6 +85,8 @@ SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
+#: ``(data, detections, theta (26,)) -> (data, detections)``: see :attr:`Tracker.data_filter`.
+DataFilter = Callable[[ImageSoG, Detections, NDArray[np.float64]], tuple[ImageSoG, Detections]]
 _NO_POINTS = np.zeros((0, 3))
 
 
@@ -150,7 +152,7 @@ class Tracker:
         #: ``(data, detections, theta) -> (data, detections)``: what of the data near the hand
         #: at ``theta`` (26,) is this hand's (the multi-hand tracker drops what another hand's
         #: model explains, :mod:`.hands`); None: all of it.
-        self.data_filter: Callable[[ImageSoG, Detections, NDArray[np.float64]], tuple[ImageSoG, Detections]] | None = None
+        self.data_filter: DataFilter | None = None
 
     @property
     def config(self) -> TrackerConfig:

@@ -82,9 +82,10 @@ def _vec(v: NDArray[np.float64]) -> str:
 
 
 class _Builder:
-    def __init__(self, right: bool, prefix: str = "") -> None:
+    def __init__(self, right: bool, prefix: str = "", joint_prefix: str = "") -> None:
         self.m = np.diag([1.0 if right else -1.0, 1.0, 1.0])
         self.prefix = prefix
+        self.joint_prefix = joint_prefix
         self.camera_frame = ""  # the root link with the virtual wrist joints: never prefixed
         self.lines: list[str] = []
 
@@ -110,7 +111,7 @@ class _Builder:
             self.lines.append(f"  <link name={quoteattr(name)}/>")
 
     def joint(self, name: str, kind: str, parent: str, child: str, origin: str, extra: tuple[str, ...] = ()) -> None:
-        self.lines.append(f"  <joint name={quoteattr(name)} type={quoteattr(kind)}>")
+        self.lines.append(f"  <joint name={quoteattr(self.joint_prefix + name)} type={quoteattr(kind)}>")
         self.lines.append(f"    <parent link={quoteattr(self.frame(parent))}/>")
         self.lines.append(f"    <child link={quoteattr(self.frame(child))}/>")
         self.lines.append(f"    {origin}")
@@ -125,7 +126,8 @@ class _Builder:
 
 
 def hand_urdf(
-    model: HandModel | None = None, camera_frame: str | None = None, name: str = "hand", prefix: str = ""
+    model: HandModel | None = None, camera_frame: str | None = None, name: str = "hand", prefix: str = "",
+    joint_prefix: str = "",
 ) -> str:
     """URDF text of a hand model.
 
@@ -144,6 +146,9 @@ def hand_urdf(
         Put in front of every link name of the hand (``<prefix>hand_wrist`` ...), not of
         ``camera_frame`` nor of the joint names: the node's ``frame_prefix``, so that two
         trackers' frames never clash.
+    joint_prefix : str
+        Put in front of every joint name (``left_`` for the left hand of two, whose
+        ``hand/left/joint_states`` carry the same names).
 
     Returns
     -------
@@ -151,7 +156,7 @@ def hand_urdf(
         The URDF document (UTF-8 text ending in a newline).
     """
     model = model or default_hand_model()
-    b = _Builder(model.right, prefix)
+    b = _Builder(model.right, prefix, joint_prefix)
     side = "right" if model.right else "left"
     shape = model.shape
     b.lines += [

@@ -39,6 +39,7 @@ def description_transforms(
     fingertips_mm: NDArray[np.float64],
     wrist_joints: bool,
     prefix: str = "",
+    joint_prefix: str = "",
 ) -> list[TransformStamped]:
     """The TF frames of one tracked frame.
 
@@ -58,6 +59,8 @@ def description_transforms(
         otherwise ``<prefix>hand_wrist`` is placed in the image frame directly.
     prefix : str
         The node's ``frame_prefix``.
+    joint_prefix : str
+        The description's joint-name prefix (``hand_urdf(joint_prefix=...)``).
 
     Returns
     -------
@@ -66,7 +69,7 @@ def description_transforms(
         description, then ``<prefix><finger>_fingertip`` in ``<prefix>hand_wrist``.
     """
     js = joint_state_msg(header, pose, wrist_joints)
-    values = dict(zip(js.name, js.position))
+    values = {joint_prefix + n: v for n, v in zip(js.name, js.position)}
     wrist_and_tips = hand_transforms(header, pose, fingertips_mm, prefix)
     out = [] if wrist_joints else [wrist_and_tips[0]]
     for parent, child, xyz, rot in joint_transforms(joints, values):

@@ -95,6 +95,7 @@ from visualization_msgs.msg import MarkerArray
 from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory
 from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
 from hand_sog_tracker.core.handcheck import HandDecision, HandGate
+from hand_sog_tracker.core.hands import MultiHandTracker
 from hand_sog_tracker.core.model_io import load_hand_shape
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
@@ -138,6 +139,7 @@ from hand_sog_tracker.ros.conversions import (
     pose_msg,
 )
 from hand_sog_tracker.ros.frames import description_transforms
+from hand_sog_tracker.ros.hand_topics import HandTopics
 from hand_sog_tracker.ros.params import (
     NodeSettings,
     declare_node_parameters,
@@ -285,7 +287,9 @@ class TrackerNode(CalibrationService, Node):
         # Recent tracked frames for ~/calibrate and the automatic fit (calibration_service.py),
         # which runs only without a saved user model.
         self._calib_history = FrameHistory()
-        self._auto_calib = AutoCalibration(enabled=self._settings.auto_calibrate and user_model is None)
+        self._auto_calib = AutoCalibration(
+            enabled=self._settings.auto_calibrate and user_model is None and self._settings.max_hands == 1
+        )
         self._model_generation = 0
 
         # Every callback is in the node's default group except ~/calibrate: its coroutine holds
@@ -336,6 +340,16 @@ class TrackerNode(CalibrationService, Node):
         )
         self._diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self._publish_description(None)
+        # max_hands 2: every hand tracked by the multi-hand tracker and published on its own
+        # topics (hand_topics.py); the one-hand topics carry the hand labelled ``handedness``.
+        self._hands: MultiHandTracker | None = None
+        self._hand_topics: HandTopics | None = None
+        if self._settings.max_hands > 1:
+            self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
+            self._hand_topics = HandTopics(
+                self, self._settings.frame_prefix, self._settings.publish_tf, self._settings.publish_wrist_joints,
+                out_qos, latched, overrides, self._publish_transforms,
+            )
 
         self._calibrate_srv = self.create_service(
             Trigger, CALIBRATE_SERVICE, self._on_calibrate, callback_group=self._calib_group,
@@ -660,6 +674,9 @@ class TrackerNode(CalibrationService, Node):
         try:
             if last is not None and last[0] == stamp and last[3] == intr and np.array_equal(last[2], depth):
                 result, decision = last[1], last[4]  # (the same image again: the same answer)
+            elif self._hands is not None:
+                result, decision = self._process_hands(header, depth, intr)
+                self._last_answer = (stamp, result, depth, intr, decision)
             else:
                 result, decision = self._tracker.process(depth, intr), None
         except HandSogError as err:
@@ -729,8 +746,30 @@ class TrackerNode(CalibrationService, Node):
         callback(taken[0])
         return True
 
+    def _process_hands(
+        self, header: Header, depth: NDArray[np.float32], intr: Intrinsics
+    ) -> tuple[TrackResult, HandDecision]:
+        """max_hands 2: track and publish every hand on its topics; the result and decision for
+        the one-hand topics are those of the hand labelled ``handedness`` ("no hand" without it;
+        no hand gate: the multi-hand tracker's own tracks decide)."""
+        assert self._hands is not None and self._hand_topics is not None
+        if self._settings.tracker != self._hands.config:
+            self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
+        hands = self._hands.process(depth, intr)
+        decisions = self._hand_topics.publish(header, hands, depth, intr)
+        side = "right" if self._settings.tracker.right_hand else "left"
+        mine = hands.hand(side)
+        if mine is None or side not in decisions:
+            total = hands.timings_ms.get("total", 0.0)
+            return TrackResult(TrackerStatus.NO_HAND, None, None, None, 0.0, 0.0, 0, {"total": total}), HandDecision(
+                False, 0.0
+            )
+        return mine.result, decisions[side]
+
     def _reset_track(self, header: Header) -> None:
         self._tracker.reset()
+        if self._hands is not None:
+            self._hands.reset()
         self._last_answer = None
         if self._markers_shown:
             self._marker_pub.publish(delete_all_markers(header))
@@ -804,7 +843,14 @@ class TrackerNode(CalibrationService, Node):
     def _publish_tf(
         self, header: Header, pose: NDArray[np.float64], tips_mm: NDArray[np.float64], wrist_joints: bool
     ) -> None:
-        """Broadcast the hand's frames on /tf (publish_tf is validated: tf2_msgs exists)."""
+        """Broadcast the hand's frames on /tf."""
+        transforms = description_transforms(
+            header, self._description_joints, pose, tips_mm, wrist_joints, self._settings.frame_prefix
+        )
+        self._publish_transforms(transforms)
+
+    def _publish_transforms(self, transforms: list) -> None:
+        """Put ``transforms`` (TransformStamped) on /tf (publish_tf is validated: tf2_msgs exists)."""
         if self._tf_pub is None:
             from tf2_msgs.msg import TFMessage  # optional dependency, checked by the parameter
 
@@ -812,9 +858,6 @@ class TrackerNode(CalibrationService, Node):
             self._tf_pub = self.create_publisher(
                 TFMessage, TF_TOPIC, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
             )
-        transforms = description_transforms(
-            header, self._description_joints, pose, tips_mm, wrist_joints, self._settings.frame_prefix
-        )
         self._tf_pub.publish(self._tf_msg_type(transforms=transforms))
 
 def make_executor(context: Context | None = None) -> SingleThreadedExecutor:

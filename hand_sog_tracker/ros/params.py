@@ -224,6 +224,16 @@ PARAM_SPECS: tuple[ParamSpec, ...] = _tracker_specs() + (
         read_only=True,
     ),
     ParamSpec(
+        "max_hands",
+        1,
+        "Hands tracked at most: 1 = one hand of the handedness parameter; 2 = up to two hands, each "
+        "labelled left or right from the data, on hand/left/... and hand/right/... (the one-hand topics "
+        "then carry the hand labelled with handedness).",
+        1,
+        2,
+        read_only=True,
+    ),
+    ParamSpec(
         "max_image_pixels",
         MAX_IMAGE_PIXELS,
         "Depth images of more pixels (width x height) are rejected before they are converted or "
@@ -262,6 +272,7 @@ class NodeSettings:
     publish_wrist_joints : bool
     publish_tf : bool
     frame_prefix : str
+    max_hands : int
     max_image_pixels : int
     frame_budget_ms : float
     """
@@ -275,6 +286,7 @@ class NodeSettings:
     publish_wrist_joints: bool = False
     publish_tf: bool = False
     frame_prefix: str = ""
+    max_hands: int = 1
     max_image_pixels: int = MAX_IMAGE_PIXELS
     frame_budget_ms: float = 200.0
 
@@ -344,6 +356,7 @@ def settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
         publish_wrist_joints=bool(v["publish_wrist_joints"]),
         publish_tf=bool(v["publish_tf"]),
         frame_prefix=str(v["frame_prefix"]),
+        max_hands=int(v["max_hands"]),
         max_image_pixels=int(v["max_image_pixels"]),
         frame_budget_ms=float(v["frame_budget_ms"]),
     )

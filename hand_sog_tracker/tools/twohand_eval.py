@@ -263,7 +263,7 @@ def multi_hand_predictor(
     def predict(depth_mm: NDArray, intrinsics: Intrinsics) -> list[HandPrediction]:
         out = tracker.process(depth_mm, intrinsics)
         return [
-            HandPrediction(h.handedness, np.asarray(h.result.fingertips_mm, dtype=np.float64), float(h.result.confidence))
+            HandPrediction(h.handedness, np.asarray(h.result.fingertips_mm, dtype=np.float64), h.result.confidence)
             for h in out.hands
             if h.result.fingertips_mm is not None
         ]

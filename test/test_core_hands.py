@@ -1,0 +1,91 @@
+"""The multi-hand tracker (core/hands.py) on the shipped two-hand dev bag and its mirror image."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
+from hand_sog_tracker.core.hands import FOREARM_RADIUS_MM, MultiHandTracker, skin_distance
+from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
+from hand_sog_tracker.core.tracker import Tracker
+from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
+from hand_sog_tracker.errors import InputError
+from hand_sog_tracker.tools.bagio import BagTopics, DepthBagReader
+from hand_sog_tracker.tools.twohand_bags import read_hand_truth
+
+APART = Path(__file__).resolve().parents[1] / "bags" / "twohands_dev" / "apart"
+
+
+def _frames(n: int, mirror: bool = False):
+    """The first ``n`` frames of the dev 'apart' bag: (depth mm, intrinsics, truth tips per label);
+    ``mirror``: the image mirrored left-right (a right hand becomes a left one)."""
+    truth = read_hand_truth(APART)
+    with DepthBagReader(APART, BagTopics(), require_truth=False) as reader:
+        for f in reader.frames():
+            if f.index >= n:
+                return
+            depth, intr = f.depth_mm, f.intrinsics
+            gt = {s: truth[s][f.stamp_ns].fingertips_mm.copy() for s in ("left", "right")}
+            if mirror:
+                depth = np.ascontiguousarray(depth[:, ::-1])
+                intr = Intrinsics(intr.fx, intr.fy, intr.width - 1 - intr.cx, intr.cy, intr.width, intr.height)
+                for g in gt.values():
+                    g[:, 0] *= -1.0
+                gt = {"left": gt["right"], "right": gt["left"]}
+            yield depth, intr, gt
+
+
+@pytest.mark.parametrize("mirror", [False, True])
+def test_two_hands_are_tracked_each_with_its_handedness(mirror: bool) -> None:
+    """Both hands get their own track, labelled by the data (the mirror image swaps the labels
+    with the hands), each within 12 mm of its hand, and no label moves to the other hand."""
+    mt = MultiHandTracker(TrackerConfig(), max_hands=2)
+    on: dict[str, set[str]] = {"left": set(), "right": set()}
+    reported = 0
+    for depth, intr, gt in _frames(8, mirror):
+        out = mt.process(depth, intr)
+        for h in out.hands:
+            err = {s: float(np.linalg.norm(h.result.fingertips_mm - g, axis=1).mean()) for s, g in gt.items()}
+            hand = min(err, key=err.get)
+            on[h.handedness].add(hand)
+            assert hand == h.handedness, f"label {h.handedness} on the {hand} hand ({err})"
+            assert err[hand] < 12.0
+        reported = len(out.hands)
+    assert reported == 2
+    assert on == {"left": {"left"}, "right": {"right"}}
+    assert len({tid for _, tid in mt.tracks}) == 2
+
+
+def test_one_hand_with_fixed_handedness_answers_as_the_one_hand_tracker() -> None:
+    """max_hands 1 with a fixed handedness is today's tracker, pose for pose."""
+    mt = MultiHandTracker(TrackerConfig(), max_hands=1, handedness="right")
+    one = Tracker(TrackerConfig())
+    for depth, intr, _ in _frames(3):
+        a, b = mt.process(depth, intr), one.process(depth, intr)
+        assert b.status is TrackerStatus.TRACKING and len(a.hands) == 1
+        np.testing.assert_array_equal(a.hands[0].result.pose, b.pose)
+
+
+def test_skin_distance_of_the_model_and_its_forearm() -> None:
+    model = default_hand_model()
+    theta = rest_pose((0.0, 0.0, 400.0))
+    centres = gaussian_centres(model, theta)
+    # (a centre lies at least its own radius inside the skin; a neighbour may cover it more)
+    assert np.all(skin_distance(model, theta, centres) <= -model.g_sigmas + 1e-3)
+    tip = centres[model.tip_index[2]] + (model.tip_radii[2] + 5.0) * global_rotation(theta)[:, 1]
+    assert skin_distance(model, theta, tip[None])[0] == pytest.approx(5.0, abs=0.5)
+    back = -global_rotation(theta)[:, 1]  # from the wrist toward the elbow
+    arm = theta[:3] + 150.0 * back
+    d = skin_distance(model, theta, np.array([arm, arm + np.array([0.0, 0.0, 200.0])]))
+    assert d[0] == pytest.approx(-FOREARM_RADIUS_MM)
+    assert d[1] > 100.0
+
+
+def test_invalid_arguments_are_refused() -> None:
+    with pytest.raises(InputError):
+        MultiHandTracker(max_hands=3)
+    with pytest.raises(InputError):
+        MultiHandTracker(handedness="both")
