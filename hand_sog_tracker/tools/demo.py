@@ -139,6 +139,17 @@ class _Listener:
         self.timings: list[tuple[float, float, float]] = []
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         h.node.create_subscription(PoseArray, h.topic("hand/keypoints"), self._on_keypoints, qos)
+        #: max_hands 2: side -> stamp ns -> keypoints (21, 3) mm of ``hand/<side>/keypoints``
+        self.hand_keypoints: dict[str, dict[int, NDArray[np.float64]]] = {}
+        if int(h.params.get("max_hands", 1)) > 1:
+            from hand_sog_tracker.ros.hand_topics import per_hand_topic
+
+            for side in ("left", "right"):
+                self.hand_keypoints[side] = {}
+                h.node.create_subscription(
+                    PoseArray, h.topic(per_hand_topic(side, "keypoints")),
+                    lambda msg, s=side: self._on_hand_keypoints(s, msg), qos,
+                )
         h.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, qos)
 
     def _on_keypoints(self, msg: Any) -> None:
@@ -148,6 +159,11 @@ class _Listener:
         with self._lock:
             self.keypoint_times.append(t)
             self.keypoints.setdefault(stamp, (t, pts.reshape(-1, 3)))
+
+    def _on_hand_keypoints(self, side: str, msg: Any) -> None:
+        pts = np.array([(p.position.x, p.position.y, p.position.z) for p in msg.poses], dtype=np.float64) * 1000.0
+        with self._lock:
+            self.hand_keypoints[side].setdefault(stamp_to_ns(msg.header.stamp), pts.reshape(-1, 3))
 
     def _on_diagnostics(self, msg: Any) -> None:
         t = time.monotonic()
@@ -165,6 +181,8 @@ class _Listener:
         with self._lock:
             self.keypoints.clear()
             self.keypoint_times.clear()
+            for k in self.hand_keypoints.values():
+                k.clear()
 
     def snapshot(
         self,
@@ -204,8 +222,14 @@ def _draw_frame(
     label: str,
     near_mm: float,
     far_mm: float,
+    hands: Sequence[tuple[NDArray[np.float64] | None, NDArray[np.float64] | None, str]] | None = None,
+    truths: Sequence[NDArray[np.float64]] = (),
 ) -> NDArray[np.uint8]:
-    """Depth colour map with the node's skeleton and fingertips, and the true fingertips as white rings."""
+    """Depth colour map with the node's skeleton and fingertips, and the true fingertips as white rings.
+
+    ``hands``: instead of the one hand, ``(keypoints (21, 3), fingertips (5, 3), side)`` of each
+    hand of a two-hand bag (the left skeleton magenta, the right cyan, each labelled); ``truths``:
+    more true fingertips (5, 3) mm each."""
     intr = frame.intrinsics
     assert intr is not None
     depth = frame.depth_mm if frame.depth_mm is not None else np.zeros((intr.height, intr.width), np.float32)
@@ -223,22 +247,27 @@ def _draw_frame(
             out.append((int(round((u + 0.5) * zoom - 0.5)), int(round((v + 0.5) * zoom - 0.5))) if ok else None)
         return out
 
-    if frame.truth_mm is not None:
-        for p in px(frame.truth_mm, intr):
+    for truth in ([frame.truth_mm] if frame.truth_mm is not None else []) + list(truths):
+        for p in px(truth, intr):
             if p is not None:
                 cv2.circle(img, p, 5 * scale, (255, 255, 255), 1, cv2.LINE_AA)
-    if keypoints_mm is not None and keypoints_mm.shape == (21, 3):
-        kp = px(keypoints_mm, intr)
-        for a, b in SKELETON:
-            if kp[a] is not None and kp[b] is not None:
-                cv2.line(img, kp[a], kp[b], (255, 255, 0), scale, cv2.LINE_AA)
-        for p in kp:
-            if p is not None:
-                cv2.circle(img, p, scale + 1, (255, 255, 0), -1, cv2.LINE_AA)
-    if tips_mm is not None:
-        for p, colour in zip(px(tips_mm, intr), TIP_COLOURS_BGR):
-            if p is not None:
-                cv2.circle(img, p, 2 * scale + 1, colour, -1, cv2.LINE_AA)
+    for kps, tips, side in hands if hands is not None else [(keypoints_mm, tips_mm, "")]:
+        bone = (255, 0, 255) if side == "left" else (255, 255, 0)
+        if kps is not None and kps.shape == (21, 3):
+            kp = px(kps, intr)
+            for a, b in SKELETON:
+                if kp[a] is not None and kp[b] is not None:
+                    cv2.line(img, kp[a], kp[b], bone, scale, cv2.LINE_AA)
+            for p in kp:
+                if p is not None:
+                    cv2.circle(img, p, scale + 1, bone, -1, cv2.LINE_AA)
+            if side and kp[0] is not None:
+                cv2.putText(img, side, (kp[0][0] + 4, kp[0][1] + 14 * scale), cv2.FONT_HERSHEY_SIMPLEX,
+                            0.4 * scale, bone, 1, cv2.LINE_AA)
+        if tips is not None:
+            for p, colour in zip(px(tips, intr), TIP_COLOURS_BGR):
+                if p is not None:
+                    cv2.circle(img, p, 2 * scale + 1, colour, -1, cv2.LINE_AA)
     cv2.putText(img, label, (6, 16 * scale), cv2.FONT_HERSHEY_SIMPLEX, 0.4 * scale, (255, 255, 255), 1, cv2.LINE_AA)
     return img
 
@@ -357,6 +386,17 @@ def run_demo(
     node_params: dict[str, Any] = dict(params or {})
     if "handedness" not in node_params and sample.get("handedness") in ("right", "left"):
         node_params["handedness"] = sample["handedness"]
+    # A two-hand bag (its sidecar's hands: 2): the node tracks both, the right hand's truth is the
+    # one-hand score's, and the video draws each hand from its own topics.
+    two_hands = sample.get("hands") == 2
+    hand_truth: dict[str, dict[int, Any]] = {}
+    topics = BagTopics()
+    if two_hands:
+        from hand_sog_tracker.tools.twohand_bags import hand_topic, read_hand_truth
+
+        node_params.setdefault("max_hands", 2)
+        topics = BagTopics(truth=hand_topic("right"))
+        hand_truth = read_hand_truth(bag_path)
     near = float(node_params.get("near_mm", TrackerConfig.near_mm))
     far = float(node_params.get("far_mm", TrackerConfig.far_mm))
     lines: list[str] = []
@@ -366,7 +406,7 @@ def run_demo(
         print(text, file=out, flush=True)
 
     t_start = time.monotonic()
-    with DepthBagReader(bag_path, BagTopics(), require_truth=True) as bagr:
+    with DepthBagReader(bag_path, topics, require_truth=True) as bagr:
         # Everything in memory first, so the replay is timed by the recording alone.
         frames = list(bagr.frames())
         if max_frames is not None:
@@ -487,6 +527,25 @@ def run_demo(
     say("Table 1 row (fingertip error of the node's hand/fingertips vs. the bag's ground truth; "
         "ms = end-to-end latency)")
     say(format_table1([ev]))
+    if two_hands:
+        from hand_sog_tracker.tools.twohand_eval import HandPrediction, TwoHandRecord, format_two_hand_table, score_two_hands
+
+        two_records = []
+        for f, (stamp, _) in zip(frames, published):
+            gt = {s: hand_truth[s].get(stamp) for s in ("left", "right")}
+            preds = []
+            for s in ("left", "right"):
+                m = outs.hand_markers.get(s, {}).get(stamp)
+                if m is not None and m.fingertips_mm is not None:
+                    preds.append(HandPrediction(s, m.fingertips_mm))
+            two_records.append(TwoHandRecord(
+                f.index, stamp, {s: None if g is None else g.fingertips_mm for s, g in gt.items()},
+                {s: math.nan if g is None else g.visible_fraction for s, g in gt.items()}, tuple(preds),
+            ))
+        say("")
+        say("per hand (hand/left/fingertips, hand/right/fingertips vs. each hand's truth; ms: not timed here)")
+        say(format_two_hand_table([score_two_hands(two_records, bag_path.name, str(sample.get("split", "-")),
+                                                   "through_node")]))
 
     # Video: every frame of the bag, with what the node published for it.
     images = []
@@ -502,6 +561,17 @@ def run_demo(
         else:
             text = f"err {_fmt(float(np.mean(err)) if err is not None else math.nan)} mm  lat {_fmt(r.ms, '.0f')} ms"
         label = f"{bag_path.name} #{f.index}  {text}"
+        if two_hands:
+            per_hand = []
+            for side in ("left", "right"):
+                hm = outs.hand_markers.get(side, {}).get(f.stamp_ns)
+                per_hand.append((listener.hand_keypoints.get(side, {}).get(f.stamp_ns),
+                                 None if hm is None else hm.fingertips_mm, side))
+            n = sum(t is not None for _, t, _ in per_hand)
+            label = f"{bag_path.name} #{f.index}  {n} hand{'s' if n != 1 else ''}"
+            truths = [r.fingertips_mm for r in (hand_truth["left"].get(f.stamp_ns),) if r is not None]
+            images.append(_draw_frame(f, None, None, label, near, far, per_hand, truths))
+            continue
         images.append(_draw_frame(f, None if kp is None else kp[1], tips, label, near, far))
     target = Path(video) if video is not None else (
         Path(tempfile.gettempdir()) / "hand_sog_tracker_demo" / f"{bag_path.name or 'bag'}.mp4")

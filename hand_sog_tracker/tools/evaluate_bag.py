@@ -55,6 +55,7 @@ from hand_sog_tracker.tools.twohand_eval import (
     evaluate_two_hands_core,
     evaluate_two_hands_node,
     format_two_hand_table,
+    multi_hand_predictor,
     summary_as_dict,
 )
 
@@ -183,8 +184,11 @@ def _evaluate_two_hands(entry: BagEntry, args: argparse.Namespace, values: dict[
             entry.path, args.domain_id, params=values, max_frames=args.max_frames, split=entry.split,
             rate=args.rate, connect_timeout_s=args.node_timeout, warmup=not args.no_warmup,
         )
+    config = tracker_config(values)
+    hands = int(values.get("max_hands", 1))
     return evaluate_two_hands_core(
-        entry.path, config=tracker_config(values), max_frames=args.max_frames, split=entry.split,
+        entry.path, predictor=multi_hand_predictor(config, hands) if hands > 1 else None, config=config,
+        max_frames=args.max_frames, split=entry.split,
     )
 
 
@@ -233,7 +237,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise HandSogError(f"--overlay refused for the test-split bag(s) {', '.join(test_bags)}: {PROTOCOL}")
         if args.overlay and args.through_node:
             _note("--overlay needs core mode; no overlays with --through-node")
-        ignored = [n for n in node_only(values) if n != "auto_calibrate"]
+        ignored = [n for n in node_only(values) if n not in ("auto_calibrate", "max_hands")]
         if not args.through_node and ignored:
             _note(f"core mode ignores the node-only parameter(s) {', '.join(ignored)}")
     except HandSogError as err:

@@ -298,6 +298,7 @@ def evaluate_through_node(
 
         calibration_log = _calibration_log(h.log_tail(_LOG_LINES_READ))
         records, latencies = score_outputs(records_pub, outs, bagr.truth)
+        pub = {stamp: t for _, stamp, t in records_pub}
         if not records:
             raise BagError(f"bag {bag}: no depth image on {topics.depth!r} could be read")
         i0 = bagr.intrinsics_at(records[0].stamp_ns)
@@ -322,6 +323,11 @@ def evaluate_through_node(
         "node_calibration_log": calibration_log,
         "ms_per_frame_is": "end-to-end latency (image published -> markers received)",
         "fps": n_out / max(t_end - t_first, 1e-9),
+        # (max_hands 2: side -> stamp -> (end-to-end ms, fingertips (5, 3) mm or None))
+        "hand_outputs": {
+            side: {stamp: ((out.t - pub[stamp]) * 1e3, out.fingertips_mm) for stamp, out in m.items() if stamp in pub}
+            for side, m in outs.hand_markers.items()
+        },
     }
     ev = build_evaluation(str(bag), "through_node", records, t_end - t_first, size, None, extra)
     return dataclasses.replace(ev, split=split)

@@ -143,16 +143,23 @@ class NodeOutputs:
         (reception time, counters of :func:`diagnostic_counters`), in arrival order.
     last_activity : float
         ``time.monotonic()`` of the last marker received (or of the start).
+    hand_markers : dict
+        With ``max_hands`` 2: ``left`` / ``right`` -> stamp (ns) -> :class:`MarkerOutput` of
+        ``hand/<side>/fingertips`` (the first one).
     """
 
     markers: dict[int, MarkerOutput] = field(default_factory=dict)
     joint_states: dict[int, tuple[float, NDArray[np.float64]]] = field(default_factory=dict)
     diagnostics: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
     last_activity: float = field(default_factory=time.monotonic)
+    hand_markers: dict[str, dict[int, MarkerOutput]] = field(default_factory=dict)
 
     def copy(self) -> "NodeOutputs":
         """A shallow copy (new containers)."""
-        return NodeOutputs(dict(self.markers), dict(self.joint_states), list(self.diagnostics), self.last_activity)
+        return NodeOutputs(
+            dict(self.markers), dict(self.joint_states), list(self.diagnostics), self.last_activity,
+            {s: dict(m) for s, m in self.hand_markers.items()},
+        )
 
 
 class NodeHarness:
@@ -302,6 +309,15 @@ class NodeHarness:
         node.create_subscription(MarkerArray, self.topic(MARKERS_TOPIC), self._on_markers, reliable)
         node.create_subscription(JointState, self.topic(JOINTS_TOPIC), self._on_joints, reliable)
         node.create_subscription(DiagnosticArray, DIAG_TOPIC, self._on_diagnostics, reliable)
+        if int(self.params.get("max_hands", 1)) > 1:  # (the per-hand fingertips, hand_topics.py)
+            from hand_sog_tracker.ros.hand_topics import per_hand_topic
+
+            for side in ("left", "right"):
+                self._outputs.hand_markers[side] = {}
+                node.create_subscription(
+                    MarkerArray, self.topic(per_hand_topic(side, "fingertips")),
+                    lambda msg, s=side: self._on_hand_markers(s, msg), reliable,
+                )
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         self._executor = executor
@@ -409,6 +425,15 @@ class NodeHarness:
             self._outputs.markers.setdefault(out[0], MarkerOutput(t, out[1]))
             self._outputs.last_activity = t
 
+    def _on_hand_markers(self, side: str, msg: Any) -> None:
+        t = time.monotonic()
+        out = markers_to_output(msg)
+        if out is None:
+            return
+        with self._lock:
+            self._outputs.hand_markers[side].setdefault(out[0], MarkerOutput(t, out[1]))
+            self._outputs.last_activity = t
+
     def _on_joints(self, msg: Any) -> None:
         t = time.monotonic()
         stamp = stamp_to_ns(msg.header.stamp)
@@ -432,6 +457,8 @@ class NodeHarness:
         with self._lock:
             self._outputs.markers.clear()
             self._outputs.joint_states.clear()
+            for m in self._outputs.hand_markers.values():
+                m.clear()
 
     def note_activity(self, t: float) -> None:
         """Move :attr:`NodeOutputs.last_activity` to at least ``t``."""

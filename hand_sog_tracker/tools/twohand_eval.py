@@ -27,6 +27,7 @@ configured handedness while it tracks).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import time
@@ -342,9 +343,15 @@ def evaluate_two_hands_node(
         connect_timeout_s=connect_timeout_s, warmup=warmup, params=params, split=split,
     )
     records = []
+    per_hand = ev.extra.get("hand_outputs") or {}
     for r in ev.records:
         gt = {s: truth[s].get(r.stamp_ns) for s in HANDS}
-        preds = () if r.estimate_mm is None else (HandPrediction(side, r.estimate_mm, 1.0),)
+        preds: tuple[HandPrediction, ...] = () if r.estimate_mm is None else (HandPrediction(side, r.estimate_mm, 1.0),)
+        if per_hand:  # max_hands 2: the per-hand topics, each labelled with its side
+            outs = {s: per_hand.get(s, {}).get(r.stamp_ns) for s in HANDS}
+            preds = tuple(HandPrediction(s, o[1], 1.0) for s, o in outs.items() if o is not None and o[1] is not None)
+            times = [o[0] for o in outs.values() if o is not None]
+            r = dataclasses.replace(r, ms=max(times) if times else math.nan)
         records.append(
             TwoHandRecord(
                 index=r.index, stamp_ns=r.stamp_ns,
