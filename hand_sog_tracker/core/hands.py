@@ -10,7 +10,9 @@ Per frame the depth is preprocessed once and shared:
   (its model posed this frame, or its last pose when not fitted yet, plus a forearm capsule)
   and nearer to that skin than to this hand's (at this hand's start pose).  Fingertip
   detections are divided the same way.  The silhouette stays the whole image's: another hand
-  in front is an occluder the hidden parts may project onto.
+  in front is an occluder the hidden parts may project onto, and another hand's data more than
+  :data:`OCCLUDER_GAP_MM` in front of this hand's skin on its line of sight stay in its data
+  as occluders (:func:`in_front`).
 * **New hands**: with fewer than ``max_hands`` tracked, the hand finder of a new track
   (:mod:`.search.start`) runs on the depth with every tracked hand's pixels (its skin and
   forearm, :data:`PIXEL_MARGIN_MM`) removed, so a second hand starts its own track without
@@ -18,8 +20,11 @@ Per frame the depth is preprocessed once and shared:
   :data:`SEARCH_EVERY` frames (a one-hand user does not pay for it on every frame).
 * **Handedness** is fixed when a track starts and held while it lasts.  A free label is given
   when the other one is taken (one person, two hands); with both free it comes from the data:
-  the new track is started with the right and the mirrored (left) model and the one with the
-  higher objective (:attr:`TrackResult.energy`) wins, unless ``handedness`` fixes it.
+  the new track is started with the right and the mirrored (left) model, both are tracked for
+  a trial (:data:`TRIAL_FRAMES`, both on one shape) and the one that explains the hand better
+  (summed :attr:`TrackResult.confidence`, the share of the model on data) wins; two trials at
+  once are decided together with different labels.  Unless ``handedness`` fixes it.  A hand
+  in its trial is not reported.
 * A new track that lands on a tracked hand (palms closer than :data:`SAME_HAND_MM`) is
   dropped; two tracks that converge on one hand keep the older.
 """
@@ -66,15 +71,20 @@ PIXEL_MARGIN_MM: Final[float] = 20.0
 #: (radius, mm); the hand model has no forearm, and another hand's forearm is not this hand.
 FOREARM_LENGTH_MM: Final[float] = 300.0
 FOREARM_RADIUS_MM: Final[float] = 35.0
+#: Another hand's data this far (mm) in front of a hand's skin stay in that hand's data as
+#: occluders (``E_dan`` does not call what they hide dangling; ``E_sim`` ignores data that far
+#: in front), unless ``KEEP_OCCLUDERS`` is off.
+OCCLUDER_GAP_MM: Final[float] = 30.0
+KEEP_OCCLUDERS = True
 #: Two tracks whose palm centres (the mean of the model's Gaussians) are closer are one hand (mm).
 SAME_HAND_MM: Final[float] = 40.0
 #: With at least one hand tracked, a new hand is searched for every this many frames.
 SEARCH_EVERY: Final[int] = 5
 #: A track started with both labels free is tracked with both models (its trial) until the
-#: summed energy of one model leads by ``TRIAL_LEAD``, at most ``TRIAL_FRAMES`` frames, and
+#: summed confidence of one model leads by ``TRIAL_LEAD``, at most ``TRIAL_FRAMES`` frames, and
 #: reported from then on with the label whose model explained it better.
 TRIAL_FRAMES: Final[int] = 10
-TRIAL_LEAD: Final[float] = 0.03
+TRIAL_LEAD: Final[float] = 0.05
 
 
 def skin_distance(model: HandModel, theta: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -95,6 +105,21 @@ def skin_distance(model: HandModel, theta: NDArray[np.float64], points: NDArray[
     t = np.clip(-(rel @ axis), 0.0, FOREARM_LENGTH_MM)  # along the forearm, from the wrist
     lateral = np.linalg.norm(rel + t[:, None] * axis[None, :], axis=1)
     return np.minimum(skin, lateral - FOREARM_RADIUS_MM)
+
+
+def in_front(model: HandModel, theta: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Which ``points`` (n, 3) mm hide the hand at ``theta`` (26,): each lies on the line of
+    sight of one of its Gaussians (within its radius, laterally at its depth) and more than
+    :data:`OCCLUDER_GAP_MM` in front of that Gaussian's skin.  Shape (n,)."""
+    c = posed_centres(model, theta)
+    s = model.g_sigmas
+    pz = np.maximum(points[:, 2:3], 1e-6)
+    cz = np.maximum(c[:, 2], 1e-6)
+    du = points[:, 0:1] / pz - (c[:, 0] / cz)[None, :]
+    dv = points[:, 1:2] / pz - (c[:, 1] / cz)[None, :]
+    lateral = np.sqrt(du * du + dv * dv) * cz[None, :]
+    ahead = points[:, 2:3] < (cz - s - OCCLUDER_GAP_MM)[None, :]
+    return np.any((lateral < s[None, :]) & ahead, axis=1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,7 +150,7 @@ class HandsResult:
 class _Slot:
     """A live track: its tracker, label, id and result of the current frame; during its trial
     (:data:`TRIAL_FRAMES`) also the tracker of the other label, its result, the summed energy
-    lead of ``tracker`` over it and the frames tracked so far."""
+    (confidence) lead of ``tracker`` over it and the frames tracked so far."""
 
     tracker: Tracker
     side: str
@@ -261,13 +286,13 @@ class MultiHandTracker:
         self._slots = kept
 
     def _judge(self, slot: _Slot) -> None:
-        """One frame of ``slot``'s trial: its energy lead summed, its leader the track's
+        """One frame of ``slot``'s trial: its confidence lead summed, its leader the track's
         tracker; a model that lost the hand is out of the trial (the other decides it)."""
         main, alt = slot.result, slot.alt_result
         assert main is not None and alt is not None
         ok_main, ok_alt = main.status is TrackerStatus.TRACKING, alt.status is TrackerStatus.TRACKING
         if ok_main and ok_alt:
-            slot.lead += main.energy - alt.energy
+            slot.lead += main.confidence - alt.confidence
         if (ok_alt and not ok_main) or (ok_main and ok_alt and slot.lead < 0.0):
             slot.swap()
         slot.age += 1
@@ -329,6 +354,8 @@ class MultiHandTracker:
 
             if data.n:
                 drop = theirs(data.points)
+                if drop.any() and KEEP_OCCLUDERS:
+                    drop &= ~in_front(model, theta, data.points)
                 if drop.any():
                     data = data.subset(~drop)
             if det.n:
@@ -384,7 +411,7 @@ class MultiHandTracker:
             if len(ok) == 2:
                 slot.alt, slot.alt_result = started[1][1], started[1][2]
                 slot.age = 1
-                if res.energy < slot.alt_result.energy:
+                if res.confidence < slot.alt_result.confidence:
                     slot.swap()
                 # The trial compares mirror images of one shape (the size each start chose
                 # would decide it otherwise): both on the leader's.
