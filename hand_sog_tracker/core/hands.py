@@ -84,7 +84,7 @@ SEARCH_EVERY: Final[int] = 5
 #: summed confidence of one model leads by ``TRIAL_LEAD``, at most ``TRIAL_FRAMES`` frames, and
 #: reported from then on with the label whose model explained it better.
 TRIAL_FRAMES: Final[int] = 10
-TRIAL_LEAD: Final[float] = 0.05
+TRIAL_LEAD: Final[float] = 0.03
 
 
 def skin_distance(model: HandModel, theta: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.float64]:

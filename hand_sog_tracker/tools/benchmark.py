@@ -424,6 +424,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--scene", default=None, choices=TWO_HAND_SCENES,
                         help="with --renderer twohands: the two-hand scene (default apart: both hands in "
                         "view, each with its own motion)")
+    parser.add_argument("--hands", action="store_true",
+                        help="with --renderer twohands: time the two-hand tracker (max_hands 2) on the scene "
+                        "against the one-hand tracker on its right hand alone, interleaved, and print the ratio")
     parser.add_argument("--frames", type=int, default=120, help="frames in the sequence (default 120)")
     parser.add_argument("--repeat", type=int, default=1,
                         help="passes over the sequence; e.g. --frames 200 --repeat 50 for a 10,000-frame memory check")
@@ -478,6 +481,25 @@ def main(argv: Sequence[str] | None = None) -> int:
                 json.dump({"this": str(_tree_root()), "ref": str(ref), "runs": runs}, fh, indent=2)
         return 0
     cv2.setNumThreads(1)
+    if args.hands:
+        if args.renderer != "twohands":
+            parser.error("--hands needs --renderer twohands")
+        from hand_sog_tracker.tools.hands_benchmark import format_hands_ratio, run_hands_ratio
+
+        config = None
+        if params:
+            from hand_sog_tracker.tools.tracker_params import tracker_config
+
+            config = tracker_config(params)
+        out = []
+        for name in args.resolution or ["320x240"]:
+            w, h = RESOLUTIONS[name]
+            out.append(run_hands_ratio(motion, args.frames, w, h, MESH_SEED, config))
+            print(format_hands_ratio(out[-1]))
+        if args.json:
+            with open(args.json, "w", encoding="utf-8") as fh:
+                json.dump(out, fh, indent=2)
+        return 0
     results = []
     for name in args.resolution or list(RESOLUTIONS):
         w, h = RESOLUTIONS[name]
