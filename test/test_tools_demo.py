@@ -122,3 +122,25 @@ def test_write_video_falls_back_to_gif_then_png(tmp_path: Path, monkeypatch: pyt
     strip = cv2.imread(str(png))
     assert strip.shape == (40, 4 * 60, 3)
     assert [int(strip[0, 60 * i + 1, 0]) for i in range(4)] == [0, 40, 80, 120]
+
+
+def _magenta_pixels(img: np.ndarray) -> int:
+    """Pixels of the left hand's skeleton colour (BGR 255, 0, 255)."""
+    b, g, r = (img[:, :, i].astype(int) for i in range(3))
+    return int(np.sum((b > 170) & (g < 110) & (r > 170)))
+
+
+def test_demo_of_a_two_hand_bag_draws_both_hands(tmp_path: Path) -> None:
+    """A two-hand DEMO_BAG: the node runs with max_hands 2, each hand is scored by its label and
+    drawn (left magenta, right cyan) once its label is decided."""
+    bag = Path(__file__).resolve().parents[1] / "bags" / "twohands_dev" / "apart"
+    out = io.StringIO()
+    res = demo.run_demo(bag, domain_id=DOMAIN_ID, video=tmp_path / "two.mp4", stream=out, max_frames=10, rate=0.25)
+    text = out.getvalue()
+    assert res.evaluation.extra["node_params"]["max_hands"] == 2
+    rows = {line.split()[2]: line.split() for line in text.splitlines() if line.startswith("apart ")}
+    assert set(rows) == {"left", "right"}, text
+    for side in ("left", "right"):
+        assert float(rows[side][3]) < 12.0, text  # each label on its own hand
+    last = _read_video(res.video)[-1]
+    assert _magenta_pixels(last) > 100 and _cyan_pixels(last) > 100
