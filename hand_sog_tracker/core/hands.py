@@ -399,23 +399,27 @@ class MultiHandTracker:
                 sides = free if len(free) == 1 else [self.handedness]
             else:
                 sides = ["right", "left"]  # (a trial: see _judge)
-            started = []
-            for side in sides:
-                tracker = self._new_tracker(side)
-                started.append((side, tracker, tracker.process_preprocessed(masked)))
-            ok = [k for k, (_, _, r) in enumerate(started) if r.status is TrackerStatus.TRACKING]
-            if not ok:
+            tracker = self._new_tracker(sides[0])
+            res = tracker.process_preprocessed(masked)
+            if res.status is not TrackerStatus.TRACKING or res.pose is None:
                 return
-            side, tracker, res = started[ok[0]]
-            slot = _Slot(tracker, side, self._next_id, res)
-            if len(ok) == 2:
-                slot.alt, slot.alt_result = started[1][1], started[1][2]
+            slot = _Slot(tracker, sides[0], self._next_id, res)
+            if len(sides) == 2:
+                # The trial's other model starts from the mirror image of the found hand: the
+                # same pose turned half a turn about the hand's long axis (ry + pi: palm toward
+                # <-> back toward), on the same shape (the size the start chose would decide it
+                # otherwise), fitted as a tracked frame (no second search).
+                alt = self._new_tracker(sides[1])
+                alt.set_model(tracker.model)
+                flipped = res.pose.copy()
+                flipped[4] += np.pi
+                alt.start_at(flipped)
+                slot.alt, slot.alt_result = alt, alt.process_preprocessed(masked)
                 slot.age = 1
-                if res.confidence < slot.alt_result.confidence:
+                if slot.alt_result.status is not TrackerStatus.TRACKING:
+                    slot.alt = slot.alt_result = None
+                elif res.confidence < slot.alt_result.confidence:
                     slot.swap()
-                # The trial compares mirror images of one shape (the size each start chose
-                # would decide it otherwise): both on the leader's.
-                slot.alt.set_model(slot.tracker.model)
             if any(self._same_hand(slot, s) for s in self._slots):
                 return
             self._next_id += 1

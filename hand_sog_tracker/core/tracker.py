@@ -188,6 +188,16 @@ class Tracker:
             self.reset()
         self._config = config
 
+    def start_at(self, pose: NDArray[np.float64]) -> None:
+        """Go on as if the last frame had been tracked at ``pose`` (26,), at rest: the next
+        frame is a tracked frame from there (the multi-hand tracker starts the other label's
+        model of a new hand so, :mod:`.hands`)."""
+        self._prev = (np.array(pose, dtype=np.float64), np.array(pose, dtype=np.float64))
+        self._steps = None
+        self._low_frames = 0
+        self._lost_pulls = _NO_POINTS
+        self._status = TrackerStatus.TRACKING
+
     def reset(self) -> None:
         """Forget the track: the next frame initialises from scratch."""
         self._prev = None
