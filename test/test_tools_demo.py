@@ -138,7 +138,8 @@ def test_demo_of_a_two_hand_bag_draws_both_hands(tmp_path: Path) -> None:
     res = demo.run_demo(bag, domain_id=DOMAIN_ID, video=tmp_path / "two.mp4", stream=out, max_frames=10, rate=0.25)
     text = out.getvalue()
     assert res.evaluation.extra["node_params"]["max_hands"] == 2
-    rows = {line.split()[2]: line.split() for line in text.splitlines() if line.startswith("apart ")}
+    cells = [line.split() for line in text.splitlines()]
+    rows = {c[2]: c for c in cells if c[:1] == ["apart"] and c[2] in ("left", "right")}
     assert set(rows) == {"left", "right"}, text
     for side in ("left", "right"):
         assert float(rows[side][3]) < 12.0, text  # each label on its own hand
