@@ -20,8 +20,9 @@ Per frame the depth is preprocessed once and shared:
   :data:`SEARCH_EVERY` frames (a one-hand user does not pay for it on every frame).
 * **Handedness** is fixed when a track starts and held while it lasts.  A free label is given
   when the other one is taken (one person, two hands); with both free it comes from the data:
-  the new track is started with the right and the mirrored (left) model, both are tracked for
-  a trial (:data:`TRIAL_FRAMES`, both on one shape) and the one that explains the hand better
+  the new track is started with the right model, the mirrored (left) one from the found pose
+  turned half a turn about the hand's long axis, both are tracked for a trial
+  (:data:`TRIAL_FRAMES`, both on one shape) and the one that explains the hand better
   (summed :attr:`TrackResult.confidence`, the share of the model on data) wins; two trials at
   once are decided together with different labels.  Unless ``handedness`` fixes it.  A hand
   in its trial is not reported.
