@@ -158,8 +158,8 @@ def test_guard_refuses_a_deliberately_wrong_model_by_every_score() -> None:
     wrong = HandShape(truth.length * 1.12, truth.width, truth.depth, truth.sigma)
     v = validate(depth, poses, INTR, TrackerConfig(), base.scaled(truth), base.scaled(wrong))
     print(v.describe(), v.failures())
-    assert not v.accepted and len(v.failures()) == 3
-    assert v.failures()[0].startswith("held-out score worse") and v.failures()[1].startswith("re-tracked score worse")
+    assert not v.accepted and len(v.failures()) == 4
+    assert [f.split(" worse")[0] for f in v.failures()[:3]] == ["best-pose score", "held-out score", "re-tracked score"]
     assert v.gain < 0 and v.worst_frame_gain < -GUARD_FRAME_DROP
     assert v.tip_frames == 4 and np.isfinite(v.tip_current) and "fingertip-detection distance" in v.describe()
     # The other way round (the true model replacing the wrong one) passes both rules.
@@ -186,13 +186,14 @@ def _rows(score_gain: list[float], tip_change: list[float], re_gain: list[float]
 
 
 def test_each_guard_rule_alone_refuses_and_small_changes_already_fit() -> None:
-    """Both scores must rise beyond their noise (GUARD_NOISE_SE standard errors, at least the
-    margin); any evidence worse beyond its noise refuses; nothing beyond the noise either way is
-    "the current model already fits"."""
+    """The best-pose score must rise beyond its noise (GUARD_NOISE_SE standard errors, at least
+    the margin); any evidence worse beyond its noise refuses; nothing beyond the noise either way
+    is "the current model already fits"."""
     good = Validation(**_rows([0.02, 0.03, 0.025, 0.02], [-1, 0, -0.5, 0.2], [0.03, 0.02, 0.04, 0.03], [0, -1, 0, 0]))
     assert good.accepted and good.failures() == [] and not good.already_fits
     names = [e.name for e in good.evidence()]
-    assert names == ["held-out score", "fingertip-detection distance (mm)", "re-tracked score"]
+    assert names == ["best-pose score", "held-out score", "fingertip-detection distance (mm)", "re-tracked score"]
+    assert [e.name for e in good.evidence() if e.decides] == ["best-pose score"]
     # Held-out score up, but the fingertips farther from their detections beyond the noise.
     farther = Validation(**_rows([0.02, 0.03, 0.025, 0.02], [2.0, 2.5, 1.8, 2.2], [0.03, 0.02, 0.04, 0.03], [0] * 4))
     assert not farther.accepted and not farther.already_fits
@@ -200,11 +201,11 @@ def test_each_guard_rule_alone_refuses_and_small_changes_already_fit() -> None:
     # The re-tracked score falls: refused although the held-out refit says better.
     retracked = Validation(**_rows([0.02, 0.03, 0.025, 0.02], [0] * 4, [-0.03, -0.02, -0.04, -0.03], [0] * 4))
     assert retracked.failures() == [
-        f"re-tracked score worse: {retracked.evidence()[2].describe()}"
+        f"re-tracked score worse: {retracked.evidence()[3].describe()}"
     ] and not retracked.already_fits
     # A noisy gain (one frame much better, the others worse): within the noise, nothing to do.
-    noisy = Validation(**_rows([0.08, -0.01, -0.01, -0.005], [0] * 4, [0.03, 0.02, 0.04, 0.03], [0] * 4))
-    assert noisy.already_fits and noisy.failures()[0].startswith("the current model already fits: held-out score")
+    noisy = Validation(**_rows([0.08, -0.01, -0.01, -0.005], [0] * 4, [0.08, -0.01, -0.01, -0.005], [0] * 4))
+    assert noisy.already_fits and noisy.failures()[0].startswith("the current model already fits: best-pose score")
     same = Validation(**_rows([0.0] * 4, [0.0] * 4, [0.0] * 4, [0.0] * 4))
     assert same.already_fits and not same.accepted
     err = CalibrationRejected(HandShape(), same)
@@ -230,6 +231,24 @@ def test_each_guard_rule_alone_refuses_and_small_changes_already_fit() -> None:
     assert "one held-out frame loses" in str(err) and "held-out score" in str(err)
     back = pickle.loads(pickle.dumps(err))  # the node's fit runs in a child process
     assert isinstance(back, CalibrationRejected) and str(back) == str(err) and back.validation.gain == one_frame.gain
+
+
+def test_best_pose_score_takes_each_models_better_pose_fit() -> None:
+    """A frame's best-pose score is each model's better score of its refit and its re-track (the
+    re-tracked rows belong to the last frames): a fit whose refit from the tracked pose gains
+    unevenly but whose re-track gains on every frame is accepted, and a re-track that only
+    matches the refit adds nothing."""
+    rows = _rows([0.06, -0.01, 0.05, 0.0], [0] * 4, [0.05, 0.06, 0.05], [0] * 3)
+    v = Validation(**rows)
+    best = v.best_pose_scores()
+    assert best.shape == (4, 2)
+    np.testing.assert_allclose(best[:, 1] - best[:, 0], [0.06, 0.05, 0.06, 0.05])
+    ev = {e.name: e for e in v.evidence()}
+    assert not ev["held-out score"].better and ev["best-pose score"].better and v.accepted
+    # Re-tracks that gain less than the refits: the best-pose score is the held-out score.
+    flat = Validation(**_rows([0.06, -0.01, 0.05, 0.0], [0] * 4, [-0.02, 0.04, -0.01], [0] * 3))
+    np.testing.assert_allclose(flat.best_pose_scores()[:, 1] - flat.best_pose_scores()[:, 0], [0.06, -0.01, 0.05, 0.0])
+    assert flat.already_fits
 
 
 def test_select_frames_prefers_open_unspread_frames_and_holds_out_others() -> None:

@@ -106,11 +106,11 @@ from hand_sog_tracker.core.hand_model import (
 )
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.measure import WidthMeasurement, measure_widths, shape_from_widths
-from hand_sog_tracker.core.optimizer import maximise
+from hand_sog_tracker.core.optimizer import maximise, maximise_batch
 from hand_sog_tracker.core.salient import Detections, assign_detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.skin import SCORE_TOLERANCE_MM, ScoreData, overlap_score, score_data, shape_score
-from hand_sog_tracker.core.tracker import Tracker, coverage, hand_roi
+from hand_sog_tracker.core.tracker import Tracker, _with_targets, coverage, hand_roi
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import CalibrationError, HandSogError
 
@@ -251,6 +251,9 @@ class Evidence:
         :data:`GUARD_NOISE_SE` standard errors of that mean, at least the measure's floor.
     higher_is_better : bool
     frames : int
+    decides : bool
+        Whether the fit is accepted only when this evidence is better beyond its noise (every
+        evidence refuses when worse beyond it).
     """
 
     name: str
@@ -258,6 +261,7 @@ class Evidence:
     noise: float
     higher_is_better: bool
     frames: int
+    decides: bool = False
 
     @property
     def worse(self) -> bool:
@@ -273,11 +277,13 @@ class Evidence:
         return f"{self.change:+.4f} (noise {self.noise:.4f}, {self.frames} frames)"
 
 
-def _evidence(name: str, diff: NDArray[np.float64], floor: float, higher_is_better: bool) -> Evidence:
+def _evidence(
+    name: str, diff: NDArray[np.float64], floor: float, higher_is_better: bool, decides: bool = False
+) -> Evidence:
     """:class:`Evidence` of per-frame changes ``diff`` (NaN: not measured on that frame)."""
     d = diff[np.isfinite(diff)]
     se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else 0.0
-    return Evidence(name, float(d.mean()), max(floor, GUARD_NOISE_SE * se), higher_is_better, len(d))
+    return Evidence(name, float(d.mean()), max(floor, GUARD_NOISE_SE * se), higher_is_better, len(d), decides)
 
 
 @dataclass(frozen=True)
@@ -343,24 +349,46 @@ class Validation:
         """``score_fitted - score_current``."""
         return self.score_fitted - self.score_current
 
+    def best_pose_scores(self) -> NDArray[np.float64]:
+        """Per held-out frame, each model's score at the better of its two pose fits, shape (n, 2)
+        (current, fitted; unitless).
+
+        A model's score on a frame is its score at its best pose: the refit from the tracked
+        pose favours the current model (the pose was tracked with it), the re-track from its own
+        previous pose favours neither, and either fit can stop short of that model's best pose.
+        The re-tracked rows belong to the last ``len(retrack_frames)`` held-out frames (the
+        first frame has only the refit).
+        """
+        pf = np.array(self.per_frame, dtype=float).reshape(-1, 2 * len(PER_FRAME_COLUMNS))
+        best = pf[:, :2].copy()
+        rt = np.array(self.retrack_frames, dtype=float).reshape(-1, 2 * len(RETRACK_COLUMNS))[: len(best)]
+        if len(rt):
+            tail = best[len(best) - len(rt):]
+            tail[:] = np.where(np.isfinite(rt[:, :2]), np.fmax(tail, rt[:, :2]), tail)
+        return best
+
     def evidence(self) -> list[Evidence]:
         """Each kind of evidence the guard weighs (see :class:`Evidence`), on held-out frames.
 
-        The held-out score (:attr:`gain`, floor :attr:`margin`), the fingertip-detection
-        distance at the refit poses (with detections), and the score along the held-out frames
-        re-tracked with each model from its own pose on the previous frame
-        (:attr:`retrack_frames`, from the second held-out frame on).  Without per-frame rows
-        (a :class:`Validation` built by hand) the mean score alone, its noise the margin.
+        The best-pose score (:meth:`best_pose_scores`, floor :attr:`margin`; the one that must
+        rise beyond its noise), the held-out score after the refit from the tracked pose
+        (:attr:`gain`), the fingertip-detection distance at those poses (with detections), and
+        the score along the held-out frames re-tracked with each model from its own pose on the
+        previous frame (:attr:`retrack_frames`, from the second held-out frame on).  Without
+        per-frame rows (a :class:`Validation` built by hand) the mean score alone, its noise the
+        margin.
         """
         out = []
         pf = np.array(self.per_frame, dtype=float).reshape(-1, 2 * len(PER_FRAME_COLUMNS))
         if len(pf):
+            best = self.best_pose_scores()
+            out.append(_evidence("best-pose score", best[:, 1] - best[:, 0], self.margin, True, decides=True))
             out.append(_evidence("held-out score", pf[:, 1] - pf[:, 0], self.margin, True))
             tips = pf[:, 3] - pf[:, 2]
             if np.isfinite(tips).any():
                 out.append(_evidence("fingertip-detection distance (mm)", tips, GUARD_TIP_FLOOR_MM, False))
         else:
-            out.append(Evidence("held-out score", self.gain, self.margin, True, self.frames))
+            out.append(Evidence("held-out score", self.gain, self.margin, True, self.frames, decides=True))
         rt = np.array(self.retrack_frames, dtype=float).reshape(-1, 2 * len(RETRACK_COLUMNS))
         both = np.isfinite(rt[:, 0]) & np.isfinite(rt[:, 1])
         if both.any():
@@ -372,14 +400,14 @@ class Validation:
 
         Refused when any evidence is worse beyond its noise or one held-out frame loses more
         than :attr:`frame_drop`; "the current model already fits" when nothing is worse but the
-        scores (held-out and re-tracked) do not both rise beyond their noise.
+        deciding score (the best-pose score) does not rise beyond its noise.
         """
         ev = self.evidence()
         out = [f"{e.name} worse: {e.describe()}" for e in ev if e.worse]
         if np.isfinite(self.worst_frame_gain) and self.worst_frame_gain < -self.frame_drop:
             out.append(f"one held-out frame loses {-self.worst_frame_gain:.4f} > {self.frame_drop:.4f}")
         if not out:
-            flat = [e for e in ev if e.higher_is_better and not e.better]
+            flat = [e for e in ev if e.decides and not e.better]
             if flat:
                 out.append(
                     "the current model already fits: "
@@ -410,7 +438,7 @@ class Validation:
         """
         out: dict[str, float | int | str] = {
             "guard_rules": (
-                "no evidence worse beyond its noise; held-out and re-tracked score both higher by their noise; "
+                "no evidence worse beyond its noise; best-pose score higher by its noise; "
                 "every held-out frame's gain >= -guard_frame_drop"
             ),
             "guard_frame_drop": float(self.frame_drop),
@@ -710,15 +738,18 @@ def validate(
         sil = silhouette(pre, window, roi) if config.w_sil > 0 else None
         frame_scores, frame_tips, row, re_row = [], [], [], []
         for j, m in enumerate((current, fitted)):
-            th, terms = _guard_refit(m, _keep_palm_centre(fr.pose, current, m), fr.data, config, det, sil)
+            # The refit from the tracked pose and the re-track (each model follows the held-out
+            # frames in order from its own pose on the previous one; on the first frame the
+            # refit is its start), as one batch.
+            starts = [_keep_palm_centre(fr.pose, current, m)] + ([carried[j]] if carried[j] is not None else [])
+            refits = _guard_refit(m, np.array(starts), fr.data, config, det, sil)
+            th, terms = refits[0]
             frame_scores.append(overlap_score(m, th, fr.scoring, pre.intrinsics, SCORE_TOLERANCE_MM))
             frame_tips.append(_tip_distance(m, th, det))
             row.append((frame_scores[-1], frame_tips[-1], terms.total, coverage(m, th, fr.data),
                         terms.sim, terms.col, terms.sil, terms.sal))
-            # The re-track: each model follows the held-out frames in order from its own pose
-            # on the previous one (the first frame's is the refit above).
-            if carried[j] is not None:
-                th, terms = _guard_refit(m, carried[j], fr.data, config, det, sil)  # type: ignore[arg-type]
+            if len(refits) > 1:
+                th, terms = refits[1]
                 re_row.append((overlap_score(m, th, fr.scoring, pre.intrinsics, SCORE_TOLERANCE_MM),
                                _tip_distance(m, th, det), terms.total, coverage(m, th, fr.data)))
             carried[j] = th
@@ -815,26 +846,31 @@ def _tip_distance(model: HandModel, theta: NDArray[np.float64], det: Detections)
 
 def _guard_refit(
     model: HandModel,
-    theta: NDArray[np.float64],
+    starts: NDArray[np.float64],
     data: ImageSoG,
     config: TrackerConfig,
     det: Detections,
     sil: Silhouette | None,
-) -> tuple[NDArray[np.float64], EnergyTerms]:
-    """The guard's pose refit of one held-out frame with ``model``, as the tracker fits a frame.
+) -> list[tuple[NDArray[np.float64], EnergyTerms]]:
+    """The guard's pose refits of one held-out frame with ``model``, as the tracker fits a frame.
 
-    :data:`GUARD_RIGID_ITERATIONS` global-pose iterations, then :data:`GUARD_REFIT_ITERATIONS`
-    full ones in two halves with the tracker's salient (fingertip detections, re-assigned
-    before each half) and silhouette terms.  Returns the pose and the tracking objective's terms
-    there (the second half's objective).
+    From each start pose of ``starts`` (k, 26): :data:`GUARD_RIGID_ITERATIONS` global-pose
+    iterations, then :data:`GUARD_REFIT_ITERATIONS` full ones in two halves with the tracker's
+    salient (fingertip detections, re-assigned to each fit before each half) and silhouette
+    terms.  The k fits run as one batch (:func:`maximise_batch`: the iterates of one fit each).
+    Returns per start the pose (26,) and the tracking objective's terms there (the second
+    half's objective).
     """
-    rigid = Objective(model, data, config, silhouette=sil)
-    th = maximise(rigid, theta, iterations=GUARD_RIGID_ITERATIONS, active=_RIGID).x
+    starts = np.atleast_2d(np.asarray(starts, dtype=np.float64))
+    obj = Objective(model, data, config, silhouette=sil)
+    ths = np.array([r.x for r in maximise_batch(obj.batch, starts, iterations=GUARD_RIGID_ITERATIONS, active=_RIGID)])
     half = max(GUARD_REFIT_ITERATIONS // 2, 1)
+    targets: list[TipTargets | None] = []
     for _ in range(2):
-        obj = Objective(model, data, config, targets=_tip_targets(model, th, det), silhouette=sil)
-        th = maximise(obj, th, iterations=half).x
-    return th, obj.evaluate(th, gradient=False)[0]
+        targets = [_tip_targets(model, th, det) for th in ths]
+        fits = maximise_batch(_with_targets(obj, targets), ths, iterations=half, with_index=True)
+        ths = np.array([r.x for r in fits])
+    return [(th, obj.variant(config, t).evaluate(th, gradient=False)[0]) for th, t in zip(ths, targets)]
 
 
 def calibrate(
@@ -944,6 +980,20 @@ def calibrate(
     ref_model = mirrored.scaled(best_shape)
     before, best_poses = evaluate(best_shape, ref_model)
     best_val = before
+
+    def search(names: Sequence[str], span: float, step: float) -> None:
+        """Greedy grid search of each factor of ``names`` in turn about the best so far."""
+        nonlocal best_val, best_shape, best_poses
+        for name in names:
+            base_shape = best_shape
+            for off in np.arange(-span, span + 1e-9, step):
+                cand = _candidate(base_shape, name, float(off)) if abs(off) > 1e-9 else None
+                if cand is None:
+                    continue
+                val, ths = evaluate(cand, ref_model)
+                if val > best_val:
+                    best_val, best_shape, best_poses = val, cand, ths
+
     for round_no, (span, step) in enumerate(_ROUNDS):
         if round_no > 0:
             # Refit the poses with the model found so far: a pose fitted with a
@@ -977,15 +1027,7 @@ def calibrate(
                 else:
                     for fr, th in zip(fits, saved):
                         fr.pose = th
-        for name in ("length",) if widths_fixed else _FACTORS[round_no]:
-            base_shape = best_shape
-            for off in np.arange(-span, span + 1e-9, step):
-                cand = _candidate(base_shape, name, float(off)) if abs(off) > 1e-9 else None
-                if cand is None:
-                    continue
-                val, ths = evaluate(cand, ref_model)
-                if val > best_val:
-                    best_val, best_shape, best_poses = val, cand, ths
+        search(("length",) if widths_fixed else _FACTORS[round_no], span, step)
     bounded = _bounded_thickness(best_shape)
     if bounded is not best_shape:
         best_shape = bounded
