@@ -306,3 +306,26 @@ def test_failures_are_calibration_errors() -> None:
         calibrate([np.zeros((INTR.height, INTR.width), np.float32)], INTR, config, model)
     with pytest.raises(CalibrationError, match="unusable depth frame"):
         calibrate([np.zeros((10, 10), np.float32)], INTR, config, model)
+
+
+def test_frames_of_a_hand_held_still_count_as_one_observation() -> None:
+    """independent_frames: the same pose repeated is one observation, poses a fingertip's width
+    apart are one each; the guard's noise grows as the observations shrink."""
+    from hand_sog_tracker.core.calibration import independent_frames
+
+    model = default_hand_model(True)
+    pose = next(iter(synthetic_sequence("abdadd", 1, INTR, seed=3))).pose
+    assert independent_frames(model, [pose]) == 1.0
+    assert independent_frames(model, [pose] * 4) == 1.0
+    moved = [pose.copy() for _ in range(4)]
+    for k, th in enumerate(moved):
+        th[0] += 20.0 * k  # 20 mm apart: more than a fingertip's radius
+    assert independent_frames(model, moved) == 4.0
+    half = [pose.copy() for _ in range(3)]
+    half[1][0] += 0.5 * model.tip_radii.mean()
+    half[2][0] += 0.5 * model.tip_radii.mean()
+    assert independent_frames(model, half) == pytest.approx(1.5)
+    rows = _rows([0.02, 0.03, 0.025, 0.02], [0] * 4, [0.02, 0.03, 0.025], [0] * 3)
+    many, one = Validation(**rows), Validation(**rows, independent_frames=1.0)
+    e_many, e_one = many.evidence()[0], one.evidence()[0]
+    assert e_one.change == e_many.change and e_one.noise == pytest.approx(2 * e_many.noise)

@@ -135,6 +135,7 @@ __all__ = [
     "PER_FRAME_COLUMNS",
     "RETRACK_COLUMNS",
     "retrack",
+    "independent_frames",
     "DEFAULT_FIT_FRAMES",
     "DEFAULT_HOLDOUT_FRAMES",
     "calibrate_pickled_stdio",
@@ -278,11 +279,22 @@ class Evidence:
 
 
 def _evidence(
-    name: str, diff: NDArray[np.float64], floor: float, higher_is_better: bool, decides: bool = False
+    name: str,
+    diff: NDArray[np.float64],
+    floor: float,
+    higher_is_better: bool,
+    decides: bool = False,
+    independent: float = float("inf"),
 ) -> Evidence:
-    """:class:`Evidence` of per-frame changes ``diff`` (NaN: not measured on that frame)."""
+    """:class:`Evidence` of per-frame changes ``diff`` (NaN: not measured on that frame).
+
+    The standard error of the mean divides the frames' spread by the square root of the number
+    of frames, at most ``independent`` (:attr:`Validation.independent_frames`: frames of a hand
+    held still are one observation of its pose, repeated).
+    """
     d = diff[np.isfinite(diff)]
-    se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else 0.0
+    n = min(float(len(d)), max(float(independent), 1.0))
+    se = float(np.std(d, ddof=1) / np.sqrt(n)) if len(d) > 1 else 0.0
     return Evidence(name, float(d.mean()), max(floor, GUARD_NOISE_SE * se), higher_is_better, len(d), decides)
 
 
@@ -324,6 +336,9 @@ class Validation:
     retrack_frames : tuple of tuple of float
         Per re-tracked held-out frame (the second on), :data:`RETRACK_COLUMNS` each as
         (current, fitted) (8 values).
+    independent_frames : float
+        How many independent observations the held-out frames are (:func:`independent_frames`;
+        inf: as many as frames).  The evidence's standard errors use it.
     """
 
     frames: int
@@ -343,6 +358,7 @@ class Validation:
     widths_from_measurement: bool = False
     per_frame: tuple[tuple[float, ...], ...] = ()
     retrack_frames: tuple[tuple[float, ...], ...] = ()
+    independent_frames: float = float("inf")
 
     @property
     def gain(self) -> float:
@@ -380,19 +396,20 @@ class Validation:
         """
         out = []
         pf = np.array(self.per_frame, dtype=float).reshape(-1, 2 * len(PER_FRAME_COLUMNS))
+        n = self.independent_frames
         if len(pf):
             best = self.best_pose_scores()
-            out.append(_evidence("best-pose score", best[:, 1] - best[:, 0], self.margin, True, decides=True))
-            out.append(_evidence("held-out score", pf[:, 1] - pf[:, 0], self.margin, True))
+            out.append(_evidence("best-pose score", best[:, 1] - best[:, 0], self.margin, True, True, n))
+            out.append(_evidence("held-out score", pf[:, 1] - pf[:, 0], self.margin, True, independent=n))
             tips = pf[:, 3] - pf[:, 2]
             if np.isfinite(tips).any():
-                out.append(_evidence("fingertip-detection distance (mm)", tips, GUARD_TIP_FLOOR_MM, False))
+                out.append(_evidence("fingertip-detection distance (mm)", tips, GUARD_TIP_FLOOR_MM, False, independent=n))
         else:
             out.append(Evidence("held-out score", self.gain, self.margin, True, self.frames, decides=True))
         rt = np.array(self.retrack_frames, dtype=float).reshape(-1, 2 * len(RETRACK_COLUMNS))
         both = np.isfinite(rt[:, 0]) & np.isfinite(rt[:, 1])
         if both.any():
-            out.append(_evidence("re-tracked score", rt[both, 1] - rt[both, 0], self.margin, True))
+            out.append(_evidence("re-tracked score", rt[both, 1] - rt[both, 0], self.margin, True, independent=n))
         return out
 
     def failures(self) -> list[str]:
@@ -479,6 +496,8 @@ class Validation:
                 f"; fingertip-detection distance {self.tip_current:.2f} -> {self.tip_fitted:.2f} mm "
                 f"on {self.tip_frames} frames"
             )
+        if np.isfinite(self.independent_frames):
+            text += f"; {self.independent_frames:.1f} independent frames"
         if self.per_frame:
             text += "; change (fitted - current): " + ", ".join(
                 f"{e.name} {e.describe()}" for e in self.evidence()
@@ -727,6 +746,7 @@ def validate(
     per_frame: list[tuple[float, ...]] = []
     re_frames: list[tuple[float, ...]] = []
     carried: list[NDArray[np.float64] | None] = [None, None]
+    scored_poses: list[NDArray[np.float64]] = []
     for pre, pose in zip(pres, found):
         if pose is None:
             continue
@@ -754,6 +774,7 @@ def validate(
                                _tip_distance(m, th, det), terms.total, coverage(m, th, fr.data)))
             carried[j] = th
         per_frame.append(tuple(float(v) for pair in zip(*row) for v in pair))
+        scored_poses.append(fr.pose)
         if re_row:
             re_frames.append(tuple(float(v) for pair in zip(*re_row) for v in pair))
         scores.append((frame_scores[0], frame_scores[1]))
@@ -775,7 +796,24 @@ def validate(
         tip_frames=len(tp),
         per_frame=tuple(per_frame),
         retrack_frames=tuple(re_frames),
+        independent_frames=independent_frames(current, scored_poses),
     )
+
+
+def independent_frames(model: HandModel, poses: Sequence[NDArray[np.float64]]) -> float:
+    """How many independent observations of the hand's pose the frames at ``poses`` are (unitless).
+
+    Each frame after the first adds its largest fingertip displacement (mm, ``model``'s
+    fingertips) from the previous frame's pose divided by the mean fingertip radius, at most 1:
+    a hand held still shows the same pose on every frame (only sensor noise differs, and the
+    guard's per-frame changes agree more than a new pose would let them), a moving hand a new
+    pose on each frame further than a fingertip's width.  In [1, len(poses)] (1 for one frame).
+    """
+    if len(poses) < 2:
+        return 1.0
+    tips = np.array([fingertips(model, th) for th in poses])  # (n, 5, 3) mm
+    moved = np.linalg.norm(np.diff(tips, axis=0), axis=2).max(axis=1)  # (n - 1,) mm
+    return float(1.0 + np.minimum(moved / float(model.tip_radii.mean()), 1.0).sum())
 
 
 #: Columns of :attr:`Validation.per_frame`'s rows, each as (current, fitted): the score, the

@@ -452,6 +452,7 @@ def _evidence(validation: Any, rest: Sequence[Any], default: Any, shape: Any) ->
         "measured_sigma": float(validation.measured_sigma),
         "measured_width": float(validation.measured_width),
         "thickness_per_width": float(validation.measured_sigma / validation.measured_width),
+        "independent_frames": float(validation.independent_frames),
     }
     best = validation.best_pose_scores()
     out["best_score"] = float(np.mean(best[:, 1] - best[:, 0]))
