@@ -329,3 +329,25 @@ def test_frames_of_a_hand_held_still_count_as_one_observation() -> None:
     many, one = Validation(**rows), Validation(**rows, independent_frames=1.0)
     e_many, e_one = many.evidence()[0], one.evidence()[0]
     assert e_one.change == e_many.change and e_one.noise == pytest.approx(2 * e_many.noise)
+
+
+def test_guard_refits_of_a_frame_in_one_batch_are_each_ones_own_fit() -> None:
+    """The guard's refit and re-track of a frame run as one batch: each start gets the pose and
+    the terms it gets alone (its own fingertip assignment), bit for bit."""
+    from hand_sog_tracker.core.calibration import _guard_refit, _prepare
+    from hand_sog_tracker.core.salient import detect_fingertips
+    from hand_sog_tracker.core.silhouette import silhouette
+
+    seq = list(synthetic_sequence("abdadd", 3, INTR, shape=user_hand(1.05, 0.95), seed=9))
+    config, model = TrackerConfig(), default_hand_model(True)
+    pre = preprocess(seq[2].depth_mm, INTR, config)
+    fr = _prepare(pre, seq[2].pose, model, config)
+    assert fr is not None
+    roi, window = hand_roi(model, fr.pose, pre.intrinsics, config.roi_radius_mm)
+    det, sil = detect_fingertips(pre, roi, window), silhouette(pre, window, roi)
+    starts = np.array([seq[2].pose, seq[0].pose])
+    both = _guard_refit(model, starts, fr.data, config, det, sil)
+    for k in range(2):
+        alone = _guard_refit(model, starts[k : k + 1], fr.data, config, det, sil)[0]
+        assert np.array_equal(both[k][0], alone[0]) and both[k][1] == alone[1]
+    assert not np.array_equal(both[0][0], both[1][0])

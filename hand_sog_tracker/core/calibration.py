@@ -62,15 +62,18 @@ run finds them first.
 Guard.  With ``holdout`` frames (not used for the fit), the fitted model must explain them
 better than the current model by several kinds of evidence (:meth:`Validation.evidence`), each
 against its own noise (:data:`GUARD_NOISE_SE` standard errors of its mean over the frames, at
-least a floor): on each held-out frame both models get the same pose refit from the frame's
-pose, palm centre kept (:data:`GUARD_RIGID_ITERATIONS` global, then
+least a floor; the frames count as independent only as far as the hand moved between them,
+:func:`independent_frames`): on each held-out frame both models get the same pose refit from
+the frame's pose, palm centre kept (:data:`GUARD_RIGID_ITERATIONS` global, then
 :data:`GUARD_REFIT_ITERATIONS` full iterations of the tracking objective with its silhouette
 and fingertip-detection terms, as the tracker fits a frame) and are compared by the
-:func:`shape_score` and by the distance of their fingertips to the fingertip detections; then
-each model re-tracks the held-out frames in order from its own pose on the previous one and is
-scored again.  Any evidence worse beyond its noise, or one frame losing more than
-:data:`GUARD_FRAME_DROP`, refuses the fit; both scores must rise beyond their noise, else "the
-current model already fits" (nothing to do).  Either way :class:`CalibrationRejected` is raised
+:func:`shape_score` and by the distance of their fingertips to the fingertip detections; each
+model also re-tracks the held-out frames in order from its own pose on the previous one (in the
+same batch as the refit) and is scored again.  Any evidence worse beyond its noise, or one frame
+losing more than :data:`GUARD_FRAME_DROP`, refuses the fit; the best-pose score (each model's
+better score of its two pose fits on a frame: the refit from the tracked pose favours the
+current model) must rise beyond its noise, else "the current model already fits" (nothing to
+do).  Either way :class:`CalibrationRejected` is raised
 (with the numbers) and the caller keeps (and does not save) the current model.  None of this
 has fingertip truth: the measurements that chose the rules, the predictors tried and the hands
 whose true shape tracks worse than the default model are in ``doc/design/calibration_guard.md``.
