@@ -406,7 +406,8 @@ class Validation:
             out.append(_evidence("held-out score", pf[:, 1] - pf[:, 0], self.margin, True, independent=n))
             tips = pf[:, 3] - pf[:, 2]
             if np.isfinite(tips).any():
-                out.append(_evidence("fingertip-detection distance (mm)", tips, GUARD_TIP_FLOOR_MM, False, independent=n))
+                name = "fingertip-detection distance (mm)"
+                out.append(_evidence(name, tips, GUARD_TIP_FLOOR_MM, False, independent=n))
         else:
             out.append(Evidence("held-out score", self.gain, self.margin, True, self.frames, decides=True))
         rt = np.array(self.retrack_frames, dtype=float).reshape(-1, 2 * len(RETRACK_COLUMNS))

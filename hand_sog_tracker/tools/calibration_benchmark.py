@@ -561,7 +561,8 @@ def format_notes(s: RendererSummary) -> str:
 #: on (``re_``), the size of the change and the measured finger thickness per palm width
 #: (``thickness_per_width``: measured sigma / measured width, not a change).
 PREDICTORS = (
-    "best_score", "thickness_per_width", "hold_score", "hold_score_worst", "hold_tip", "hold_objective", "hold_col", "hold_coverage",
+    "best_score", "thickness_per_width",
+    "hold_score", "hold_score_worst", "hold_tip", "hold_objective", "hold_col", "hold_coverage",
     "hre_score", "hre_tip_mm", "re_score", "re_tip_mm", "re_energy", "re_confidence", "size_change",
 )
 #: Size bins of :func:`size_table`: the larger of |length - 1| and |width - 1| of the true factors.
