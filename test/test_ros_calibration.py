@@ -89,7 +89,7 @@ def _check_saved(rig: Rig, tmp_path: Path, message: str) -> None:
     assert info["holdout_score_fitted"] >= info["holdout_score_current"] + info["guard_margin"]
     assert len(str(info["holdout_stamps"]).split()) == info["holdout_frames"] >= 3
     assert info["holdout_worst_frame_gain"] >= -info["guard_frame_drop"]
-    assert "re-tracked score" in str(info["guard_rules"]) and "re-tracked score" in str(info["guard_evidence"])
+    assert "best-pose score" in str(info["guard_rules"]) and "re-tracked score" in str(info["guard_evidence"])
 
 
 def test_an_accepted_fit_is_used_and_saved_with_the_guard_metadata(

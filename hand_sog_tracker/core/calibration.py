@@ -62,15 +62,18 @@ run finds them first.
 Guard.  With ``holdout`` frames (not used for the fit), the fitted model must explain them
 better than the current model by several kinds of evidence (:meth:`Validation.evidence`), each
 against its own noise (:data:`GUARD_NOISE_SE` standard errors of its mean over the frames, at
-least a floor): on each held-out frame both models get the same pose refit from the frame's
-pose, palm centre kept (:data:`GUARD_RIGID_ITERATIONS` global, then
+least a floor; the frames count as independent only as far as the hand moved between them,
+:func:`independent_frames`): on each held-out frame both models get the same pose refit from
+the frame's pose, palm centre kept (:data:`GUARD_RIGID_ITERATIONS` global, then
 :data:`GUARD_REFIT_ITERATIONS` full iterations of the tracking objective with its silhouette
 and fingertip-detection terms, as the tracker fits a frame) and are compared by the
-:func:`shape_score` and by the distance of their fingertips to the fingertip detections; then
-each model re-tracks the held-out frames in order from its own pose on the previous one and is
-scored again.  Any evidence worse beyond its noise, or one frame losing more than
-:data:`GUARD_FRAME_DROP`, refuses the fit; both scores must rise beyond their noise, else "the
-current model already fits" (nothing to do).  Either way :class:`CalibrationRejected` is raised
+:func:`shape_score` and by the distance of their fingertips to the fingertip detections; each
+model also re-tracks the held-out frames in order from its own pose on the previous one (in the
+same batch as the refit) and is scored again.  Any evidence worse beyond its noise, or one frame
+losing more than :data:`GUARD_FRAME_DROP`, refuses the fit; the best-pose score (each model's
+better score of its two pose fits on a frame: the refit from the tracked pose favours the
+current model) must rise beyond its noise, else "the current model already fits" (nothing to
+do).  Either way :class:`CalibrationRejected` is raised
 (with the numbers) and the caller keeps (and does not save) the current model.  None of this
 has fingertip truth: the measurements that chose the rules, the predictors tried and the hands
 whose true shape tracks worse than the default model are in ``doc/design/calibration_guard.md``.
@@ -106,11 +109,11 @@ from hand_sog_tracker.core.hand_model import (
 )
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.measure import WidthMeasurement, measure_widths, shape_from_widths
-from hand_sog_tracker.core.optimizer import maximise
+from hand_sog_tracker.core.optimizer import maximise, maximise_batch
 from hand_sog_tracker.core.salient import Detections, assign_detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.skin import SCORE_TOLERANCE_MM, ScoreData, overlap_score, score_data, shape_score
-from hand_sog_tracker.core.tracker import Tracker, coverage, hand_roi
+from hand_sog_tracker.core.tracker import Tracker, _with_targets, coverage, hand_roi
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import CalibrationError, HandSogError
 
@@ -135,6 +138,7 @@ __all__ = [
     "PER_FRAME_COLUMNS",
     "RETRACK_COLUMNS",
     "retrack",
+    "independent_frames",
     "DEFAULT_FIT_FRAMES",
     "DEFAULT_HOLDOUT_FRAMES",
     "calibrate_pickled_stdio",
@@ -251,6 +255,9 @@ class Evidence:
         :data:`GUARD_NOISE_SE` standard errors of that mean, at least the measure's floor.
     higher_is_better : bool
     frames : int
+    decides : bool
+        Whether the fit is accepted only when this evidence is better beyond its noise (every
+        evidence refuses when worse beyond it).
     """
 
     name: str
@@ -258,6 +265,7 @@ class Evidence:
     noise: float
     higher_is_better: bool
     frames: int
+    decides: bool = False
 
     @property
     def worse(self) -> bool:
@@ -273,11 +281,24 @@ class Evidence:
         return f"{self.change:+.4f} (noise {self.noise:.4f}, {self.frames} frames)"
 
 
-def _evidence(name: str, diff: NDArray[np.float64], floor: float, higher_is_better: bool) -> Evidence:
-    """:class:`Evidence` of per-frame changes ``diff`` (NaN: not measured on that frame)."""
+def _evidence(
+    name: str,
+    diff: NDArray[np.float64],
+    floor: float,
+    higher_is_better: bool,
+    decides: bool = False,
+    independent: float = float("inf"),
+) -> Evidence:
+    """:class:`Evidence` of per-frame changes ``diff`` (NaN: not measured on that frame).
+
+    The standard error of the mean divides the frames' spread by the square root of the number
+    of frames, at most ``independent`` (:attr:`Validation.independent_frames`: frames of a hand
+    held still are one observation of its pose, repeated).
+    """
     d = diff[np.isfinite(diff)]
-    se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else 0.0
-    return Evidence(name, float(d.mean()), max(floor, GUARD_NOISE_SE * se), higher_is_better, len(d))
+    n = min(float(len(d)), max(float(independent), 1.0))
+    se = float(np.std(d, ddof=1) / np.sqrt(n)) if len(d) > 1 else 0.0
+    return Evidence(name, float(d.mean()), max(floor, GUARD_NOISE_SE * se), higher_is_better, len(d), decides)
 
 
 @dataclass(frozen=True)
@@ -318,6 +339,9 @@ class Validation:
     retrack_frames : tuple of tuple of float
         Per re-tracked held-out frame (the second on), :data:`RETRACK_COLUMNS` each as
         (current, fitted) (8 values).
+    independent_frames : float
+        How many independent observations the held-out frames are (:func:`independent_frames`;
+        inf: as many as frames).  The evidence's standard errors use it.
     """
 
     frames: int
@@ -337,34 +361,59 @@ class Validation:
     widths_from_measurement: bool = False
     per_frame: tuple[tuple[float, ...], ...] = ()
     retrack_frames: tuple[tuple[float, ...], ...] = ()
+    independent_frames: float = float("inf")
 
     @property
     def gain(self) -> float:
         """``score_fitted - score_current``."""
         return self.score_fitted - self.score_current
 
+    def best_pose_scores(self) -> NDArray[np.float64]:
+        """Per held-out frame, each model's score at the better of its two pose fits, shape (n, 2)
+        (current, fitted; unitless).
+
+        A model's score on a frame is its score at its best pose: the refit from the tracked
+        pose favours the current model (the pose was tracked with it), the re-track from its own
+        previous pose favours neither, and either fit can stop short of that model's best pose.
+        The re-tracked rows belong to the last ``len(retrack_frames)`` held-out frames (the
+        first frame has only the refit).
+        """
+        pf = np.array(self.per_frame, dtype=float).reshape(-1, 2 * len(PER_FRAME_COLUMNS))
+        best = pf[:, :2].copy()
+        rt = np.array(self.retrack_frames, dtype=float).reshape(-1, 2 * len(RETRACK_COLUMNS))[: len(best)]
+        if len(rt):
+            tail = best[len(best) - len(rt):]
+            tail[:] = np.where(np.isfinite(rt[:, :2]), np.fmax(tail, rt[:, :2]), tail)
+        return best
+
     def evidence(self) -> list[Evidence]:
         """Each kind of evidence the guard weighs (see :class:`Evidence`), on held-out frames.
 
-        The held-out score (:attr:`gain`, floor :attr:`margin`), the fingertip-detection
-        distance at the refit poses (with detections), and the score along the held-out frames
-        re-tracked with each model from its own pose on the previous frame
-        (:attr:`retrack_frames`, from the second held-out frame on).  Without per-frame rows
-        (a :class:`Validation` built by hand) the mean score alone, its noise the margin.
+        The best-pose score (:meth:`best_pose_scores`, floor :attr:`margin`; the one that must
+        rise beyond its noise), the held-out score after the refit from the tracked pose
+        (:attr:`gain`), the fingertip-detection distance at those poses (with detections), and
+        the score along the held-out frames re-tracked with each model from its own pose on the
+        previous frame (:attr:`retrack_frames`, from the second held-out frame on).  Without
+        per-frame rows (a :class:`Validation` built by hand) the mean score alone, its noise the
+        margin.
         """
         out = []
         pf = np.array(self.per_frame, dtype=float).reshape(-1, 2 * len(PER_FRAME_COLUMNS))
+        n = self.independent_frames
         if len(pf):
-            out.append(_evidence("held-out score", pf[:, 1] - pf[:, 0], self.margin, True))
+            best = self.best_pose_scores()
+            out.append(_evidence("best-pose score", best[:, 1] - best[:, 0], self.margin, True, True, n))
+            out.append(_evidence("held-out score", pf[:, 1] - pf[:, 0], self.margin, True, independent=n))
             tips = pf[:, 3] - pf[:, 2]
             if np.isfinite(tips).any():
-                out.append(_evidence("fingertip-detection distance (mm)", tips, GUARD_TIP_FLOOR_MM, False))
+                name = "fingertip-detection distance (mm)"
+                out.append(_evidence(name, tips, GUARD_TIP_FLOOR_MM, False, independent=n))
         else:
-            out.append(Evidence("held-out score", self.gain, self.margin, True, self.frames))
+            out.append(Evidence("held-out score", self.gain, self.margin, True, self.frames, decides=True))
         rt = np.array(self.retrack_frames, dtype=float).reshape(-1, 2 * len(RETRACK_COLUMNS))
         both = np.isfinite(rt[:, 0]) & np.isfinite(rt[:, 1])
         if both.any():
-            out.append(_evidence("re-tracked score", rt[both, 1] - rt[both, 0], self.margin, True))
+            out.append(_evidence("re-tracked score", rt[both, 1] - rt[both, 0], self.margin, True, independent=n))
         return out
 
     def failures(self) -> list[str]:
@@ -372,14 +421,14 @@ class Validation:
 
         Refused when any evidence is worse beyond its noise or one held-out frame loses more
         than :attr:`frame_drop`; "the current model already fits" when nothing is worse but the
-        scores (held-out and re-tracked) do not both rise beyond their noise.
+        deciding score (the best-pose score) does not rise beyond its noise.
         """
         ev = self.evidence()
         out = [f"{e.name} worse: {e.describe()}" for e in ev if e.worse]
         if np.isfinite(self.worst_frame_gain) and self.worst_frame_gain < -self.frame_drop:
             out.append(f"one held-out frame loses {-self.worst_frame_gain:.4f} > {self.frame_drop:.4f}")
         if not out:
-            flat = [e for e in ev if e.higher_is_better and not e.better]
+            flat = [e for e in ev if e.decides and not e.better]
             if flat:
                 out.append(
                     "the current model already fits: "
@@ -410,7 +459,7 @@ class Validation:
         """
         out: dict[str, float | int | str] = {
             "guard_rules": (
-                "no evidence worse beyond its noise; held-out and re-tracked score both higher by their noise; "
+                "no evidence worse beyond its noise; best-pose score higher by its noise; "
                 "every held-out frame's gain >= -guard_frame_drop"
             ),
             "guard_frame_drop": float(self.frame_drop),
@@ -451,6 +500,8 @@ class Validation:
                 f"; fingertip-detection distance {self.tip_current:.2f} -> {self.tip_fitted:.2f} mm "
                 f"on {self.tip_frames} frames"
             )
+        if np.isfinite(self.independent_frames):
+            text += f"; {self.independent_frames:.1f} independent frames"
         if self.per_frame:
             text += "; change (fitted - current): " + ", ".join(
                 f"{e.name} {e.describe()}" for e in self.evidence()
@@ -699,6 +750,7 @@ def validate(
     per_frame: list[tuple[float, ...]] = []
     re_frames: list[tuple[float, ...]] = []
     carried: list[NDArray[np.float64] | None] = [None, None]
+    scored_poses: list[NDArray[np.float64]] = []
     for pre, pose in zip(pres, found):
         if pose is None:
             continue
@@ -710,19 +762,23 @@ def validate(
         sil = silhouette(pre, window, roi) if config.w_sil > 0 else None
         frame_scores, frame_tips, row, re_row = [], [], [], []
         for j, m in enumerate((current, fitted)):
-            th, terms = _guard_refit(m, _keep_palm_centre(fr.pose, current, m), fr.data, config, det, sil)
+            # The refit from the tracked pose and the re-track (each model follows the held-out
+            # frames in order from its own pose on the previous one; on the first frame the
+            # refit is its start), as one batch.
+            starts = [_keep_palm_centre(fr.pose, current, m)] + ([carried[j]] if carried[j] is not None else [])
+            refits = _guard_refit(m, np.array(starts), fr.data, config, det, sil)
+            th, terms = refits[0]
             frame_scores.append(overlap_score(m, th, fr.scoring, pre.intrinsics, SCORE_TOLERANCE_MM))
             frame_tips.append(_tip_distance(m, th, det))
             row.append((frame_scores[-1], frame_tips[-1], terms.total, coverage(m, th, fr.data),
                         terms.sim, terms.col, terms.sil, terms.sal))
-            # The re-track: each model follows the held-out frames in order from its own pose
-            # on the previous one (the first frame's is the refit above).
-            if carried[j] is not None:
-                th, terms = _guard_refit(m, carried[j], fr.data, config, det, sil)  # type: ignore[arg-type]
+            if len(refits) > 1:
+                th, terms = refits[1]
                 re_row.append((overlap_score(m, th, fr.scoring, pre.intrinsics, SCORE_TOLERANCE_MM),
                                _tip_distance(m, th, det), terms.total, coverage(m, th, fr.data)))
             carried[j] = th
         per_frame.append(tuple(float(v) for pair in zip(*row) for v in pair))
+        scored_poses.append(fr.pose)
         if re_row:
             re_frames.append(tuple(float(v) for pair in zip(*re_row) for v in pair))
         scores.append((frame_scores[0], frame_scores[1]))
@@ -744,7 +800,24 @@ def validate(
         tip_frames=len(tp),
         per_frame=tuple(per_frame),
         retrack_frames=tuple(re_frames),
+        independent_frames=independent_frames(current, scored_poses),
     )
+
+
+def independent_frames(model: HandModel, poses: Sequence[NDArray[np.float64]]) -> float:
+    """How many independent observations of the hand's pose the frames at ``poses`` are (unitless).
+
+    Each frame after the first adds its largest fingertip displacement (mm, ``model``'s
+    fingertips) from the previous frame's pose divided by the mean fingertip radius, at most 1:
+    a hand held still shows the same pose on every frame (only sensor noise differs, and the
+    guard's per-frame changes agree more than a new pose would let them), a moving hand a new
+    pose on each frame further than a fingertip's width.  In [1, len(poses)] (1 for one frame).
+    """
+    if len(poses) < 2:
+        return 1.0
+    tips = np.array([fingertips(model, th) for th in poses])  # (n, 5, 3) mm
+    moved = np.linalg.norm(np.diff(tips, axis=0), axis=2).max(axis=1)  # (n - 1,) mm
+    return float(1.0 + np.minimum(moved / float(model.tip_radii.mean()), 1.0).sum())
 
 
 #: Columns of :attr:`Validation.per_frame`'s rows, each as (current, fitted): the score, the
@@ -815,26 +888,31 @@ def _tip_distance(model: HandModel, theta: NDArray[np.float64], det: Detections)
 
 def _guard_refit(
     model: HandModel,
-    theta: NDArray[np.float64],
+    starts: NDArray[np.float64],
     data: ImageSoG,
     config: TrackerConfig,
     det: Detections,
     sil: Silhouette | None,
-) -> tuple[NDArray[np.float64], EnergyTerms]:
-    """The guard's pose refit of one held-out frame with ``model``, as the tracker fits a frame.
+) -> list[tuple[NDArray[np.float64], EnergyTerms]]:
+    """The guard's pose refits of one held-out frame with ``model``, as the tracker fits a frame.
 
-    :data:`GUARD_RIGID_ITERATIONS` global-pose iterations, then :data:`GUARD_REFIT_ITERATIONS`
-    full ones in two halves with the tracker's salient (fingertip detections, re-assigned
-    before each half) and silhouette terms.  Returns the pose and the tracking objective's terms
-    there (the second half's objective).
+    From each start pose of ``starts`` (k, 26): :data:`GUARD_RIGID_ITERATIONS` global-pose
+    iterations, then :data:`GUARD_REFIT_ITERATIONS` full ones in two halves with the tracker's
+    salient (fingertip detections, re-assigned to each fit before each half) and silhouette
+    terms.  The k fits run as one batch (:func:`maximise_batch`: the iterates of one fit each).
+    Returns per start the pose (26,) and the tracking objective's terms there (the second
+    half's objective).
     """
-    rigid = Objective(model, data, config, silhouette=sil)
-    th = maximise(rigid, theta, iterations=GUARD_RIGID_ITERATIONS, active=_RIGID).x
+    starts = np.atleast_2d(np.asarray(starts, dtype=np.float64))
+    obj = Objective(model, data, config, silhouette=sil)
+    ths = np.array([r.x for r in maximise_batch(obj.batch, starts, iterations=GUARD_RIGID_ITERATIONS, active=_RIGID)])
     half = max(GUARD_REFIT_ITERATIONS // 2, 1)
+    targets: list[TipTargets | None] = []
     for _ in range(2):
-        obj = Objective(model, data, config, targets=_tip_targets(model, th, det), silhouette=sil)
-        th = maximise(obj, th, iterations=half).x
-    return th, obj.evaluate(th, gradient=False)[0]
+        targets = [_tip_targets(model, th, det) for th in ths]
+        fits = maximise_batch(_with_targets(obj, targets), ths, iterations=half, with_index=True)
+        ths = np.array([r.x for r in fits])
+    return [(th, obj.variant(config, t).evaluate(th, gradient=False)[0]) for th, t in zip(ths, targets)]
 
 
 def calibrate(
@@ -944,6 +1022,20 @@ def calibrate(
     ref_model = mirrored.scaled(best_shape)
     before, best_poses = evaluate(best_shape, ref_model)
     best_val = before
+
+    def search(names: Sequence[str], span: float, step: float) -> None:
+        """Greedy grid search of each factor of ``names`` in turn about the best so far."""
+        nonlocal best_val, best_shape, best_poses
+        for name in names:
+            base_shape = best_shape
+            for off in np.arange(-span, span + 1e-9, step):
+                cand = _candidate(base_shape, name, float(off)) if abs(off) > 1e-9 else None
+                if cand is None:
+                    continue
+                val, ths = evaluate(cand, ref_model)
+                if val > best_val:
+                    best_val, best_shape, best_poses = val, cand, ths
+
     for round_no, (span, step) in enumerate(_ROUNDS):
         if round_no > 0:
             # Refit the poses with the model found so far: a pose fitted with a
@@ -977,15 +1069,7 @@ def calibrate(
                 else:
                     for fr, th in zip(fits, saved):
                         fr.pose = th
-        for name in ("length",) if widths_fixed else _FACTORS[round_no]:
-            base_shape = best_shape
-            for off in np.arange(-span, span + 1e-9, step):
-                cand = _candidate(base_shape, name, float(off)) if abs(off) > 1e-9 else None
-                if cand is None:
-                    continue
-                val, ths = evaluate(cand, ref_model)
-                if val > best_val:
-                    best_val, best_shape, best_poses = val, cand, ths
+        search(("length",) if widths_fixed else _FACTORS[round_no], span, step)
     bounded = _bounded_thickness(best_shape)
     if bounded is not best_shape:
         best_shape = bounded

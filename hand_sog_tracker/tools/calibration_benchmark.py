@@ -449,7 +449,13 @@ def _evidence(validation: Any, rest: Sequence[Any], default: Any, shape: Any) ->
         "hold_score_se": float(np.std(d[:, 0], ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan"),
         "hold_tip_se": float(np.nanstd(d[:, 1], ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan"),
         "size_change": float(np.max(np.abs(np.log(shape.as_array() / default.shape.as_array())))),
+        "measured_sigma": float(validation.measured_sigma),
+        "measured_width": float(validation.measured_width),
+        "thickness_per_width": float(validation.measured_sigma / validation.measured_width),
+        "independent_frames": float(validation.independent_frames),
     }
+    best = validation.best_pose_scores()
+    out["best_score"] = float(np.mean(best[:, 1] - best[:, 0]))
     rt = np.array(validation.retrack_frames, dtype=float).reshape(-1, 2 * len(RETRACK_COLUMNS))
     both = np.isfinite(rt[:, 0]) & np.isfinite(rt[:, 1])
     out["hre_frames"] = float(both.sum())
@@ -550,9 +556,12 @@ def format_notes(s: RendererSummary) -> str:
 #: Candidate predictors of the change in fingertip error (fitted - default) that
 #: :func:`predictor_correlations` reports (keys of :attr:`HandResult.evidence`): the guard's
 #: held-out refit (score, detection distance, tracking objective and its collision term,
-#: coverage), its re-track from each model's own previous pose (``hre_``), a fresh tracker
-#: re-tracking every history frame not fitted on (``re_``), and the size of the change.
+#: coverage), its re-track from each model's own previous pose (``hre_``), each model's
+#: best-pose score (``best_score``), a fresh tracker re-tracking every history frame not fitted
+#: on (``re_``), the size of the change and the measured finger thickness per palm width
+#: (``thickness_per_width``: measured sigma / measured width, not a change).
 PREDICTORS = (
+    "best_score", "thickness_per_width",
     "hold_score", "hold_score_worst", "hold_tip", "hold_objective", "hold_col", "hold_coverage",
     "hre_score", "hre_tip_mm", "re_score", "re_tip_mm", "re_energy", "re_confidence", "size_change",
 )
