@@ -138,6 +138,7 @@ from hand_sog_tracker.ros.conversions import (
     pose_msg,
 )
 from hand_sog_tracker.ros.frames import description_transforms
+from hand_sog_tracker.ros.heap import HeapTrim
 from hand_sog_tracker.ros.params import (
     NodeSettings,
     declare_node_parameters,
@@ -258,6 +259,7 @@ class TrackerNode(CalibrationService, Node):
         # model and for the model switch, hand_model for reads from other threads (uncontended
         # under the single-threaded executor, so it costs nothing).
         self._tracker_lock = threading.Lock()
+        self._heap = HeapTrim()  # free heap back to the system after a frame that grew the process
         self._warn_loggers: dict[str, RcutilsLogger] = {}
         self._stats = NodeStats()
         self._window = _Window()
@@ -554,6 +556,9 @@ class TrackerNode(CalibrationService, Node):
                 throttle_duration_sec=WARN_THROTTLE_S,
             )
             self.get_logger().debug(traceback.format_exc())
+        finally:
+            if self._heap.after_frame():
+                self.get_logger().debug(f"gave free heap back to the system ({self._heap.trims} times)")
 
     def _warn(self, text: str) -> None:
         """Per-frame warning, throttled per kind of problem (the text with its numbers masked).
