@@ -16,10 +16,7 @@ from hand_sog_tracker.core.hand_model import HandModel
 from hand_sog_tracker.core.kinematics import posed_centres
 from hand_sog_tracker.core.types import Intrinsics
 
-__all__ = [
-    "MAX_PAIRS", "SURFACE_SEARCH_MM", "WINDOW_BEHIND_MM", "before_surface", "coverage", "hand_roi", "pairs",
-    "within_reach",
-]
+__all__ = ["before_surface", "coverage", "hand_roi", "WINDOW_BEHIND_MM", "SURFACE_SEARCH_MM"]
 
 #: A tracked frame's depth window ends this far behind the farthest Gaussian centre of its
 #: start pose (mm; chosen here), or ``roi_radius_mm`` behind the hand's centre when nearer.
@@ -34,12 +31,6 @@ SURFACE_SLICE_MM2 = 5000.0
 SURFACE_MARGIN_MM = 5.0
 #: Bin width (mm) of :func:`before_surface`'s depth histogram.
 _SURFACE_BIN_MM = 5.0
-#: Most pairs of model and data Gaussians that overlap at a search's start pose (:func:`pairs`;
-#: :func:`within_reach` thins the data beyond).  The data terms cost per pair and per data
-#: Gaussian, and every candidate of a search pays for them.  A hand's own data give 3600-7400
-#: at 220-650 mm (320x240, 4 px leaves: untouched); a focal length 10x too large makes every
-#: model Gaussian as wide as the image and reach every data Gaussian (22 000-26 000 pairs).
-MAX_PAIRS = 10000
 
 
 def coverage(
@@ -147,36 +138,3 @@ def before_surface(
     return max(start_mm, start_mm + per_bin * float(hit[0]) - SURFACE_MARGIN_MM)
 
 
-def pairs(
-    model: HandModel, theta: NDArray[np.float64], data: ImageSoG, centres: NDArray[np.float64] | None = None
-) -> int:
-    """How many (model, data) Gaussian pairs the data terms evaluate at ``theta`` (26,): image
-    distance under 6 combined standard deviations and depth difference under 2 sigma of the model
-    Gaussian (the energy's candidate tests).  ``centres``: :func:`posed_centres` (m, 3) mm."""
-    if data.n == 0:
-        return 0
-    P = posed_centres(model, theta) if centres is None else centres
-    intr = data.intrinsics
-    z = np.maximum(P[:, 2], 1.0)
-    sh = model.g_sigmas
-    u = intr.fx * P[:, 0] / z + intr.cx
-    v = intr.fy * P[:, 1] / z + intr.cy
-    sp2 = np.square(sh * math.sqrt(intr.fx * intr.fy) / z)
-    r2 = np.square(u[:, None] - data.mu[:, 0]) + np.square(v[:, None] - data.mu[:, 1])
-    near = r2 < 36.0 * (sp2[:, None] + np.square(data.sigma))
-    near &= np.square((z - sh)[:, None] - data.depth) < np.square(2.0 * sh)[:, None]
-    return int(np.count_nonzero(near))
-
-
-def within_reach(
-    model: HandModel, theta: NDArray[np.float64], data: ImageSoG, max_pairs: int = MAX_PAIRS
-) -> ImageSoG:
-    """``data`` (itself when its :func:`pairs` at ``theta`` are at most ``max_pairs``), else an
-    evenly spread subset of it (every k-th Gaussian, in the quadtree's order: the same share of
-    every level and region) with about ``max_pairs`` pairs: a frame's search costs per pair."""
-    n_pairs = pairs(model, theta, data)
-    if n_pairs <= max_pairs:
-        return data
-    keep = np.zeros(data.n, dtype=bool)
-    keep[np.linspace(0, data.n - 1, max(1, data.n * max_pairs // n_pairs)).astype(np.int64)] = True
-    return data.subset(keep)

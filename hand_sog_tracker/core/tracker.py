@@ -35,14 +35,7 @@ from hand_sog_tracker.core.kinematics import (
     skeleton_points,
 )
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
-from hand_sog_tracker.core.region import (
-    SURFACE_SEARCH_MM,
-    WINDOW_BEHIND_MM,
-    before_surface,
-    coverage,
-    hand_roi,
-    within_reach,
-)
+from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
 from hand_sog_tracker.core.salient import Detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.search import (
     ASSIGN_LAMBDA_MM,
@@ -242,8 +235,7 @@ class Tracker:
         """Data Gaussians around the hand at ``theta``, without the forearm.
 
         Quads and (with ``detect``) fingertip detections beyond the wrist plane at ``theta``
-        are dropped (the model has no forearm), and the data are thinned to the pairs a search
-        can pay for (:func:`within_reach`); with ``outline`` also the silhouette of the
+        are dropped (the model has no forearm); with ``outline`` also the silhouette of the
         depth window (None without it or when ``w_sil`` is 0).  ``end_mm``: the window ends
         there at the latest (a wall behind the hand is no data).  ``roi_window``:
         :func:`hand_roi` at ``theta`` when already computed.
@@ -263,7 +255,6 @@ class Tracker:
             if det.n:
                 det = det.subset((det.points - theta[:3]) @ axis > 0.0)
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf)
-        data = within_reach(self._model, theta, data)
         if data.n == 0:
             return data, det, sil
         keep = (data.points - theta[:3]) @ axis > 0.0

@@ -32,7 +32,7 @@ from hand_sog_tracker.core.initialise import (
 )
 from hand_sog_tracker.core.kinematics import global_rotation
 from hand_sog_tracker.core.optimizer import OptimizeResult
-from hand_sog_tracker.core.region import hand_roi, within_reach
+from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import detect_fingertips
 from hand_sog_tracker.core.search.fit import fit_batch
 from hand_sog_tracker.core.search.score import assignment_cost
@@ -157,7 +157,6 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
     window = (window[0], min(window[1], end_mm))
     coarse = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, max(eff.coarse_quad_px, cfg.min_quad_px))
     fine = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, fine_px)
-    coarse, fine = within_reach(model, starts[0], coarse), within_reach(model, starts[0], fine)
     det = detect_fingertips(pre, roi, window)
     if det.n:
         det = det.subset(on_hand_side(det.points, starts[0]))
