@@ -7,7 +7,10 @@ fragmented, so the top of the heap cannot be trimmed).  ``malloc_trim(0)`` gives
 pages back.  Trimming after every frame would page-fault the per-frame working set back in
 every frame (what ``depth_sog``'s raised malloc thresholds avoid, issue 14), so
 :class:`HeapTrim` trims only after a frame that left the resident set ``TRIM_GROWTH_MB`` above
-where it was after the last trim (or its lowest since); a steady process never trims.
+its level (right after the last trim, or its lowest since), at most once per
+``TRIM_INTERVAL_S``.  A frame's working set (the free heap between two frames of steady
+tracking, 9-10 MB) lies just over the growth, so steady tracking trims about once per interval
+too, and each such trim costs the page faults of one working set (about 2 000, a millisecond).
 """
 
 from __future__ import annotations
@@ -15,13 +18,17 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import time
 from typing import Callable
 
-__all__ = ["HeapTrim", "TRIM_GROWTH_MB"]
+__all__ = ["HeapTrim", "TRIM_GROWTH_MB", "TRIM_INTERVAL_S"]
 
-#: Growth of the resident set (MB) over its level after the last trim that triggers a trim
-#: (steady tracking varies by 1-3 MB from frame to frame; chosen here).
+#: Growth of the resident set (MB) over its level that triggers a trim (what may stay over steady
+#: tracking: issue 50 allows 10 MB; chosen here).
 TRIM_GROWTH_MB = 8.0
+#: Least time between two trims (s): bounds their cost (about 1 ms per 10 MB given back, and
+#: the page faults of the working set after it) when the working set exceeds the growth.
+TRIM_INTERVAL_S = 1.0
 _STATM = "/proc/self/statm"
 
 
@@ -49,17 +56,20 @@ def resident_mb() -> float | None:
 
 
 class HeapTrim:
-    """Calls ``malloc_trim(0)`` after a frame that grew the resident set by ``growth_mb``.
+    """Calls ``malloc_trim(0)`` after a frame that grew the resident set by ``growth_mb`` (at
+    most once per ``interval_s``).
 
     :meth:`after_frame` costs one read of ``/proc/self/statm`` (about 10 us) per frame; a trim
     costs about 1 ms per 10 MB it gives back.  Without glibc or ``/proc`` (:attr:`enabled`
     False) it does nothing.
     """
 
-    def __init__(self, growth_mb: float = TRIM_GROWTH_MB) -> None:
+    def __init__(self, growth_mb: float = TRIM_GROWTH_MB, interval_s: float = TRIM_INTERVAL_S) -> None:
         self._trim = _malloc_trim()
         self._growth = float(growth_mb)
+        self._interval = float(interval_s)
         self._level = resident_mb() if self._trim is not None else None
+        self._last = -float("inf")  # time.monotonic() of the last trim
         #: Trims done so far.
         self.trims = 0
 
@@ -78,10 +88,12 @@ class HeapTrim:
         if rss < self._level:
             self._level = rss
             return False
-        if rss <= self._level + self._growth:
+        now = time.monotonic()
+        if rss <= self._level + self._growth or now - self._last < self._interval:
             return False
         self._trim(0)
         self.trims += 1
+        self._last = now
         after = resident_mb()
         self._level = rss if after is None else after
         return True
