@@ -1020,8 +1020,8 @@ def test_battery_memory_and_time(bench: Bench) -> None:
           f"{bench.steady_ms:.0f} ms, peak RSS {bench.steady_rss:.0f} MB; battery: worst frame "
           f"{worst['worst_ms']:.0f} ms ({worst['kind']}), peak RSS {peak:.0f} MB "
           f"(+{peak - bench.steady_rss:.0f}), after {after:.0f} MB (+{after - bench.steady_rss:.0f}; "
-          f"+{trimmed - bench.steady_rss:.0f} after malloc_trim; the node trimmed {bench.node._heap.trims} times, {bench.steady_trims} in the 80 frames "
-          "of steady tracking)")
+          f"+{trimmed - bench.steady_rss:.0f} after malloc_trim; the node trimmed {bench.node._heap.trims} times, "
+          f"{bench.steady_trims} in the 80 frames of steady tracking)")
     if RECORD:
         with open(RECORD, "a") as f:
             f.write(json.dumps(dict(summary=_SIZE, steady_ms=bench.steady_ms, steady_rss=bench.steady_rss,
