@@ -48,7 +48,8 @@ images above ``max_image_pixels`` are refused before anything of their size is a
 implausible CameraInfo is refused (:func:`~hand_sog_tracker.interface.camera_info_to_intrinsics`),
 the core clips its search to the image and caps its data, and a frame over ``frame_budget_ms``
 is warned about and counted (``frames_cut``, ``worst_frame_ms`` in /diagnostics; its search is
-never cut, issue 45).
+never cut, issue 45).  After a frame that grew the process the free heap is given back
+(:class:`~hand_sog_tracker.ros.heap.HeapTrim`).
 An image without ``frame_id`` is tracked in :data:`DEFAULT_FRAME_ID` (with a warning); stamps
 more than :data:`STAMP_SKEW_S` from the node's clock are warned about and left out of
 ``latency_ms``.
