@@ -923,6 +923,7 @@ def bench(tmp_path_factory) -> Iterator[Bench]:
             b.good()
         b.steady_ms = max(b.frame_ms)
         b.steady_rss = sampler.reset()
+        b.steady_trims = b.node._heap.trims
         b.sampler = sampler
         b.frame_ms.clear()
         yield b
@@ -996,6 +997,49 @@ def test_the_battery_has_over_100_kinds() -> None:
     assert len(KINDS) >= 100 and len({k.name for k in KINDS}) == len(KINDS)
 
 
+def test_battery_memory_and_time(bench: Bench) -> None:
+    """After the battery: the worst frame and peak memory against steady tracking (recorded),
+    bounds that the unbounded faults of issue 50 broke (frames of 4-17 s, 12-50 initialisations
+    long; +0.8-1.1 GB)."""
+    if not RESULTS:
+        pytest.skip("the battery did not run")
+    for _ in range(20):
+        bench.good()
+    peak = max([r["rss_mb"] for r in RESULTS] + [bench.sampler.peak])
+    after = rss_mb()
+    try:  # what of it is free heap that glibc still keeps
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+        trimmed = rss_mb()
+    except (OSError, AttributeError):
+        trimmed = after
+    worst = max(RESULTS, key=lambda r: r["worst_ms"])
+    failed = [r["kind"] for r in RESULTS if r["problems"] and not r["xfail"]]
+    print(f"{_SIZE}: {len(RESULTS)} kinds, {len(failed)} failed; steady tracking: worst frame "
+          f"{bench.steady_ms:.0f} ms, peak RSS {bench.steady_rss:.0f} MB; battery: worst frame "
+          f"{worst['worst_ms']:.0f} ms ({worst['kind']}), peak RSS {peak:.0f} MB "
+          f"(+{peak - bench.steady_rss:.0f}), after {after:.0f} MB (+{after - bench.steady_rss:.0f}; "
+          f"+{trimmed - bench.steady_rss:.0f} after malloc_trim; the node trimmed {bench.node._heap.trims} times, "
+          f"{bench.steady_trims} in the 80 frames of steady tracking)")
+    if RECORD:
+        with open(RECORD, "a") as f:
+            f.write(json.dumps(dict(summary=_SIZE, steady_ms=bench.steady_ms, steady_rss=bench.steady_rss,
+                                    peak_rss=peak, after_rss=after, trimmed_rss=trimmed, worst=worst)) + "\n")
+    assert peak - bench.steady_rss < 50.0
+    # The free heap of the battery's dearest frames is given back (ros/heap.py; without it -2 to
+    # +33 MB stayed, with it +4 to +8: the issue's target is 10 MB, 2 MB of slack for the frames'
+    # working set faulted back in since the last trim).  (Before the ~/calibrate test below,
+    # whose history of frames the node keeps.)
+    assert after - bench.steady_rss < 12.0
+    # No bad input costs more than a small factor of a clean frame's initialisation (the clean
+    # frames after each kind, measured in the same run: the machine's load scales both).  A frame
+    # runs its whole search, never cut (issue 45): intrinsics 10x too large (the hand 10x wider,
+    # its data at the cap) take 3-6 initialisations.
+    init_ms = max(r["recover_ms"] for r in RESULTS)
+    assert worst["worst_ms"] <= 8.0 * init_ms, (worst, init_ms)
+
+
 def test_every_concurrent_calibrate_call_is_answered(bench: Bench, monkeypatch: pytest.MonkeyPatch) -> None:
     """50 ~/calibrate calls at once while a fit runs: the fit's call gets its answer, every other
     one "busy" at once; all 50 within 2 s of the fit's end."""
@@ -1035,40 +1079,3 @@ def test_every_concurrent_calibrate_call_is_answered(bench: Bench, monkeypatch: 
     assert len(answers) == 50
     assert busy == 49 and sum("stand-in fit" in a for a in answers) == 1
     assert max(answered_at.values()) < fit_s + 2.0
-
-
-def test_battery_memory_and_time(bench: Bench) -> None:
-    """After the battery: the worst frame and peak memory against steady tracking (recorded),
-    bounds that the unbounded faults of issue 50 broke (frames of 4-17 s, 12-50 initialisations
-    long; +0.8-1.1 GB)."""
-    if not RESULTS:
-        pytest.skip("the battery did not run")
-    for _ in range(20):
-        bench.good()
-    peak = max([r["rss_mb"] for r in RESULTS] + [bench.sampler.peak])
-    after = rss_mb()
-    try:  # what of it is free heap that glibc keeps (depth_sog raised its trim threshold to 32 MiB)
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-        trimmed = rss_mb()
-    except (OSError, AttributeError):
-        trimmed = after
-    worst = max(RESULTS, key=lambda r: r["worst_ms"])
-    failed = [r["kind"] for r in RESULTS if r["problems"] and not r["xfail"]]
-    print(f"{_SIZE}: {len(RESULTS)} kinds, {len(failed)} failed; steady tracking: worst frame "
-          f"{bench.steady_ms:.0f} ms, peak RSS {bench.steady_rss:.0f} MB; battery: worst frame "
-          f"{worst['worst_ms']:.0f} ms ({worst['kind']}), peak RSS {peak:.0f} MB "
-          f"(+{peak - bench.steady_rss:.0f}), after {after:.0f} MB (+{after - bench.steady_rss:.0f}; "
-          f"+{trimmed - bench.steady_rss:.0f} after malloc_trim)")
-    if RECORD:
-        with open(RECORD, "a") as f:
-            f.write(json.dumps(dict(summary=_SIZE, steady_ms=bench.steady_ms, steady_rss=bench.steady_rss,
-                                    peak_rss=peak, after_rss=after, trimmed_rss=trimmed, worst=worst)) + "\n")
-    assert peak - bench.steady_rss < 50.0
-    # No bad input costs more than a small factor of a clean frame's initialisation (the clean
-    # frames after each kind, measured in the same run: the machine's load scales both).  A frame
-    # runs its whole search, never cut (issue 45): intrinsics 10x too large (the hand 10x wider,
-    # its data at the cap) take 3-6 initialisations.
-    init_ms = max(r["recover_ms"] for r in RESULTS)
-    assert worst["worst_ms"] <= 8.0 * init_ms, (worst, init_ms)

@@ -48,7 +48,8 @@ images above ``max_image_pixels`` are refused before anything of their size is a
 implausible CameraInfo is refused (:func:`~hand_sog_tracker.interface.camera_info_to_intrinsics`),
 the core clips its search to the image and caps its data, and a frame over ``frame_budget_ms``
 is warned about and counted (``frames_cut``, ``worst_frame_ms`` in /diagnostics; its search is
-never cut, issue 45).
+never cut, issue 45).  After a frame that grew the process the free heap is given back
+(:class:`~hand_sog_tracker.ros.heap.HeapTrim`).
 An image without ``frame_id`` is tracked in :data:`DEFAULT_FRAME_ID` (with a warning); stamps
 more than :data:`STAMP_SKEW_S` from the node's clock are warned about and left out of
 ``latency_ms``.
@@ -140,6 +141,7 @@ from hand_sog_tracker.ros.conversions import (
 )
 from hand_sog_tracker.ros.frames import description_transforms
 from hand_sog_tracker.ros.hand_topics import HandTopics
+from hand_sog_tracker.ros.heap import HeapTrim
 from hand_sog_tracker.ros.params import (
     NodeSettings,
     declare_node_parameters,
@@ -260,6 +262,7 @@ class TrackerNode(CalibrationService, Node):
         # model and for the model switch, hand_model for reads from other threads (uncontended
         # under the single-threaded executor, so it costs nothing).
         self._tracker_lock = threading.Lock()
+        self._heap = HeapTrim()  # free heap back to the system after a frame that grew the process
         self._warn_loggers: dict[str, RcutilsLogger] = {}
         self._stats = NodeStats()
         self._window = _Window()
@@ -568,6 +571,9 @@ class TrackerNode(CalibrationService, Node):
                 throttle_duration_sec=WARN_THROTTLE_S,
             )
             self.get_logger().debug(traceback.format_exc())
+        finally:
+            if self._heap.after_frame():
+                self.get_logger().debug(f"gave free heap back to the system ({self._heap.trims} times)")
 
     def _warn(self, text: str) -> None:
         """Per-frame warning, throttled per kind of problem (the text with its numbers masked).
