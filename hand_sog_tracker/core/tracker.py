@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
 from hand_sog_tracker.core.energy import Objective, TipTargets, contact_shares
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, HandModel, HandShape, default_hand_model
+from hand_sog_tracker.core.handcheck import HandGate
 from hand_sog_tracker.core.initialise import INIT_SEARCH
 from hand_sog_tracker.core.kinematics import (
     fingertips,
@@ -85,6 +86,16 @@ SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
+
+
+class _Keep:
+    """What the hand gate resets when the tracker keeps its track (``withhold=False``)."""
+
+    def reset(self) -> None:
+        pass
+
+
+_KEEP = _Keep()
 _NO_POINTS = np.zeros((0, 3))
 
 
@@ -122,10 +133,21 @@ class Tracker:
         Hand model (mm), kept as given; default: the default adult hand of
         ``config.right_hand``, on which every new track may start the smaller hand of
         ``SMALL_HAND_LENGTH`` instead (until :meth:`set_model`).
+    withhold : bool
+        Every frame's result carries its hand decision (:class:`~.handcheck.HandGate`, issue
+        46); by default a frame that is no hand has no pose and resets the track as the gate
+        says (what the node publishes).  False keeps every fitted pose and track (the raw
+        fit's evidence, for the tools).
     """
 
-    def __init__(self, config: TrackerConfig | None = None, model: HandModel | None = None) -> None:
+    def __init__(
+        self, config: TrackerConfig | None = None, model: HandModel | None = None, withhold: bool = True
+    ) -> None:
         self._config = config or TrackerConfig()
+        self._gate = HandGate()
+        self._withhold = bool(withhold)
+        #: The last frame's result before its hand decision withheld the pose (for the tools).
+        self.last_fit: TrackResult | None = None
         # (the default model, the small one) while the model is the default (SMALL_HAND_LENGTH).
         self._sizes: tuple[HandModel, HandModel] | None = None
         if model is None:
@@ -188,6 +210,7 @@ class Tracker:
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
         self._lost_pulls = _NO_POINTS
+        self._gate.forget()
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
         """Track the hand in one depth frame.
@@ -216,10 +239,16 @@ class Tracker:
                 self._model = self._sizes[0]  # (a new track on the default model: its size is chosen again)
             result = self._initialise(pre)
         t2 = time.perf_counter()
+        self.last_fit = result
+        # The hand decision (may reset the track: the next frame searches afresh).
+        keeper = self if self._withhold else _KEEP
+        result = self._gate.gate(keeper, depth_mm, intrinsics, self._model, result, self._withhold)
+        t3 = time.perf_counter()
         result.timings_ms["preprocess"] = (t1 - t0) * 1e3
         result.timings_ms.setdefault("quadtree", 0.0)
         result.timings_ms["optimise"] = (t2 - t1) * 1e3 - result.timings_ms["quadtree"]
-        result.timings_ms["total"] = (t2 - t0) * 1e3
+        result.timings_ms["check"] = (t3 - t2) * 1e3
+        result.timings_ms["total"] = (t3 - t0) * 1e3
         return result
 
     # -- internals -----------------------------------------------------------
