@@ -157,3 +157,31 @@ def test_the_tracker_answers_with_its_hand_decision_and_withholds_a_frame_that_i
     res = kept.process(depth, INTR)
     assert res.pose is not None and res.hand is not None and not res.hand.present
     assert kept.last_pose is not None
+
+
+def test_a_doubted_track_is_replaced_by_a_fresh_start_on_the_hand_in_the_same_frame(monkeypatch) -> None:
+    """Issue 46, finding it again: the hand moved away and a head is where it was; the track
+    on the head is doubted by the check, and the fresh start from the hand found in the same
+    frame replaces it on that frame (without it, that frame reports no hand)."""
+    import hand_sog_tracker.core.tracker as tr
+
+    a, b = rest_pose((-110.0, 40.0, 520.0)), rest_pose((110.0, 40.0, 470.0))
+    opts = RenderOptions(noise_mm=1.0, background_mm=None)
+    first = render_depth(MODEL, a, INTR, opts, np.random.default_rng(1))
+    hand = render_depth(MODEL, b, INTR, opts, np.random.default_rng(2))
+    head = _mesh_depth(_ellipsoid(a[:3] + [0.0, -50.0, 60.0], (75.0, 95.0, 85.0)))
+    both = np.where((hand > 0) & ((head <= 0) | (hand < head)), hand, head).astype(np.float32)
+
+    def second_frame() -> tuple[Tracker, TrackResult]:
+        t = Tracker()
+        assert t.process(first, INTR).pose is not None
+        return t, t.process(both, INTR)
+
+    t, res = second_frame()
+    assert res.pose is not None and t.last_proposal == "fresh_start", res.hand
+    assert np.linalg.norm(res.pose[:3] - b[:3]) < 30.0
+    assert t.last_fit is not None and t.last_fit.pose is not None  # (the fresh start's)
+    monkeypatch.setattr(tr, "FRESH_BELOW", -1.0)  # (no fresh start)
+    t, res = second_frame()
+    assert res.pose is None and t.last_fit is not None and t.last_fit.pose is not None
+    assert np.linalg.norm(t.last_fit.pose[:3] - a[:3]) < 60.0  # (the track stayed on the head)

@@ -367,11 +367,17 @@ class HandGate:
         self._confirmed = False  # the current track has shown a finger end
 
     def decide(
-        self, tracker: _Resettable, depth_mm: NDArray, intr: Intrinsics, model: HandModel, result: TrackResult
+        self,
+        tracker: _Resettable,
+        depth_mm: NDArray,
+        intr: Intrinsics,
+        model: HandModel,
+        result: TrackResult,
+        checked: HandDecision | None = None,
     ) -> HandDecision:
-        """The decision of ``result`` (see :func:`check_hand`); resets ``tracker`` as the class
-        docstring says."""
-        dec = check_hand(depth_mm, intr, model, result)
+        """The decision of ``result`` (see :func:`check_hand`; ``checked``: its check when
+        already made); resets ``tracker`` as the class docstring says."""
+        dec = check_hand(depth_mm, intr, model, result) if checked is None else checked
         if result.pose is None:
             self._low = 0
             self._confirmed = False
@@ -407,11 +413,12 @@ class HandGate:
         model: HandModel,
         result: TrackResult,
         withhold: bool = True,
+        checked: HandDecision | None = None,
     ) -> TrackResult:
         """``result`` with its :meth:`decide` decision as ``hand``; with ``withhold``, a frame
         that is no hand comes back with status ``NO_HAND`` and no pose (False: the pose is
         kept, for the evidence of the raw track)."""
-        dec = self.decide(tracker, depth_mm, intrinsics, model, result)
+        dec = self.decide(tracker, depth_mm, intrinsics, model, result, checked)
         if result.pose is not None and not dec.present and withhold:
             return replace(
                 result, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,

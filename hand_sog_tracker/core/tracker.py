@@ -23,10 +23,11 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from hand_sog_tracker.core import handcheck
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
 from hand_sog_tracker.core.energy import Objective, TipTargets, contact_shares
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, HandModel, HandShape, default_hand_model
-from hand_sog_tracker.core.handcheck import HandGate
+from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, HandGate
 from hand_sog_tracker.core.initialise import INIT_SEARCH
 from hand_sog_tracker.core.kinematics import (
     fingertips,
@@ -50,7 +51,7 @@ from hand_sog_tracker.core.search.candidates import pull_target
 from hand_sog_tracker.core.search.fit import fit_batch
 from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
-from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
+from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
 
 __all__ = ["ALPHA", "ASSIGN_LAMBDA_MM", "Tracker", "before_surface", "coverage", "hand_roi"]
 
@@ -85,6 +86,11 @@ SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
+#: A tracked frame whose hand check is below this competes with a fresh start from the hand
+#: found in the frame, which wins when its check is ``FRESH_MARGIN`` higher (issue 46; the
+#: gate's threshold: a frame it would not report; the margin chosen on scenes_dev).
+FRESH_BELOW = HAND_THRESHOLD
+FRESH_MARGIN = 0.1
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 
 
@@ -230,19 +236,20 @@ class Tracker:
         t0 = time.perf_counter()  # (timings only: nothing below depends on the clock)
         pre = preprocess(depth_mm, intrinsics, self._config)  # raises before any change of state
         t1 = time.perf_counter()
+        checked = None
         if self._prev is not None:
             result = self._track(pre)
+            if self._withhold:
+                checked = handcheck.check_hand(depth_mm, intrinsics, self._model, result)
+                if checked.confidence < FRESH_BELOW:  # (a lost track's is 0)
+                    result, checked = self._fresh_start(pre, depth_mm, intrinsics, result, checked)
         else:
-            self._steps = None  # a new track starts with fresh step lengths
-            self._lost_pulls = _NO_POINTS
-            if self._sizes is not None:
-                self._model = self._sizes[0]  # (a new track on the default model: its size is chosen again)
-            result = self._initialise(pre)
+            result = self._new_track(pre)
         t2 = time.perf_counter()
         self.last_fit = result
         # The hand decision (may reset the track: the next frame searches afresh).
         keeper = self if self._withhold else _KEEP
-        result = self._gate.gate(keeper, depth_mm, intrinsics, self._model, result, self._withhold)
+        result = self._gate.gate(keeper, depth_mm, intrinsics, self._model, result, self._withhold, checked)
         t3 = time.perf_counter()
         result.timings_ms["preprocess"] = (t1 - t0) * 1e3
         result.timings_ms.setdefault("quadtree", 0.0)
@@ -252,6 +259,42 @@ class Tracker:
         return result
 
     # -- internals -----------------------------------------------------------
+    def _new_track(self, pre: Preprocessed) -> TrackResult:
+        """A new track's search on ``pre`` (see :meth:`_initialise`), from fresh step lengths
+        and, on the default model, with its size chosen again."""
+        self._steps = None
+        self._lost_pulls = _NO_POINTS
+        if self._sizes is not None:
+            self._model = self._sizes[0]
+        return self._initialise(pre)
+
+    def _fresh_start(
+        self, pre: Preprocessed, depth_mm: NDArray, intrinsics: Intrinsics, track: TrackResult, checked: HandDecision
+    ) -> tuple[TrackResult, HandDecision]:
+        """A tracked frame the hand check doubts (``checked`` below ``FRESH_BELOW``; a track
+        lost on this frame too) against a fresh start from the hand found in the same frame:
+        the new track's search on ``pre`` replaces the track when its check's confidence is
+        ``FRESH_MARGIN`` higher (a wrong lock replaced at once, not after the gate's reset and
+        the next frame's search); else the track and its state are kept.  Returns (result,
+        its check)."""
+        kept = (
+            self._prev, self._steps, self._low_frames, self._status, self._model, self._refine_last,
+            self.last_proposal, self._lost_pulls,
+        )
+        fresh = self._new_track(pre)
+        if fresh.pose is not None:
+            fresh_check = handcheck.check_hand(depth_mm, intrinsics, self._model, fresh)
+            if fresh_check.confidence >= checked.confidence + FRESH_MARGIN:
+                self._gate.forget()  # (a new track: reported once a finger is seen to end)
+                self.last_proposal = "fresh_start"
+                fresh.timings_ms["quadtree"] = fresh.timings_ms.get("quadtree", 0.0) + track.timings_ms["quadtree"]
+                return fresh, fresh_check
+        (
+            self._prev, self._steps, self._low_frames, self._status, self._model, self._refine_last,
+            self.last_proposal, self._lost_pulls,
+        ) = kept
+        return track, checked
+
     def _data_near(
         self,
         pre: Preprocessed,
