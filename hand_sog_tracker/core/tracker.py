@@ -91,6 +91,9 @@ SMALL_HAND_FINALISTS = 2
 #: gate's threshold: a frame it would not report; the margin chosen on scenes_dev).
 FRESH_BELOW = HAND_THRESHOLD
 FRESH_MARGIN = 0.1
+#: ... and its palm lies this far (mm) from the track's: about half a palm's width (chosen here).
+FRESH_APART_MM = 40.0
+_PALM_ROWS = (0, 5, 9, 13, 17)  #: wrist and finger MCPs among the skeleton's 21 points
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 
 
@@ -116,6 +119,17 @@ def _with_targets(obj: Objective, targets: list[TipTargets | None]) -> Callable[
         return obj.batch(thetas, gradient, targets=[targets[i] for i in index.tolist()])
 
     return fun
+
+
+def _apart(track: TrackResult, fresh: TrackResult) -> bool:
+    """Whether the palms (wrist and finger MCPs, mean) of two results lie ``FRESH_APART_MM``
+    apart (a track without a pose: always): the fresh start found a hand elsewhere.  On the same
+    hand the check does not judge the articulation (a doubted curled hand was replaced by a
+    worse fresh start), the track's own search does."""
+    if track.skeleton_mm is None or fresh.skeleton_mm is None:
+        return True
+    palm = list(_PALM_ROWS)
+    return float(np.linalg.norm(track.skeleton_mm[palm].mean(0) - fresh.skeleton_mm[palm].mean(0))) > FRESH_APART_MM
 
 
 def _open(theta: NDArray[np.float64]) -> bool:
@@ -274,9 +288,9 @@ class Tracker:
         """A tracked frame the hand check doubts (``checked`` below ``FRESH_BELOW``; a track
         lost on this frame too) against a fresh start from the hand found in the same frame:
         the new track's search on ``pre`` replaces the track when its check's confidence is
-        ``FRESH_MARGIN`` higher (a wrong lock replaced at once, not after the gate's reset and
-        the next frame's search); else the track and its state are kept.  Returns (result,
-        its check)."""
+        ``FRESH_MARGIN`` higher and its palm lies elsewhere (:func:`_apart`: a wrong lock
+        replaced at once, not after the gate's reset and the next frame's search); else the
+        track and its state are kept.  Returns (result, its check)."""
         kept = (
             self._prev, self._steps, self._low_frames, self._status, self._model, self._refine_last,
             self.last_proposal, self._lost_pulls,
@@ -284,7 +298,7 @@ class Tracker:
         fresh = self._new_track(pre)
         if fresh.pose is not None:
             fresh_check = handcheck.check_hand(depth_mm, intrinsics, self._model, fresh)
-            if fresh_check.confidence >= checked.confidence + FRESH_MARGIN:
+            if fresh_check.confidence >= checked.confidence + FRESH_MARGIN and _apart(track, fresh):
                 self._gate.forget()  # (a new track: reported once a finger is seen to end)
                 self.last_proposal = "fresh_start"
                 fresh.timings_ms["quadtree"] = fresh.timings_ms.get("quadtree", 0.0) + track.timings_ms["quadtree"]

@@ -18,6 +18,7 @@ each bag at its rate to ``tracker_node`` and listens to ``hand/confidence`` and
 * ``full_ok``: share of the fully visible frames with a hand reported within 20 mm mean tip error;
 * ``refind``: per return into full view, frames until every tip is within 20 mm;
 * ``palm_ok``: share of the fully visible frames with the palm keypoints within 15 mm (mean);
+* ``longest_wrong``: the longest run of frames reporting a wrong hand (:func:`longest_wrong`);
 * ``auc``: ROC AUC of the confidence separating good frames (a pose, mean tip error < 20 mm)
   from bad ones (> 40 mm, or a pose on a frame without a hand), over the frames with a pose.
 """
@@ -40,7 +41,7 @@ from hand_sog_tracker.tools.bagio import DepthBagReader
 from hand_sog_tracker.tools.bagset import read_sidecar
 from hand_sog_tracker.tools.make_scene_bags import read_scene_truth
 
-__all__ = ["evaluate_scene_core", "evaluate_scene_node", "summarise", "roc_auc", "main"]
+__all__ = ["evaluate_scene_core", "evaluate_scene_node", "longest_wrong", "summarise", "roc_auc", "main"]
 
 PALM_ROWS = (0, 5, 9, 13, 17)
 GOOD_MM, BAD_MM, PALM_MM = 20.0, 40.0, 15.0
@@ -135,7 +136,19 @@ def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
         "full_tip_mm_median": float(np.nanmedian([r["tip_mm"] for r in full])) if full else math.nan,
         "auc": roc_auc(scores, labels),
         "auc_frames": (int(sum(labels)), int(len(labels) - sum(labels))),
+        "longest_wrong": longest_wrong(records),
     }
+
+
+def longest_wrong(records: list[dict[str, Any]]) -> int:
+    """The longest run of frames reporting a wrong hand: a hand reported on a frame without
+    one, or with a mean tip error over 40 mm (issue 46: no wrong lock lasts over 0.5 s)."""
+    run = longest = 0
+    for r in records:
+        wrong = r["reported"] and (r["visibility"] == ABSENT or r["tip_mm"] > BAD_MM)
+        run = run + 1 if wrong else 0
+        longest = max(longest, run)
+    return longest
 
 
 def refind_frames(records: list[dict[str, Any]]) -> list[int | None]:
