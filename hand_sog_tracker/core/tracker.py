@@ -123,9 +123,7 @@ def _with_targets(obj: Objective, targets: list[TipTargets | None]) -> Callable[
 
 def _apart(track: TrackResult, fresh: TrackResult) -> bool:
     """Whether the palms (wrist and finger MCPs, mean) of two results lie ``FRESH_APART_MM``
-    apart (a track without a pose: always): the fresh start found a hand elsewhere.  On the same
-    hand the check does not judge the articulation (a doubted curled hand was replaced by a
-    worse fresh start), the track's own search does."""
+    apart (a track without a pose: always): the fresh start found a hand elsewhere."""
     if track.skeleton_mm is None or fresh.skeleton_mm is None:
         return True
     palm = list(_PALM_ROWS)
@@ -168,6 +166,8 @@ class Tracker:
         self._withhold = bool(withhold)
         #: The last frame's result before its hand decision withheld the pose (for the tools).
         self.last_fit: TrackResult | None = None
+        #: The last tracked frame's search :class:`Frame` and its pose (26,), for the fresh start.
+        self._track_frame: tuple[Frame, NDArray[np.float64]] | None = None
         # (the default model, the small one) while the model is the default (SMALL_HAND_LENGTH).
         self._sizes: tuple[HandModel, HandModel] | None = None
         if model is None:
@@ -289,16 +289,24 @@ class Tracker:
         lost on this frame too) against a fresh start from the hand found in the same frame:
         the new track's search on ``pre`` replaces the track when its check's confidence is
         ``FRESH_MARGIN`` higher and its palm lies elsewhere (:func:`_apart`: a wrong lock
-        replaced at once, not after the gate's reset and the next frame's search); else the
-        track and its state are kept.  Returns (result, its check)."""
+        replaced at once, not after the gate's reset and the next frame's search) or, on the
+        same hand, when its pose also scores higher on the track's frame (the check does not
+        judge the articulation: a doubted curled hand was replaced by a worse fresh start);
+        else the track and its state are kept.  Returns (result, its check)."""
         kept = (
             self._prev, self._steps, self._low_frames, self._status, self._model, self._refine_last,
             self.last_proposal, self._lost_pulls,
         )
+        on_track = self._track_frame if track.pose is not None else None
         fresh = self._new_track(pre)
         if fresh.pose is not None:
             fresh_check = handcheck.check_hand(depth_mm, intrinsics, self._model, fresh)
-            if fresh_check.confidence >= checked.confidence + FRESH_MARGIN and _apart(track, fresh):
+            better = fresh_check.confidence >= checked.confidence + FRESH_MARGIN
+            if better and on_track is not None and not _apart(track, fresh):
+                # (the same hand: the track's own score judges the articulation)
+                frame, x = on_track
+                better = fresh.pose.size == x.size and frame.score(fresh.pose) > frame.score(x)
+            if better:
                 self._gate.forget()  # (a new track: reported once a finger is seen to end)
                 self.last_proposal = "fresh_start"
                 fresh.timings_ms["quadtree"] = fresh.timings_ms.get("quadtree", 0.0) + track.timings_ms["quadtree"]
@@ -381,6 +389,7 @@ class Tracker:
         self._steps = fit.steps
         frame = Frame(self._model, fit, obj, plain(obj), data, det, self._limits(), lost_pulls=self._lost_pulls)
         res, self.last_proposal = search(frame, TRACK_PROPOSALS)
+        self._track_frame = (frame, res.x)
         # A detection whose pulls lost is not pulled onto again while it stays where it is.
         target = pull_target(frame)
         lost = target is not None and self.last_proposal != "detection"
