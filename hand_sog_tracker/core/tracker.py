@@ -10,8 +10,11 @@ Gaussians, the pose is fitted from there by the adaptive gradient ascent, and th
 score picks the frame's pose.  Without a track (the first frame, after a loss) the same
 search starts from the hand found in the depth (:mod:`.search.start`) with more candidates.
 A frame with a curled finger answers with its pose refined on a model with joint Gaussians
-(``REFINE_CURL_RAD``); the track goes on from the pose.  Nothing depends on the wall clock:
-the same frames give the same answers.
+(``REFINE_CURL_RAD``); the track goes on from the pose.  Every frame ends with the hand
+decision (:mod:`.handcheck`, issue 46): a frame that is no hand is answered without a pose and
+may reset the track, and a tracked frame the check doubts competes with a fresh start (the new
+track's search on the same frame).  Nothing depends on the wall clock: the same frames give
+the same answers.
 """
 
 from __future__ import annotations
@@ -154,8 +157,9 @@ class Tracker:
     withhold : bool
         Every frame's result carries its hand decision (:class:`~.handcheck.HandGate`, issue
         46); by default a frame that is no hand has no pose and resets the track as the gate
-        says (what the node publishes).  False keeps every fitted pose and track (the raw
-        fit's evidence, for the tools).
+        says (what the node publishes), and a doubted track competes with a fresh start
+        (:meth:`_fresh_start`).  False keeps every fitted pose and track, without fresh starts
+        (the raw fit's evidence, for the tools).
     """
 
     def __init__(
@@ -166,7 +170,7 @@ class Tracker:
         self._withhold = bool(withhold)
         #: The last frame's result before its hand decision withheld the pose (for the tools).
         self.last_fit: TrackResult | None = None
-        #: The last tracked frame's search :class:`Frame` and its pose (26,), for the fresh start.
+        #: This tracked frame's search :class:`Frame` and its pose (26,), for the fresh start.
         self._track_frame: tuple[Frame, NDArray[np.float64]] | None = None
         # (the default model, the small one) while the model is the default (SMALL_HAND_LENGTH).
         self._sizes: tuple[HandModel, HandModel] | None = None
@@ -257,6 +261,7 @@ class Tracker:
                 checked = handcheck.check_hand(depth_mm, intrinsics, self._model, result)
                 if checked.confidence < FRESH_BELOW:  # (a lost track's is 0)
                     result, checked = self._fresh_start(pre, depth_mm, intrinsics, result, checked)
+            self._track_frame = None  # (the frame's data are not kept)
         else:
             result = self._new_track(pre)
         t2 = time.perf_counter()
@@ -305,7 +310,7 @@ class Tracker:
             if better and on_track is not None and not _apart(track, fresh):
                 # (the same hand: the track's own score judges the articulation)
                 frame, x = on_track
-                better = fresh.pose.size == x.size and frame.score(fresh.pose) > frame.score(x)
+                better = frame.score(fresh.pose) > frame.score(x)
             if better:
                 self._gate.forget()  # (a new track: reported once a finger is seen to end)
                 self.last_proposal = "fresh_start"
