@@ -27,7 +27,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core import handcheck
-from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
+from hand_sog_tracker.core.depth_sog import (
+    MAX_DATA_GAUSSIANS,
+    ImageSoG,
+    Preprocessed,
+    leaf_px,
+    preprocess,
+    quadtree_sog,
+)
 from hand_sog_tracker.core.energy import Objective, TipTargets, contact_shares
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, HandModel, HandShape, default_hand_model
 from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, HandGate
@@ -259,7 +266,9 @@ class Tracker:
             result = self._track(pre)
             if self._withhold:
                 checked = handcheck.check_hand(depth_mm, intrinsics, self._model, result)
-                if checked.confidence < FRESH_BELOW:  # (a lost track's is 0)
+                # (A lost track's check is 0.  A frame whose data reach the cap already costs
+                # several initialisations, issue 50: the gate's reset searches on the next one.)
+                if checked.confidence < FRESH_BELOW and result.n_image_gaussians < MAX_DATA_GAUSSIANS:
                     result, checked = self._fresh_start(pre, depth_mm, intrinsics, result, checked)
             self._track_frame = None  # (the frame's data are not kept)
         else:
