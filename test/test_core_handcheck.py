@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
-from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, CheckedTracker, HandGate, check_hand
+from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, HandGate, check_hand
 from hand_sog_tracker.core.kinematics import gaussian_centres, skeleton_points
+from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerStatus, TrackResult
 from hand_sog_tracker.synth.raster import rasterise
 from hand_sog_tracker.synth.render import RenderOptions, render_depth
@@ -136,22 +137,51 @@ def test_a_new_track_is_reported_from_its_first_frame_with_a_finger_end(monkeypa
     assert HandGate(confirm_ends=False).decide(t, wall, INTR, MODEL, _result(THETA)).present
 
 
-def test_checked_tracker_drops_the_pose_of_a_frame_that_is_no_hand() -> None:
-    class Fake:
-        model = MODEL
+def test_the_tracker_answers_with_its_hand_decision_and_withholds_a_frame_that_is_no_hand(monkeypatch) -> None:
+    """The decision is the core tracker's own (node = core): a hand is reported with its pose;
+    a frame the check calls no hand has none and starts afresh (``withhold=False`` keeps both)."""
+    import hand_sog_tracker.core.handcheck as hc
 
-        def __init__(self) -> None:
-            self.reset_calls = 0
+    depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), np.random.default_rng(3))
+    t = Tracker()
+    res = t.process(depth, INTR)
+    assert res.hand is not None and res.hand.present and res.pose is not None
+    assert res.hand.confidence >= HAND_THRESHOLD and "check" in res.timings_ms
+    ev = hc.HandEvidence(0.0, 0.0, 0.0, math.nan, 1.0, 0.0)
+    monkeypatch.setattr(hc, "check_hand", lambda *a: hc.HandDecision(False, 0.0, np.zeros(5), ev))
+    res = t.process(depth, INTR)
+    assert res.pose is None and res.status is TrackerStatus.NO_HAND and res.hand is not None
+    assert not res.hand.present and t.last_fit is not None and t.last_fit.pose is not None
+    assert t.last_pose is None  # (reset: the next frame searches the whole image)
+    kept = Tracker(withhold=False)
+    res = kept.process(depth, INTR)
+    assert res.pose is not None and res.hand is not None and not res.hand.present
+    assert kept.last_pose is not None
 
-        def process(self, depth, intr):
-            return _result(THETA)
 
-        def reset(self) -> None:
-            self.reset_calls += 1
+def test_a_doubted_track_is_replaced_by_a_fresh_start_on_the_hand_in_the_same_frame(monkeypatch) -> None:
+    """Issue 46, finding it again: the hand moved away and a head is where it was; the track
+    on the head is doubted by the check, and the fresh start from the hand found in the same
+    frame replaces it on that frame (without it, that frame reports no hand)."""
+    import hand_sog_tracker.core.tracker as tr
 
-    ct = CheckedTracker(Fake(), HandGate(reset_frames=1))
-    wall = np.full((INTR.height, INTR.width), 432.0, dtype=np.float32)
-    res = ct.process(wall, INTR)
-    assert res.pose is None and res.status is TrackerStatus.NO_HAND and ct.reset_calls == 1
-    assert ct.last_decision is not None and not ct.last_decision.present
-    assert not math.isnan(ct.last_decision.confidence)
+    a, b = rest_pose((-110.0, 40.0, 520.0)), rest_pose((110.0, 40.0, 470.0))
+    opts = RenderOptions(noise_mm=1.0, background_mm=None)
+    first = render_depth(MODEL, a, INTR, opts, np.random.default_rng(1))
+    hand = render_depth(MODEL, b, INTR, opts, np.random.default_rng(2))
+    head = _mesh_depth(_ellipsoid(a[:3] + [0.0, -50.0, 60.0], (75.0, 95.0, 85.0)))
+    both = np.where((hand > 0) & ((head <= 0) | (hand < head)), hand, head).astype(np.float32)
+
+    def second_frame() -> tuple[Tracker, TrackResult]:
+        t = Tracker()
+        assert t.process(first, INTR).pose is not None
+        return t, t.process(both, INTR)
+
+    t, res = second_frame()
+    assert res.pose is not None and t.last_proposal == "fresh_start", res.hand
+    assert np.linalg.norm(res.pose[:3] - b[:3]) < 30.0
+    assert t.last_fit is not None and t.last_fit.pose is not None  # (the fresh start's)
+    monkeypatch.setattr(tr, "FRESH_BELOW", -1.0)  # (no fresh start)
+    t, res = second_frame()
+    assert res.pose is None and t.last_fit is not None and t.last_fit.pose is not None
+    assert np.linalg.norm(t.last_fit.pose[:3] - a[:3]) < 60.0  # (the track stayed on the head)

@@ -55,14 +55,16 @@ def test_open_hand_fingertips_lie_on_the_hand(frame: int, tmp_path: Path) -> Non
 LABELS = Path(__file__).resolve().parent / "data" / "realsense_fingertips.json"
 
 
-def _static_tip_errors(frame: int, mirror: bool, shift: tuple[int, int] = (0, 0)) -> np.ndarray:
+def _static_tip_errors(
+    frame: int, mirror: bool, shift: tuple[int, int] = (0, 0), withhold: bool = True
+) -> np.ndarray:
     """Fingertip errors (5,) mm against the labels after tracking the frame 10 times (a static
     sequence; ``tools/real_frames.py``); the hand must be tracked.  ``mirror`` flips the image
     left-right (the same hand seen as a left hand); ``shift``: (du, dv) px, the image and labels
-    moved by whole pixels (np.roll)."""
+    moved by whole pixels (np.roll); ``withhold`` False scores the fit of a hand not reported."""
     labels = json.loads(LABELS.read_text())
     depth, intr, truth = labelled_frame(REALSENSE, labels, frame, mirror, Variant(du=shift[0], dv=shift[1]))
-    err = static_tip_errors(depth, intr, truth, right_hand=not mirror)
+    err = static_tip_errors(depth, intr, truth, right_hand=not mirror, withhold=withhold)
     assert err is not None
     return err
 
@@ -112,9 +114,19 @@ def test_crossed_fingers_and_a_fist_from_the_back_keep_their_side(frame: int, bo
     """Frames 4 and 7 are not within 15 mm per fingertip (README, known limitations), but the
     hand is found the right way round: mean 7.7 and 19.4 mm.  (Scoring initialisation's
     candidates with the hidden-tip cost of the tracked frames turned them palm-first: 32 and
-    80 mm.)"""
-    err = _static_tip_errors(frame, False)
+    80 mm.)  The fist of frame 7 is not reported (below): its fit is scored."""
+    err = _static_tip_errors(frame, False, withhold=False)
     assert err.mean() < bound_mm, err.round(1)
+
+
+@pytest.mark.xfail(strict=True, reason="a new track waits for a finger seen to end; frame 7's fist shows none")
+def test_a_fist_seen_from_the_back_is_reported() -> None:
+    """Known limitation of the hand check (doc/design/hand_check.md): a new track is reported
+    from its first frame with a finger seen to end, and a single image of a fist never shows
+    one.  Strict: the mark fails the suite once the fist is reported, so it cannot hide a fix."""
+    labels = json.loads(LABELS.read_text())
+    depth, intr, truth = labelled_frame(REALSENSE, labels, 7, False, Variant())
+    assert static_tip_errors(depth, intr, truth) is not None
 
 
 @pytest.mark.skipif(not NYU.is_dir(), reason="../shared/realdata/nyu-test-frame1 is not here")

@@ -102,3 +102,4 @@ def test_scene_metrics_auc_refind_and_no_hand_share() -> None:
     assert s["no_hand_reported"] == 0.5 and s["full_ok"] == 0.5
     assert s["auc"] == 1.0 and s["auc_frames"] == (2, 2)  # good: 0.9, 0.8; bad: 0.4 (no hand), 0.1
     assert refind_frames(recs) == [2]  # back in full view at frame 3, all tips < 20 mm at frame 5
+    assert s["longest_wrong"] == 2  # (a hand on the no-hand frame 2, then 50 mm off on frame 3)

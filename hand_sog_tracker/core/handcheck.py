@@ -41,7 +41,9 @@ Per finger: the share of that finger's
 silhouette on data (occluded pixels count against: a finger the data cannot show is reported
 with a low confidence).
 
-:class:`HandGate` applies it: below its threshold the frame is "no hand" (no pose is reported);
+:class:`HandGate` applies it, inside :class:`~hand_sog_tracker.core.tracker.Tracker` (every
+result carries its decision, so the node, the tools and the core answer alike): below its
+threshold the frame is "no hand" (no pose is reported);
 below ``RESET_BELOW``, or after ``RESET_FRAMES`` frames in a row below the threshold, the
 tracker is reset, so that the next frame searches the whole image afresh instead of keeping a
 wrong lock.  A new track is reported only from its first frame with a finger seen to end
@@ -54,7 +56,7 @@ reported once it opens a finger; a tracked hand that closes into a fist stays re
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import replace
 from typing import Final, Protocol
 
 import cv2
@@ -62,7 +64,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.hand_model import HandModel
-from hand_sog_tracker.core.types import Intrinsics, TrackResult
+from hand_sog_tracker.core.types import HandDecision, HandEvidence, Intrinsics, TrackerStatus, TrackResult
 
 __all__ = [
     "DEPTH_TOL_MM",
@@ -72,7 +74,6 @@ __all__ = [
     "HandDecision",
     "check_hand",
     "HandGate",
-    "CheckedTracker",
 ]
 
 DEPTH_TOL_MM: Final = 20.0  #: data within this of the model's front surface lie on it (chosen here)
@@ -98,57 +99,6 @@ ENDS_CONFIRM: Final = 0.5
 #: outright: the model is on something else).
 RESET_BELOW: Final = 0.05
 _GRID_WIDTH = 160  #: the check's pixel grid is about this wide
-
-
-@dataclass(frozen=True)
-class HandEvidence:
-    """The measured evidence of :func:`check_hand` (all in [0, 1], NaN when not measured).
-
-    Attributes
-    ----------
-    on : float
-        Share of the model's visible silhouette lying on data.
-    explained : float
-        Share of the foreground data around the model covered by its silhouette.
-    fingers_on : float
-        Mean over the five fingers of the share of each finger's visible silhouette on data.
-    ends : float
-        Share of the checked fingers whose data end past the fingertip (NaN: none checked).
-    in_view : float
-        Share of the model's silhouette inside the image.
-    outline : float
-        Share of the ring just outside the silhouette (hand side of the wrist) where the depth
-        steps back from the model's data or has none: the hand's outline is a depth edge.
-    """
-
-    on: float
-    explained: float
-    fingers_on: float
-    ends: float
-    in_view: float
-    outline: float
-
-
-@dataclass(frozen=True, eq=False)
-class HandDecision:
-    """The hand decision of one frame.
-
-    Attributes
-    ----------
-    present : bool
-        A hand is reported (tracked and its confidence at least the threshold).
-    confidence : float
-        In [0, 1]; 0 when nothing was tracked.
-    fingers : array, shape (5,)
-        Per finger (thumb .. little) in [0, 1]: how much of it the data show.
-    evidence : HandEvidence or None
-        None when nothing was tracked.
-    """
-
-    present: bool
-    confidence: float
-    fingers: NDArray[np.float64] = field(default_factory=lambda: np.zeros(5))
-    evidence: HandEvidence | None = None
 
 
 def _ramp(x: float, lo: float, hi: float) -> float:
@@ -417,11 +367,17 @@ class HandGate:
         self._confirmed = False  # the current track has shown a finger end
 
     def decide(
-        self, tracker: _Resettable, depth_mm: NDArray, intr: Intrinsics, model: HandModel, result: TrackResult
+        self,
+        tracker: _Resettable,
+        depth_mm: NDArray,
+        intr: Intrinsics,
+        model: HandModel,
+        result: TrackResult,
+        checked: HandDecision | None = None,
     ) -> HandDecision:
-        """The decision of ``result`` (see :func:`check_hand`); resets ``tracker`` as the class
-        docstring says."""
-        dec = check_hand(depth_mm, intr, model, result)
+        """The decision of ``result`` (see :func:`check_hand`; ``checked``: its check when
+        already made); resets ``tracker`` as the class docstring says."""
+        dec = check_hand(depth_mm, intr, model, result) if checked is None else checked
         if result.pose is None:
             self._low = 0
             self._confirmed = False
@@ -444,43 +400,28 @@ class HandGate:
             self._confirmed = False
         return HandDecision(present, conf, dec.fingers * (conf > 0), dec.evidence)
 
+    def forget(self) -> None:
+        """Forget the current track (the tracker was reset): the next one is new."""
+        self._low = 0
+        self._confirmed = False
+
     def gate(
-        self, tracker: _Resettable, depth_mm: NDArray, intrinsics: Intrinsics, result: TrackResult
-    ) -> tuple[TrackResult, HandDecision]:
-        """:meth:`decide` on ``result`` of ``tracker`` (which has a ``model``), and the result to
-        publish: status ``NO_HAND`` and no pose when the frame is no hand (node and core mode alike)."""
-        from dataclasses import replace
-
-        from hand_sog_tracker.core.types import TrackerStatus
-
-        dec = self.decide(tracker, depth_mm, intrinsics, tracker.model, result)  # type: ignore[attr-defined]
-        if result.pose is not None and not dec.present:
-            result = replace(
+        self,
+        tracker: _Resettable,
+        depth_mm: NDArray,
+        intrinsics: Intrinsics,
+        model: HandModel,
+        result: TrackResult,
+        withhold: bool = True,
+        checked: HandDecision | None = None,
+    ) -> TrackResult:
+        """``result`` with its :meth:`decide` decision as ``hand``; with ``withhold``, a frame
+        that is no hand comes back with status ``NO_HAND`` and no pose (False: the pose is
+        kept, for the evidence of the raw track)."""
+        dec = self.decide(tracker, depth_mm, intrinsics, model, result, checked)
+        if result.pose is not None and not dec.present and withhold:
+            return replace(
                 result, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,
-                gaussians_mm=None, gaussian_radii_mm=None,
+                gaussians_mm=None, gaussian_radii_mm=None, hand=dec,
             )
-        return result, dec
-
-
-class CheckedTracker:
-    """A :class:`~hand_sog_tracker.core.tracker.Tracker` whose results pass :class:`HandGate`, as
-    in the node: a frame that is no hand comes back with status ``NO_HAND`` and no pose.
-
-    Every other attribute is the wrapped tracker's (``model``, ``set_model``, ``reset`` ...).
-    :attr:`last_decision` is the last frame's :class:`HandDecision`.
-    """
-
-    def __init__(self, tracker: object, gate: HandGate | None = None) -> None:
-        self._tracker = tracker
-        self._gate = gate or HandGate()
-        self.last_decision: HandDecision | None = None
-
-    def __getattr__(self, name: str) -> object:
-        return getattr(self._tracker, name)
-
-    def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
-        """Track the frame (see ``Tracker.process``) and gate its result."""
-        t = self._tracker
-        res = t.process(depth_mm, intrinsics)  # type: ignore[attr-defined]
-        res, self.last_decision = self._gate.gate(t, depth_mm, intrinsics, res)  # type: ignore[arg-type]
-        return res
+        return replace(result, hand=dec)

@@ -10,8 +10,11 @@ Gaussians, the pose is fitted from there by the adaptive gradient ascent, and th
 score picks the frame's pose.  Without a track (the first frame, after a loss) the same
 search starts from the hand found in the depth (:mod:`.search.start`) with more candidates.
 A frame with a curled finger answers with its pose refined on a model with joint Gaussians
-(``REFINE_CURL_RAD``); the track goes on from the pose.  Nothing depends on the wall clock:
-the same frames give the same answers.
+(``REFINE_CURL_RAD``); the track goes on from the pose.  Every frame ends with the hand
+decision (:mod:`.handcheck`, issue 46): a frame that is no hand is answered without a pose and
+may reset the track, and a tracked frame the check doubts competes with a fresh start (the new
+track's search on the same frame).  Nothing depends on the wall clock: the same frames give
+the same answers.
 """
 
 from __future__ import annotations
@@ -23,9 +26,18 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
+from hand_sog_tracker.core import handcheck
+from hand_sog_tracker.core.depth_sog import (
+    MAX_DATA_GAUSSIANS,
+    ImageSoG,
+    Preprocessed,
+    leaf_px,
+    preprocess,
+    quadtree_sog,
+)
 from hand_sog_tracker.core.energy import Objective, TipTargets, contact_shares
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, HandModel, HandShape, default_hand_model
+from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, HandGate
 from hand_sog_tracker.core.initialise import INIT_SEARCH
 from hand_sog_tracker.core.kinematics import (
     fingertips,
@@ -49,7 +61,7 @@ from hand_sog_tracker.core.search.candidates import pull_target
 from hand_sog_tracker.core.search.fit import fit_batch
 from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
-from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
+from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
 
 __all__ = ["ALPHA", "ASSIGN_LAMBDA_MM", "Tracker", "before_surface", "coverage", "hand_roi"]
 
@@ -84,9 +96,27 @@ SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
+#: A tracked frame whose hand check is below this competes with a fresh start from the hand
+#: found in the frame, which wins when its check is ``FRESH_MARGIN`` higher (issue 46; the
+#: gate's threshold: a frame it would not report; the margin chosen on scenes_dev).
+FRESH_BELOW = HAND_THRESHOLD
+FRESH_MARGIN = 0.1
+#: ... and its palm lies this far (mm) from the track's: about half a palm's width (chosen here).
+FRESH_APART_MM = 40.0
+_PALM_ROWS = (0, 5, 9, 13, 17)  #: wrist and finger MCPs among the skeleton's 21 points
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 #: ``(data, detections, theta (26,)) -> (data, detections)``: see :attr:`Tracker.data_filter`.
 DataFilter = Callable[[ImageSoG, Detections, NDArray[np.float64]], tuple[ImageSoG, Detections]]
+
+
+class _Keep:
+    """What the hand gate resets when the tracker keeps its track (``withhold=False``)."""
+
+    def reset(self) -> None:
+        pass
+
+
+_KEEP = _Keep()
 _NO_POINTS = np.zeros((0, 3))
 
 
@@ -101,6 +131,15 @@ def _with_targets(obj: Objective, targets: list[TipTargets | None]) -> Callable[
         return obj.batch(thetas, gradient, targets=[targets[i] for i in index.tolist()])
 
     return fun
+
+
+def _apart(track: TrackResult, fresh: TrackResult) -> bool:
+    """Whether the palms (wrist and finger MCPs, mean) of two results lie ``FRESH_APART_MM``
+    apart (a track without a pose: always): the fresh start found a hand elsewhere."""
+    if track.skeleton_mm is None or fresh.skeleton_mm is None:
+        return True
+    palm = list(_PALM_ROWS)
+    return float(np.linalg.norm(track.skeleton_mm[palm].mean(0) - fresh.skeleton_mm[palm].mean(0))) > FRESH_APART_MM
 
 
 def _open(theta: NDArray[np.float64]) -> bool:
@@ -124,10 +163,24 @@ class Tracker:
         Hand model (mm), kept as given; default: the default adult hand of
         ``config.right_hand``, on which every new track may start the smaller hand of
         ``SMALL_HAND_LENGTH`` instead (until :meth:`set_model`).
+    withhold : bool
+        Every frame's result carries its hand decision (:class:`~.handcheck.HandGate`, issue
+        46); by default a frame that is no hand has no pose and resets the track as the gate
+        says (what the node publishes), and a doubted track competes with a fresh start
+        (:meth:`_fresh_start`).  False keeps every fitted pose and track, without fresh starts
+        (the raw fit's evidence, for the tools).
     """
 
-    def __init__(self, config: TrackerConfig | None = None, model: HandModel | None = None) -> None:
+    def __init__(
+        self, config: TrackerConfig | None = None, model: HandModel | None = None, withhold: bool = True
+    ) -> None:
         self._config = config or TrackerConfig()
+        self._gate = HandGate()
+        self._withhold = bool(withhold)
+        #: The last frame's result before its hand decision withheld the pose (for the tools).
+        self.last_fit: TrackResult | None = None
+        #: This tracked frame's search :class:`Frame` and its pose (26,), for the fresh start.
+        self._track_frame: tuple[Frame, NDArray[np.float64]] | None = None
         # (the default model, the small one) while the model is the default (SMALL_HAND_LENGTH).
         self._sizes: tuple[HandModel, HandModel] | None = None
         if model is None:
@@ -204,6 +257,7 @@ class Tracker:
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
         self._lost_pulls = _NO_POINTS
+        self._gate.forget()
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
         """Track the hand in one depth frame.
@@ -222,24 +276,42 @@ class Tracker:
         """
         t0 = time.perf_counter()  # (timings only: nothing below depends on the clock)
         pre = preprocess(depth_mm, intrinsics, self._config)  # raises before any change of state
-        result = self.process_preprocessed(pre)
-        result.timings_ms["preprocess"] = (time.perf_counter() - t0) * 1e3 - result.timings_ms["total"]
-        result.timings_ms["total"] += result.timings_ms["preprocess"]
+        t1 = time.perf_counter()
+        checked = None
+        if self._prev is not None:
+            result = self._track(pre)
+            if self._withhold:
+                checked = handcheck.check_hand(depth_mm, intrinsics, self._model, result)
+                # (A lost track's check is 0.  A frame whose data reach the cap already costs
+                # several initialisations, issue 50: the gate's reset searches on the next one.)
+                if checked.confidence < FRESH_BELOW and result.n_image_gaussians < MAX_DATA_GAUSSIANS:
+                    result, checked = self._fresh_start(pre, depth_mm, intrinsics, result, checked)
+            self._track_frame = None  # (the frame's data are not kept)
+        else:
+            result = self._new_track(pre)
+        t2 = time.perf_counter()
+        self.last_fit = result
+        # The hand decision (may reset the track: the next frame searches afresh).
+        keeper = self if self._withhold else _KEEP
+        result = self._gate.gate(keeper, depth_mm, intrinsics, self._model, result, self._withhold, checked)
+        t3 = time.perf_counter()
+        result.timings_ms["preprocess"] = (t1 - t0) * 1e3
+        result.timings_ms.setdefault("quadtree", 0.0)
+        result.timings_ms["optimise"] = (t2 - t1) * 1e3 - result.timings_ms["quadtree"]
+        result.timings_ms["check"] = (t3 - t2) * 1e3
+        result.timings_ms["total"] = (t3 - t0) * 1e3
         return result
 
     def process_preprocessed(self, pre: Preprocessed) -> TrackResult:
-        """:meth:`process` of a frame already preprocessed with this tracker's configuration
-        (several hands share one preprocessing, :mod:`.hands`); ``timings_ms["preprocess"]`` 0."""
+        """:meth:`process` of a frame already preprocessed with this tracker's configuration,
+        without the hand check and gate (several hands share one preprocessing and the
+        multi-hand tracker decides for its hands, :mod:`.hands`: a gate's reset would search
+        the whole image, the other hand's data too); ``timings_ms["preprocess"]`` 0."""
         t1 = time.perf_counter()
-        if self._prev is not None:
-            result = self._track(pre)
-        else:
-            self._steps = None  # a new track starts with fresh step lengths
-            self._lost_pulls = _NO_POINTS
-            if self._sizes is not None:
-                self._model = self._sizes[0]  # (a new track on the default model: its size is chosen again)
-            result = self._initialise(pre)
+        result = self._track(pre) if self._prev is not None else self._new_track(pre)
+        self._track_frame = None
         t2 = time.perf_counter()
+        self.last_fit = result
         result.timings_ms["preprocess"] = 0.0
         result.timings_ms.setdefault("quadtree", 0.0)
         result.timings_ms["optimise"] = (t2 - t1) * 1e3 - result.timings_ms["quadtree"]
@@ -247,6 +319,50 @@ class Tracker:
         return result
 
     # -- internals -----------------------------------------------------------
+    def _new_track(self, pre: Preprocessed) -> TrackResult:
+        """A new track's search on ``pre`` (see :meth:`_initialise`), from fresh step lengths
+        and, on the default model, with its size chosen again."""
+        self._steps = None
+        self._lost_pulls = _NO_POINTS
+        if self._sizes is not None:
+            self._model = self._sizes[0]
+        return self._initialise(pre)
+
+    def _fresh_start(
+        self, pre: Preprocessed, depth_mm: NDArray, intrinsics: Intrinsics, track: TrackResult, checked: HandDecision
+    ) -> tuple[TrackResult, HandDecision]:
+        """A tracked frame the hand check doubts (``checked`` below ``FRESH_BELOW``; a track
+        lost on this frame too) against a fresh start from the hand found in the same frame:
+        the new track's search on ``pre`` replaces the track when its check's confidence is
+        ``FRESH_MARGIN`` higher and its palm lies elsewhere (:func:`_apart`: a wrong lock
+        replaced at once, not after the gate's reset and the next frame's search) or, on the
+        same hand, when its pose also scores higher on the track's frame (the check does not
+        judge the articulation: a doubted curled hand was replaced by a worse fresh start);
+        else the track and its state are kept.  Returns (result, its check)."""
+        kept = (
+            self._prev, self._steps, self._low_frames, self._status, self._model, self._refine_last,
+            self.last_proposal, self._lost_pulls,
+        )
+        on_track = self._track_frame if track.pose is not None else None
+        fresh = self._new_track(pre)
+        if fresh.pose is not None:
+            fresh_check = handcheck.check_hand(depth_mm, intrinsics, self._model, fresh)
+            better = fresh_check.confidence >= checked.confidence + FRESH_MARGIN
+            if better and on_track is not None and not _apart(track, fresh):
+                # (the same hand: the track's own score judges the articulation)
+                frame, x = on_track
+                better = frame.score(fresh.pose) > frame.score(x)
+            if better:
+                self._gate.forget()  # (a new track: reported once a finger is seen to end)
+                self.last_proposal = "fresh_start"
+                fresh.timings_ms["quadtree"] = fresh.timings_ms.get("quadtree", 0.0) + track.timings_ms["quadtree"]
+                return fresh, fresh_check
+        (
+            self._prev, self._steps, self._low_frames, self._status, self._model, self._refine_last,
+            self.last_proposal, self._lost_pulls,
+        ) = kept
+        return track, checked
+
     def _data_near(
         self,
         pre: Preprocessed,
@@ -321,6 +437,7 @@ class Tracker:
         self._steps = fit.steps
         frame = Frame(self._model, fit, obj, plain(obj), data, det, self._limits(), lost_pulls=self._lost_pulls)
         res, self.last_proposal = search(frame, TRACK_PROPOSALS)
+        self._track_frame = (frame, res.x)
         # A detection whose pulls lost is not pulled onto again while it stays where it is.
         target = pull_target(frame)
         lost = target is not None and self.last_proposal != "detection"

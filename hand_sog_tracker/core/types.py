@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.errors import InputError, IntrinsicsError
 
-__all__ = ["Intrinsics", "TrackerConfig", "TrackerStatus", "TrackResult"]
+__all__ = ["HandDecision", "HandEvidence", "Intrinsics", "TrackerConfig", "TrackerStatus", "TrackResult"]
 
 
 @dataclass(frozen=True)
@@ -142,6 +142,59 @@ class TrackerConfig:
             raise InputError("lost_frames and init_hypotheses must be >= 1")
 
 
+@dataclass(frozen=True)
+class HandEvidence:
+    """The measured evidence of :func:`~hand_sog_tracker.core.handcheck.check_hand` (all in [0, 1], NaN
+    when not measured).
+
+    Attributes
+    ----------
+    on : float
+        Share of the model's visible silhouette lying on data.
+    explained : float
+        Share of the foreground data around the model covered by its silhouette.
+    fingers_on : float
+        Mean over the five fingers of the share of each finger's visible silhouette on data.
+    ends : float
+        Share of the checked fingers whose data end past the fingertip (NaN: none checked).
+    in_view : float
+        Share of the model's silhouette inside the image.
+    outline : float
+        Share of the ring just outside the silhouette (hand side of the wrist) where the depth
+        steps back from the model's data or has none: the hand's outline is a depth edge.
+    """
+
+    on: float
+    explained: float
+    fingers_on: float
+    ends: float
+    in_view: float
+    outline: float
+
+
+@dataclass(frozen=True, eq=False)
+class HandDecision:
+    """The hand decision of one frame.
+
+    Attributes
+    ----------
+    present : bool
+        A hand is reported (tracked, its confidence at least the threshold, a new track
+        confirmed; see :class:`~hand_sog_tracker.core.handcheck.HandGate`).
+    confidence : float
+        In [0, 1]; 0 when nothing was tracked.
+    fingers : array, shape (5,)
+        Per finger (thumb .. little) in [0, 1]: how much of it the data show.
+    evidence : HandEvidence or None
+        None when nothing was tracked.
+    """
+
+    present: bool
+    confidence: float
+    fingers: NDArray[np.float64] = field(default_factory=lambda: np.zeros(5))
+    evidence: HandEvidence | None = None
+
+
 @dataclass(frozen=True, eq=False)
 class TrackResult:
     """Output of :meth:`Tracker.process` for one frame.
@@ -169,6 +222,9 @@ class TrackResult:
         ``fingertips_mm`` is its rows ``HandModel.tip_index``).
     gaussian_radii_mm : array, shape (m,) or None
         Their standard deviations (the skin radius), mm.
+    hand : HandDecision or None
+        The frame's hand decision (:mod:`hand_sog_tracker.core.handcheck`): ``pose`` is given
+        only when ``hand.present``.  None from producers without the check (test doubles).
     """
 
     status: TrackerStatus
@@ -181,3 +237,4 @@ class TrackResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     gaussians_mm: NDArray[np.float64] | None = None
     gaussian_radii_mm: NDArray[np.float64] | None = None
+    hand: HandDecision | None = None

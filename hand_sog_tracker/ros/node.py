@@ -95,12 +95,11 @@ from visualization_msgs.msg import MarkerArray
 
 from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory
 from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
-from hand_sog_tracker.core.handcheck import HandDecision, HandGate
 from hand_sog_tracker.core.hands import MultiHandTracker
 from hand_sog_tracker.core.model_io import load_hand_shape
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
-from hand_sog_tracker.core.types import Intrinsics, TrackerStatus, TrackResult
+from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerStatus, TrackResult
 from hand_sog_tracker.core.urdf import UrdfJoint, hand_urdf, urdf_joints
 from hand_sog_tracker.errors import (
     DepthImageError,
@@ -278,9 +277,9 @@ class TrackerNode(CalibrationService, Node):
         # search, nothing timed by the wall clock (issue 45).  A frame that arrives meanwhile
         # replaces the one waiting in the depth-1 subscription: whole frames are dropped.
         self._tracker = Tracker(self._settings.tracker, user_model)
-        # (stamp, result, depth, intrinsics, hand decision) of the last processed frame: an image
+        # (stamp, result, depth, intrinsics) of the last processed frame: an image
         # re-sent with its stamp is answered again, not tracked (nor checked) twice.
-        self._last_answer: tuple[int, TrackResult, NDArray[np.float32], Intrinsics, HandDecision] | None = None
+        self._last_answer: tuple[int, TrackResult, NDArray[np.float32], Intrinsics] | None = None
         self._last_stamp_ns: int | None = None
         self._last_shape: tuple[int, int] | None = None
         self._last_intr: Intrinsics | None = None  # of the last frame that passed the checks
@@ -330,7 +329,6 @@ class TrackerNode(CalibrationService, Node):
         self._confidence_pub = self.create_publisher(
             JointState, CONFIDENCE_TOPIC, out_qos, qos_overriding_options=overrides
         )
-        self._hand_gate = HandGate()
         latched = QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
         )
@@ -679,23 +677,21 @@ class TrackerNode(CalibrationService, Node):
         last = self._last_answer
         try:
             if last is not None and last[0] == stamp and last[3] == intr and np.array_equal(last[2], depth):
-                result, decision = last[1], last[4]  # (the same image again: the same answer)
+                result = last[1]  # (the same image again: the same answer)
             elif self._hands is not None:
-                result, decision = self._process_hands(header, depth, intr)
-                self._last_answer = (stamp, result, depth, intr, decision)
+                result = self._process_hands(header, depth, intr)
+                self._last_answer = (stamp, result, depth, intr)
             else:
-                result, decision = self._tracker.process(depth, intr), None
+                # (the tracker's result carries the hand decision, issue 46: a tracked frame
+                # that is no hand has no pose, and the track was reset when the gate says so)
+                result = self._tracker.process(depth, intr)
+                self._last_answer = (stamp, result, depth, intr)
         except HandSogError as err:
             self._reject(f"tracker rejected the frame: {err}")
             self._warn(f"tracker rejected the frame: {err}")
             return None
 
-        if decision is None:
-            # -- the hand check (issue 46): a tracked frame that is no hand is answered "no
-            # hand", with no pose and no markers, and the track is reset (the next frame
-            # searches afresh).
-            result, decision = self._hand_gate.gate(self._tracker, depth, intr, result)
-            self._last_answer = (stamp, result, depth, intr, decision)
+        decision = result.hand or HandDecision(result.pose is not None, float(result.confidence))
         self._frame_id = header.frame_id
         self._publish_result(header, result, depth, intr, decision)
         answered_at = time.perf_counter()
@@ -752,12 +748,10 @@ class TrackerNode(CalibrationService, Node):
         callback(taken[0])
         return True
 
-    def _process_hands(
-        self, header: Header, depth: NDArray[np.float32], intr: Intrinsics
-    ) -> tuple[TrackResult, HandDecision]:
-        """max_hands 2: track and publish every hand on its topics; the result and decision for
-        the one-hand topics are those of the hand labelled ``handedness`` ("no hand" without it;
-        no hand gate: the multi-hand tracker's own tracks decide)."""
+    def _process_hands(self, header: Header, depth: NDArray[np.float32], intr: Intrinsics) -> TrackResult:
+        """max_hands 2: track and publish every hand on its topics; the result (with its hand
+        decision) for the one-hand topics is that of the hand labelled ``handedness`` ("no hand"
+        without it; no hand gate: the multi-hand tracker's own tracks decide)."""
         assert self._hands is not None and self._hand_topics is not None
         if self._settings.tracker != self._hands.config:
             self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
@@ -767,10 +761,10 @@ class TrackerNode(CalibrationService, Node):
         mine = hands.hand(side)
         if mine is None or side not in decisions:
             total = hands.timings_ms.get("total", 0.0)
-            return TrackResult(TrackerStatus.NO_HAND, None, None, None, 0.0, 0.0, 0, {"total": total}), HandDecision(
-                False, 0.0
+            return TrackResult(
+                TrackerStatus.NO_HAND, None, None, None, 0.0, 0.0, 0, {"total": total}, hand=HandDecision(False, 0.0)
             )
-        return mine.result, decisions[side]
+        return replace(mine.result, hand=decisions[side])
 
     def _reset_track(self, header: Header) -> None:
         self._tracker.reset()

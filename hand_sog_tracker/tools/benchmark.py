@@ -51,7 +51,7 @@ from hand_sog_tracker.core.energy import Objective  # noqa: E402
 from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres  # noqa: E402
 from hand_sog_tracker.core.salient import assign_detections, detect_fingertips  # noqa: E402
 from hand_sog_tracker.core.tracker import ALPHA, ASSIGN_LAMBDA_MM, Tracker, hand_roi  # noqa: E402
-from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus  # noqa: E402
+from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus, TrackResult  # noqa: E402
 
 try:  # the silhouette term (absent from older trees)
     from hand_sog_tracker.core.silhouette import silhouette
@@ -104,6 +104,19 @@ def _frames(motion: str, frames: int, intr, renderer: str, seed: int) -> list:
     return [f.depth_mm for f in seq]
 
 
+def _node_tracker(config: TrackerConfig) -> Tracker:
+    """A tracker as each tree's node runs it: with the hand check (issue 46; an older tree,
+    under ``--compare``, ran it beside the tracker, in its ``CheckedTracker``)."""
+    tracker = Tracker(config)
+    if "hand" in getattr(TrackResult, "__dataclass_fields__", {}):
+        return tracker
+    try:
+        from hand_sog_tracker.core.handcheck import CheckedTracker  # type: ignore[attr-defined]
+    except ImportError:  # (a tree before the check)
+        return tracker
+    return CheckedTracker(tracker)  # type: ignore[return-value]
+
+
 def _init_times(config: TrackerConfig, depth_frames: list, intr) -> tuple[list[float], list[float]]:
     """Milliseconds of each frame in which initialisation runs, for fresh trackers started
     every ``INIT_EVERY`` frames, and of the restarts the new track runs after its first answer.
@@ -111,7 +124,7 @@ def _init_times(config: TrackerConfig, depth_frames: list, intr) -> tuple[list[f
     with its restarts deferred, as its node did; this tree runs all of it on one frame.)"""
     out, after = [], []
     for k in range(0, len(depth_frames) - 1, INIT_EVERY):
-        tracker = Tracker(config)
+        tracker = _node_tracker(config)
         if hasattr(tracker, "split_initialisation"):
             tracker.split_initialisation = True
         tracker.defer_restarts = True
@@ -191,7 +204,7 @@ def run_benchmark(
         from hand_sog_tracker.tools.tracker_params import tracker_config
 
         config = tracker_config(params)
-    tracker = Tracker(config)
+    tracker = _node_tracker(config)
     # As each tree's node: an older tree (--compare) answered a frame before its restarts, which
     # ran after it ("answer" times the first part, "total" both); this tree has no deferral
     # (the attributes set here are unused) and answers with its whole search.

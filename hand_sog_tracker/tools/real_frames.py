@@ -126,11 +126,16 @@ def labelled_frame(
 
 
 def static_tip_errors(
-    depth: NDArray[np.float32], intr: Intrinsics, truth_mm: NDArray[np.float64], right_hand: bool = True
+    depth: NDArray[np.float32],
+    intr: Intrinsics,
+    truth_mm: NDArray[np.float64],
+    right_hand: bool = True,
+    withhold: bool = True,
 ) -> NDArray[np.float64] | None:
     """Fingertip errors (5,) mm of a fresh core tracker after :data:`PASSES` passes over the
-    frame ``depth`` (mm), against ``truth_mm`` (5, 3); None when the hand is not tracked."""
-    tracker = Tracker(TrackerConfig(right_hand=right_hand))
+    frame ``depth`` (mm), against ``truth_mm`` (5, 3); None when the hand is not reported
+    (``withhold`` False: not tracked, whatever the hand decision; see ``Tracker``)."""
+    tracker = Tracker(TrackerConfig(right_hand=right_hand), withhold=withhold)
     res = None
     for _ in range(PASSES):
         res = tracker.process(depth, intr)

@@ -10,7 +10,7 @@ Usage::
 Per frame it records the visibility (``scene_truth.json``), whether a hand was reported,
 its confidence, the mean fingertip error and the mean error of the palm keypoints (wrist and
 the four finger MCPs).  Core mode runs :class:`~hand_sog_tracker.core.tracker.Tracker` and
-:class:`~hand_sog_tracker.core.handcheck.HandGate` as the node does; ``--through-node`` replays
+its hand decisions (:class:`~hand_sog_tracker.core.handcheck.HandGate`), as the node does; ``--through-node`` replays
 each bag at its rate to ``tracker_node`` and listens to ``hand/confidence`` and
 ``hand/keypoints``.  Metrics (:func:`summarise`):
 
@@ -18,6 +18,7 @@ each bag at its rate to ``tracker_node`` and listens to ``hand/confidence`` and
 * ``full_ok``: share of the fully visible frames with a hand reported within 20 mm mean tip error;
 * ``refind``: per return into full view, frames until every tip is within 20 mm;
 * ``palm_ok``: share of the fully visible frames with the palm keypoints within 15 mm (mean);
+* ``longest_wrong``: the longest run of frames reporting a wrong hand (:func:`longest_wrong`);
 * ``auc``: ROC AUC of the confidence separating good frames (a pose, mean tip error < 20 mm)
   from bad ones (> 40 mm, or a pose on a frame without a hand), over the frames with a pose.
 """
@@ -28,13 +29,11 @@ import argparse
 import json
 import math
 import sys
-import time
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from hand_sog_tracker.core.handcheck import HandGate
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.errors import HandSogError
 from hand_sog_tracker.synth.scenes import ABSENT, FULL, scene_group
@@ -42,7 +41,7 @@ from hand_sog_tracker.tools.bagio import DepthBagReader
 from hand_sog_tracker.tools.bagset import read_sidecar
 from hand_sog_tracker.tools.make_scene_bags import read_scene_truth
 
-__all__ = ["evaluate_scene_core", "evaluate_scene_node", "summarise", "roc_auc", "main"]
+__all__ = ["evaluate_scene_core", "evaluate_scene_node", "longest_wrong", "summarise", "roc_auc", "main"]
 
 PALM_ROWS = (0, 5, 9, 13, 17)
 GOOD_MM, BAD_MM, PALM_MM = 20.0, 40.0, 15.0
@@ -57,22 +56,22 @@ def _errors(joints_gt: np.ndarray | None, skel: np.ndarray | None) -> tuple[floa
     return float(tip.mean()), float(tip.max()), float(palm.mean())
 
 
-def evaluate_scene_core(bag: str | Path, gate: bool = True, threshold: float | None = None) -> list[dict[str, Any]]:
-    """Per-frame records of ``bag`` tracked in core mode (with the hand gate unless ``gate`` is False)."""
+def evaluate_scene_core(bag: str | Path, gate: bool = True) -> list[dict[str, Any]]:
+    """Per-frame records of ``bag`` tracked in core mode: the tracker's own hand decisions (as
+    the node publishes them); ``gate`` False keeps every fitted pose and track (the evidence of
+    the raw fit).  The errors are those of the frame's fit, also on frames it withheld (for the
+    AUC); ``reported`` says whether the pose was given."""
     truth = read_scene_truth(bag)
-    tracker = Tracker()
-    hg = HandGate() if threshold is None else HandGate(threshold)
+    tracker = Tracker(withhold=gate)
     out = []
     with DepthBagReader(bag, require_truth=False) as reader:
         for f in reader.frames():
             vis, joints = truth[f.stamp_ns]
-            res = tracker.process(f.depth_mm, f.intrinsics)
-            t0 = time.perf_counter()
+            answer = tracker.process(f.depth_mm, f.intrinsics)
+            res = tracker.last_fit if tracker.last_fit is not None else answer
+            dec = answer.hand
+            assert dec is not None
             model = tracker.model
-            dec = hg.decide(tracker if gate else _NoReset(), f.depth_mm, f.intrinsics, model, res)
-            ms = (time.perf_counter() - t0) * 1e3
-            # (the reported skeleton; the tracked one without the gate, for the evidence)
-            skel = res.skeleton_mm if (dec.present or not gate) and res.pose is not None else None
             tip, tip_max, palm = _errors(joints, _keypoints(res))
             ev = dec.evidence
             out.append({
@@ -80,13 +79,14 @@ def evaluate_scene_core(bag: str | Path, gate: bool = True, threshold: float | N
                 "reported": bool(dec.present) if gate else res.pose is not None,
                 "confidence": dec.confidence, "fingers": dec.fingers.round(3).tolist(),
                 "tip_mm": tip, "tip_max_mm": tip_max, "palm_mm": palm,
-                "reported_skeleton": skel is not None,
+                "reported_skeleton": answer.pose is not None,
                 "evidence": None if ev is None else [
                     ev.on, ev.explained, ev.fingers_on, ev.ends, ev.in_view, ev.outline
                 ],
-                "check_ms": ms,
+                "check_ms": answer.timings_ms.get("check", math.nan),
                 "pose": None if res.pose is None else np.round(res.pose, 5).tolist(),
                 "model_length": float(model.shape.length),
+                "proposal": tracker.last_proposal,
             })
     return out
 
@@ -98,11 +98,6 @@ def _keypoints(res: Any) -> np.ndarray | None:
     out = np.array(res.skeleton_mm, dtype=np.float64)
     out[4::4] = res.fingertips_mm
     return out
-
-
-class _NoReset:
-    def reset(self) -> None:
-        pass
 
 
 def roc_auc(scores: Sequence[float], labels: Sequence[bool]) -> float:
@@ -141,7 +136,19 @@ def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
         "full_tip_mm_median": float(np.nanmedian([r["tip_mm"] for r in full])) if full else math.nan,
         "auc": roc_auc(scores, labels),
         "auc_frames": (int(sum(labels)), int(len(labels) - sum(labels))),
+        "longest_wrong": longest_wrong(records),
     }
+
+
+def longest_wrong(records: list[dict[str, Any]]) -> int:
+    """The longest run of frames reporting a wrong hand: a hand reported on a frame without
+    one, or with a mean tip error over 40 mm (issue 46: no wrong lock lasts over 0.5 s)."""
+    run = longest = 0
+    for r in records:
+        wrong = r["reported"] and (r["visibility"] == ABSENT or r["tip_mm"] > BAD_MM)
+        run = run + 1 if wrong else 0
+        longest = max(longest, run)
+    return longest
 
 
 def refind_frames(records: list[dict[str, Any]]) -> list[int | None]:
