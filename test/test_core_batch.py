@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from test_core_energy import data_near, fist_of, numeric_gradient, silhouette_of
 
-from hand_sog_tracker.core.energy import Objective, TipTargets
 from hand_sog_tracker.core.hand_model import FINGER_ABD, N_PARAMS, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips
+from hand_sog_tracker.core.objective import Objective, TipTargets
 from hand_sog_tracker.core.optimizer import StepSizes, maximise, maximise_batch
 from hand_sog_tracker.core.types import TrackerConfig
 from hand_sog_tracker.errors import InputError

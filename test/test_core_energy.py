@@ -7,7 +7,16 @@ import numpy as np
 import pytest
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
-from hand_sog_tracker.core.energy import (
+from hand_sog_tracker.core.hand_model import (
+    FINGER_DIP,
+    FINGER_MCP,
+    FINGER_PIP,
+    N_PARAMS,
+    default_hand_model,
+    rest_pose,
+)
+from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres
+from hand_sog_tracker.core.objective import (
     COUPLING_DIP_PIP,
     CURL_MAX_RAD,
     ORDER_MIN_GAP_RAD,
@@ -18,15 +27,6 @@ from hand_sog_tracker.core.energy import (
     gaussian_support,
     visibility_weights,
 )
-from hand_sog_tracker.core.hand_model import (
-    FINGER_DIP,
-    FINGER_MCP,
-    FINGER_PIP,
-    N_PARAMS,
-    default_hand_model,
-    rest_pose,
-)
-from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres
 from hand_sog_tracker.core.optimizer import maximise
 from hand_sog_tracker.core.silhouette import Silhouette
 from hand_sog_tracker.core.types import TrackerConfig
@@ -546,7 +546,7 @@ def _saturated_inverse(data: ImageSoG, sim: float) -> float:
 def test_palm_presses_on_distal_segments_weigh_less_in_the_collision_term() -> None:
     """``E_col``: the palm against a distal segment weighs ``PALM_DISTAL_COLLISION`` (a fist
     presses the finger pads into the palm), every other pair 1; no pair within one chain."""
-    from hand_sog_tracker.core.energy import PALM_DISTAL_COLLISION, _collision_pairs
+    from hand_sog_tracker.core.objective.collision import PALM_DISTAL_COLLISION, _collision_pairs
 
     model = default_hand_model()
     i, j, weight, _ = _collision_pairs(model)
@@ -566,7 +566,7 @@ def test_curled_fingers_touching_side_by_side_or_on_the_palm_pay_only_beyond_the
     finger); the thumb against a finger, or the palm against a middle segment, pay all of
     ``D``, and so does every pair without ``contact``.  Checked pair by pair, every other
     Gaussian far away, with the gradient against central differences."""
-    from hand_sog_tracker.core.energy import COLLISION_CONTACT_FREE, PALM_DISTAL_COLLISION, model_constants
+    from hand_sog_tracker.core.objective.collision import COLLISION_CONTACT_FREE, PALM_DISTAL_COLLISION, model_constants
 
     model = default_hand_model()
     ch, sg, s = model.g_chain, model.g_segment, model.g_sigmas
@@ -625,7 +625,7 @@ def test_contact_shares_grow_with_a_fingers_curl() -> None:
     """:func:`contact_shares`: 0 for the thumb and for fingers flexed (MCP + PIP) up to
     ``CONTACT_CURL_RAD[0]``, 1 from ``CONTACT_CURL_RAD[0] + CONTACT_CURL_RAD[1]``, linear between."""
     from hand_sog_tracker.core.articulations import CLOSED, OPEN
-    from hand_sog_tracker.core.energy import CONTACT_CURL_RAD, contact_shares
+    from hand_sog_tracker.core.objective import CONTACT_CURL_RAD, contact_shares
 
     theta = rest_pose()
     theta[6:] = OPEN

@@ -91,7 +91,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.articulations import OPEN
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
-from hand_sog_tracker.core.energy import EnergyTerms, Objective, TipTargets
+from hand_sog_tracker.core.objective import EnergyTerms, Objective, TipTargets
 from hand_sog_tracker.core.hand_model import (
     FINGER_ABD,
     FIRST_JOINT,

@@ -24,7 +24,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
-from hand_sog_tracker.core.energy import Objective, TipTargets, contact_shares
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, HandModel, HandShape, default_hand_model
 from hand_sog_tracker.core.initialise import INIT_SEARCH
 from hand_sog_tracker.core.kinematics import (
@@ -34,6 +33,7 @@ from hand_sog_tracker.core.kinematics import (
     posed_centres,
     skeleton_points,
 )
+from hand_sog_tracker.core.objective import Objective, TipTargets, contact_shares
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
 from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
 from hand_sog_tracker.core.salient import Detections, assigned_targets, detect_fingertips

@@ -20,7 +20,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, quadtree_sog
-from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import HandModel
 from hand_sog_tracker.core.initialise import (
     INIT_SEARCH,
@@ -31,6 +30,7 @@ from hand_sog_tracker.core.initialise import (
     initial_hypotheses,
 )
 from hand_sog_tracker.core.kinematics import global_rotation
+from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import detect_fingertips
