@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,7 +45,7 @@ from hand_sog_tracker.core.search import (
     search,
 )
 from hand_sog_tracker.core.search.candidates import pull_target
-from hand_sog_tracker.core.search.fit import fit_batch
+from hand_sog_tracker.core.search.fit import fit_batch, with_targets
 from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
@@ -86,19 +85,6 @@ SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 _NO_POINTS = np.zeros((0, 3))
-
-
-def _with_targets(obj: Objective, targets: list[TipTargets | None]) -> Callable[..., tuple]:
-    """``obj.batch`` as :func:`maximise_batch` calls it ``with_index``: candidate ``i`` of the
-    batch with ``targets[i]``."""
-
-    def fun(
-        thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-        assert index is not None
-        return obj.batch(thetas, gradient, targets=[targets[i] for i in index.tolist()])
-
-    return fun
 
 
 def _open(theta: NDArray[np.float64]) -> bool:
@@ -426,7 +412,7 @@ class Tracker:
             targets = [obj.targets for _, _, obj in group]
             starts = np.array([found.poses[k] for k, _, _ in group])
             results = fit_batch(
-                _with_targets(shared, targets), starts, shared.data.n,
+                with_targets(shared, targets), starts, shared.data.n,
                 iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
             )
             for (k, data_x, obj), fit in zip(group, results):
