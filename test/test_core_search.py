@@ -54,7 +54,7 @@ def test_the_highest_score_that_beats_the_fit_by_its_margin_wins(
         starts.append(Candidate(f"c{int(k)}", x, margin))
     proposal = Proposal("test", "two candidates", lambda f: iter(starts))
     plain = SimpleNamespace(batch=None, data=SimpleNamespace(n=100))  # (the stand-in fit does not evaluate it)
-    frame = Frame(default_hand_model(), fit, None, plain, None, None, (None, None))  # type: ignore[arg-type]
+    frame = Frame(default_hand_model(), fit, plain, plain, None, None, (None, None))  # type: ignore[arg-type]
     res, name = search(frame, (proposal,))
     if expected is None:
         assert res is fit and name is None
@@ -136,3 +136,21 @@ def test_a_frames_pulls_fitted_as_one_batch_are_the_pulls_fitted_one_by_one() ->
     for c, x in zip(candidates[1:], starts[1:]):
         alone = maximise(c.pull, c.x0, iterations=fit_module.SEARCH_ITERATIONS, active=c.active, bounds=limits).x
         assert x.tobytes() == alone.tobytes() and np.abs(x - c.x0).max() > 1e-3
+
+
+def test_the_fits_plain_value_is_its_value_with_the_salient_term_added_back() -> None:
+    from test_core_energy import data_near
+
+    from hand_sog_tracker.core.objective import Objective, TipTargets
+    from hand_sog_tracker.core.search import plain
+
+    rng = np.random.default_rng(8)
+    model = default_hand_model()
+    theta = rest_pose((0.0, 10.0, 400.0))
+    targets = TipTargets(rng.normal(0.0, 20.0, (5, 3)) + [0.0, 10.0, 400.0], np.array([1.0, 0.0, 0.7, 0.4, 1.0]))
+    obj = Objective(model, data_near(model, theta, rng), TrackerConfig(), targets=targets)
+    x = theta + rng.normal(0.0, 0.01, theta.size)
+    fit = OptimizeResult(x, obj(x, gradient=False)[0], 7, True, 0, "", np.zeros(1))
+    frame = Frame(model, fit, obj, plain(obj), obj.data, None, (None, None))  # type: ignore[arg-type]
+    assert obj.salient(x) > 0.0
+    assert fit_module._plain_value(frame) == pytest.approx(plain(obj)(x, gradient=False)[0], rel=1e-13, abs=1e-13)

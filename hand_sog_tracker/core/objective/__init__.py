@@ -15,6 +15,7 @@ from hand_sog_tracker.core.objective.constants import (
     COUPLING_DIP_PIP,
     CURL_MAX_RAD,
     ORDER_MIN_GAP_RAD,
+    PAIR_CUT_SIGMAS,
     PALM_DISTAL_COLLISION,
     SALIENT_SCALE_MM,
     SALIENT_SOFT_MM,
@@ -46,6 +47,7 @@ __all__ = [
     "PALM_DISTAL_COLLISION",
     "COLLISION_CONTACT_FREE",
     "CONTACT_CURL_RAD",
+    "PAIR_CUT_SIGMAS",
     "contact_shares",
     "visibility_weights",
 ]

@@ -19,6 +19,7 @@ __all__ = [
     "PALM_DISTAL_COLLISION",
     "COLLISION_CONTACT_FREE",
     "CONTACT_CURL_RAD",
+    "PAIR_CUT_SIGMAS",
 ]
 
 
@@ -73,3 +74,7 @@ COLLISION_CONTACT_FREE = 0.75
 #: by side on one finger's data: ``bags/random`` 4.9 -> 8.1 mm, and with a share of 0.5 four dev
 #: renders were over 12 mm.
 CONTACT_CURL_RAD: tuple[float, float] = (1.0, 1.0)
+#: The data terms count a model and an image Gaussian as a pair when their image distance is
+#: under this many combined standard deviations (``D`` beyond it is below ``exp(-c^2 / 2)`` of
+#: its peak, 3.7e-6 at 5; chosen here, the measurements: doc/design/batch.md).
+PAIR_CUT_SIGMAS = 5.0

@@ -18,7 +18,7 @@ from hand_sog_tracker.core.objective.arrays import (
     _segment_sums,
     _sum,
 )
-from hand_sog_tracker.core.objective.constants import SIM_GAIN, TAU1_MM, TAU2_MM
+from hand_sog_tracker.core.objective.constants import PAIR_CUT_SIGMAS, SIM_GAIN, TAU1_MM, TAU2_MM
 from hand_sog_tracker.core.silhouette import run_or_defer
 from hand_sog_tracker.core.types import Intrinsics
 
@@ -31,6 +31,8 @@ _DATA_CACHE: list = [(None, 0, None)]  # (data, m, constants) of the last data: 
 #: ``TAU1_MM`` of its model Gaussian for certain (see :meth:`Objective._data_terms`; the
 #: factor leaves 1e-12 for rounding errors below 1e-14).
 _NEAR_SAFE = TAU1_MM * TAU1_MM * (1.0 - 1e-12)
+#: The pairs' squared image distance cut in combined variances (:data:`PAIR_CUT_SIGMAS` squared).
+_CUT2 = PAIR_CUT_SIGMAS * PAIR_CUT_SIGMAS
 
 
 def _data_constants(data: ImageSoG, m: int) -> tuple:
@@ -54,7 +56,7 @@ def _data_constants(data: ImageSoG, m: int) -> tuple:
     # model Gaussian times two (6, n) blocks (expanded squares, see _data_terms).
     cand = np.zeros((2, 6, n))
     cand[0, 0] = 1.0
-    cand[0, 2] = mu_u * mu_u + mu_v * mu_v - 36.0 * sq2
+    cand[0, 2] = mu_u * mu_u + mu_v * mu_v - _CUT2 * sq2
     cand[0, 3] = -2.0 * mu_u
     cand[0, 4] = -2.0 * mu_v
     cand[1, 1] = 1.0
@@ -111,8 +113,8 @@ def gaussian_support(
     divided by its value under a gap-free data tiling at the right depth (``2 pi^2 sp^2``,
     px), capped at 1.  ``centres``: the model Gaussians' centres at ``theta`` (m, 3) mm, when
     already computed.  Only the pairs that can contribute count (as in the objective):
-    ``Delta = 0`` beyond two radii in depth, ``D`` is below 1.6e-8 of its peak beyond six
-    combined standard deviations.
+    ``Delta = 0`` beyond two radii in depth, ``D`` is below 3.7e-6 of its peak beyond
+    :data:`PAIR_CUT_SIGMAS` (5) combined standard deviations.
 
     The pairs are found as in :meth:`Objective._data_terms` (both tests as one matrix
     product, here with a slack that keeps every pair the exact tests pass), and the exact
@@ -144,8 +146,8 @@ def gaussian_support(
     np.multiply(2.0, sh, out=two_sh)
     t = u * u
     t += v * v
-    t -= 36.0 * sp2
-    rows[0] = t  # u^2 + v^2 - 36 sp^2
+    t -= _CUT2 * sp2
+    rows[0] = t  # u^2 + v^2 - c^2 sp^2
     np.multiply(dp, dp, out=rows[1])
     rows[1] -= two_sh * two_sh  # dp^2 - (2 sigma_h)^2
     rows[2] = 1.0
@@ -174,7 +176,7 @@ def gaussian_support(
     D *= e
     # The exact tests; a candidate failing them adds an exact 0 (the sums are unchanged).
     passed = np.less(dd, two_sh_p)
-    passed &= r2 < np.multiply(36.0, s2, out=s2)
+    passed &= r2 < np.multiply(_CUT2, s2, out=s2)
     delta = np.divide(dd, two_sh_p, out=dd)
     np.subtract(1.0, delta, out=delta)  # Delta = 1 - dd / (2 sigma_h)
     delta *= D
@@ -246,11 +248,11 @@ class DataTerms:
 
         ``E_sim`` is summed over the pairs that can contribute: depth difference
         under ``2 sigma_h`` (else ``Delta = 0`` exactly) and image distance under
-        6 combined standard deviations (else ``D_pq < 1.6e-8 D_pq^0``).
+        :data:`PAIR_CUT_SIGMAS` combined standard deviations ``c`` (beyond, ``D_pq < exp(-c^2 / 2) D_pq^0``).
         ``E_dan`` is evaluated on the rows of dangling Gaussians only.
 
         Both candidate tests of all m x n pairs are one matrix product (expanded squares:
-        ``r^2 - 36 (s_p^2 + s_q^2) = (u_p^2 + v_p^2 - 36 s_p^2) + (mu_q^2 - 36 s_q^2)
+        ``r^2 - c^2 (s_p^2 + s_q^2) = (u_p^2 + v_p^2 - c^2 s_p^2) + (mu_q^2 - c^2 s_q^2)
         - 2 u_p mu_uq - 2 v_p mu_vq`` and ``dd^2 - (2 sigma_h)^2`` likewise); the values of
         the pairs that pass are then computed exactly as their definitions (the expansion
         can only decide pairs within rounding of a test's boundary, where both the overlap
@@ -284,10 +286,10 @@ class DataTerms:
             rows[7] *= L.visibility
         scale = z / self._f  # mm per px at the model's depth
         np.multiply(scale, scale, out=rows[9])
-        # rows 0-1: u^2 + v^2 - 36 sp^2, dp^2 - (2 sigma_h)^2
+        # rows 0-1: u^2 + v^2 - c^2 sp^2, dp^2 - (2 sigma_h)^2 (c: PAIR_CUT_SIGMAS)
         uv2 = uv * uv
         np.add(uv2[0], uv2[1], out=rows[0])
-        rows[0] -= 36.0 * sp * sp
+        rows[0] -= _CUT2 * sp * sp
         np.multiply(dp, dp, out=rows[1])
         rows[1] -= L.four_sh2
         tests = np.matmul(rows[:6].T, self._cand, out=L.tests)  # (2, m, n): < 0: pass

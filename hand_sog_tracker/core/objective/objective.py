@@ -106,6 +106,7 @@ from hand_sog_tracker.core.kinematics import (
     centres_with_pullback,
     check_poses,
     gaussian_centres,
+    posed_centres,
 )
 from hand_sog_tracker.core.objective.arrays import _UNSET, Backward, _accumulate, _as_slice, _flat_cols
 from hand_sog_tracker.core.objective.collision import CollisionTerm, model_constants
@@ -318,6 +319,11 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         other.visible_from, other._visibility = self.visible_from, self._visibility
         other._one.visibility = self._visibility
         return other
+
+    def salient(self, theta: NDArray[np.float64]) -> float:
+        """``E_sal`` at ``theta`` (26,), unweighted (0 without targets or with ``w_sal`` 0): what
+        the objective without its targets lacks, ``E + w_sal E_sal``, costs no data terms."""
+        return float(self._salient(posed_centres(self.model, theta), None, self.config.w_sal))
 
     def support(self, theta: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """:func:`gaussian_support` at ``theta`` (m,) from the last evaluation, when that was at

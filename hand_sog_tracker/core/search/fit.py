@@ -80,13 +80,22 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
         return frame.fit, None
     starts = _pulled(candidates, frame.limits)
     fits = fit_batch(frame.plain.batch, starts, frame.plain.data.n, iterations=SEARCH_ITERATIONS, bounds=frame.limits)
-    base = frame.score(frame.fit.x)
+    base = frame.score(frame.fit.x, _plain_value(frame))
     best, best_val, name = frame.fit, -np.inf, None
     for c, res in zip(candidates, fits):
         val = frame.score(res.x, res.fun)
         if val > base + c.margin and val > best_val:
             best, best_val, name = res, val, c.proposal
     return best, name
+
+
+def _plain_value(frame: Frame) -> float:
+    """``frame.plain`` at the fit's pose, from the fit's own value on ``frame.obj``: its salient
+    term added back (the only term the two differ in; the same value up to rounding, without an
+    evaluation of the data terms)."""
+    if frame.plain is frame.obj:
+        return frame.fit.fun
+    return frame.fit.fun + frame.obj.config.w_sal * frame.obj.salient(frame.fit.x)
 
 
 def _pulled(candidates: Sequence[Candidate], limits: tuple[NDArray[np.float64], NDArray[np.float64]]) -> NDArray:
