@@ -234,6 +234,7 @@ class DataTerms:
         proj: NDArray[np.float64] | None = None,
         later: list[Backward] | None = None,
         lay: _Rows | None = None,
+        parts: tuple[NDArray[np.float64], ...] | None = None,
     ) -> tuple[float | NDArray[np.float64], float | NDArray[np.float64]]:
         """``E_sim`` and ``E_dan``; adds ``dE/dP`` (with signs and weights) into ``g3``.
 
@@ -257,6 +258,10 @@ class DataTerms:
         the pairs that pass are then computed exactly as their definitions (the expansion
         can only decide pairs within rounding of a test's boundary, where both the overlap
         and ``Delta`` vanish).
+
+        ``parts`` (a batch only): each pose sees only a part of the data, as
+        ``_batch_parts`` describes it (its pairs with the others fail the candidate tests, its
+        sums, norm and dangling distances are its part's).
         """
         data = self.data
         n = data.n
@@ -295,6 +300,9 @@ class DataTerms:
         tests = np.matmul(rows[:6].T, self._cand, out=L.tests)  # (2, m, n): < 0: pass
         # Both tests pass (< 0) exactly when the larger does: one comparison of (m, n) values.
         worst = np.maximum(tests[0], tests[1], out=tests[0])
+        if parts is not None:  # (+inf for the pairs with the Gaussians outside a pose's part)
+            worst3 = worst.reshape(L.B, m // L.B, n)
+            np.add(worst3, parts[0][:, None, :], out=worst3)
         flat = np.less(worst, 0.0, out=L.neg).ravel().nonzero()[0]
         # Pairs per model Gaussian (the pairs come sorted by it): where each row's run starts.
         bounds = flat.searchsorted(L.row_starts)
@@ -326,7 +334,7 @@ class DataTerms:
         delta_D *= D  # ... times D
         if not L.batch:
             self._support_src = (delta_D, bounds, z)
-        inv_norm = 1.0 / data.norm
+        inv_norm = 1.0 / data.norm if parts is None else parts[1]  # (per pose with parts)
         # Saturated per image Gaussian (module docstring): S_q, then G k_q (1 - exp(-S_q / k_q)).
         k = L.sat_k
         sat = _accumulate(qi, delta_D, k.size)
@@ -338,6 +346,10 @@ class DataTerms:
         else:
             sim = float(_sum(k * sat) * (-SIM_GAIN * inv_norm))
         sat += 1.0  # exp(-S_q / k_q): dE_sim/dS_q in units of G / norm
+        if parts is not None:  # (the gradient's weights per image Gaussian carry their pose's 1 / norm)
+            sat_b = sat.reshape(L.B, n)
+            sat_b *= inv_norm[:, None]
+            inv_norm = 1.0
         # Dangling Gaussians (eq. 7): distance from each model Gaussian to the data,
         # occlusion-aware (see the module docstring), dmin its minimum over the data:
         # ``dist^2 = lat^2 scale^2 + beh^2`` with ``lat = max(sqrt(r2) - half, 0)`` and
@@ -382,6 +394,8 @@ class DataTerms:
             dist2_U = lat_U * lat_U
             dist2_U *= rows_U[9][:, None]  # (row 9: scale * scale)
             dist2_U += nbeh_U * nbeh_U
+            if parts is not None:  # (infinitely far: the Gaussians outside the row's pose's part)
+                dist2_U += parts[0].take(U // (m // L.B), axis=0)
             dmin_U = np.sqrt(np.minimum.reduce(dist2_U, axis=1))
             # The dangling weight is positive exactly where dmin > TAU1 (typically nowhere).
             sel = (dmin_U > TAU1_MM).nonzero()[0]
@@ -394,7 +408,12 @@ class DataTerms:
             s2r = (sp[drows] ** 2)[:, None] + self._sq2[None, :]
             r2_r = r2_U[sel]
             er = np.exp(-0.5 * r2_r / s2r)
-            per_row_dan = _sum(phi * (1.0 - er), axis=1) / n
+            n_r: float | NDArray[np.float64] = n
+            if parts is not None:  # (the part's Gaussians only, and their number)
+                pose_r = drows // (m // L.B)
+                phi *= parts[3].take(pose_r, axis=0)
+                n_r = parts[2].take(pose_r)
+            per_row_dan = _sum(phi * (1.0 - er), axis=1) / n_r
             if L.batch:  # (each pose's rows summed as one pose's: the same bits)
                 dan = _segment_sums(wdang_r * per_row_dan, drows.searchsorted(m // L.B * np.arange(L.B + 1)))
             else:
@@ -436,7 +455,7 @@ class DataTerms:
             dangling = drows.size > 0 and w_dan > 0
             if dangling:
                 g[4] = 0.0
-                wn = (w_dan * wdang_r / n)[:, None]
+                wn = (w_dan * wdang_r / n_r)[:, None]
                 pe = wn * phi * er
                 inv_s2r = 1.0 / s2r
                 spr = sp[drows][:, None]

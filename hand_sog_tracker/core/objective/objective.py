@@ -254,10 +254,15 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         thetas: NDArray[np.float64],
         gradient: bool = True,
         targets: Sequence[TipTargets | None] | None = None,
+        parts: NDArray[np.bool_] | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """``E`` at every pose of ``thetas`` (B, 26) and, with ``gradient``, ``dE/dtheta``
         (B, 26): pose by pose what :meth:`__call__` returns (the same bits; the gradient None
         without ``gradient``).
+
+        ``parts`` (B, n) bool: pose ``b`` sees only the data Gaussians ``parts[b]`` (at least
+        one): it gets what the objective of ``data.subset(parts[b])`` gives it, up to rounding
+        (e.g. start poses that each drop the data beyond their own wrist, fitted as one batch).
 
         ``targets``: one :class:`TipTargets` (or None: no ``E_sal``) per pose, in place of the
         objective's ``targets`` (e.g. each candidate's own fingertip assignment): pose ``b``
@@ -274,12 +279,26 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
             raise InputError(f"targets: one per pose ({B}), got {len(targets)}")
         if B == 0:
             return np.zeros(0), np.zeros((0, N_PARAMS)) if gradient else None
-        if B == 1 and targets is None:  # (one pose: the one-pose path, faster, the same bits)
+        if parts is not None and parts.shape != (B, self.data.n):
+            raise InputError(f"parts: one (n,) mask per pose, shape ({B}, {self.data.n}), got {parts.shape}")
+        if B == 1 and targets is None and parts is None:  # (one pose: the one-pose path, faster, the same bits)
             value, grad = self(thetas[0], gradient)
             return np.array([value]), None if grad is None else grad[None]
         each = _UNSET if targets is None else _stacked_targets(targets, _as_slice(self.model.tip_index))
-        values, grads = self._evaluate(thetas, gradient, False, targets_each=each)
+        values, grads = self._evaluate(
+            thetas, gradient, False, targets_each=each, parts=None if parts is None else self._batch_parts(parts)
+        )
         return values[0], grads
+
+    def _batch_parts(self, parts: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
+        """What the data terms need of the poses' parts (B, n): 0 or +inf per pose and data
+        Gaussian (B, n), each part's ``1 / norm`` (B,) and size (B,), the parts as 0 / 1 (B, n)."""
+        keep = np.asarray(parts, dtype=np.float64)
+        sizes = keep.sum(axis=1)
+        if not (sizes > 0).all():
+            raise InputError("parts: every pose needs at least one data Gaussian")
+        norm = (2.0 * np.pi**2) * (keep @ (self.data.sigma * self.data.sigma))  # (as ImageSoG.subset's)
+        return np.where(parts, 0.0, np.inf), 1.0 / norm, sizes, keep
 
     def value_then_gradient(
         self, theta: NDArray[np.float64]
@@ -392,6 +411,7 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         terms: bool = True,
         later: list[Backward] | None = None,
         targets_each: tuple | None | object = _UNSET,
+        parts: tuple[NDArray[np.float64], ...] | None = None,
     ) -> tuple[tuple[float, ...], NDArray[np.float64] | Callable[[], NDArray[np.float64]] | None]:
         """``(total, sim, col, dan, lim, smo, ord, sal, sil, cpl, curl)`` and the gradient (or None).
 
@@ -431,7 +451,7 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         z = np.maximum(P_rows[:, 2], 1.0)
         proj = np.multiply(self._fxy, P_rows[:, :2].T)
         proj /= z
-        sim, dan = self._data_terms(P_rows, g3_rows, cfg.w_dan, z, proj, later, lay)
+        sim, dan = self._data_terms(P_rows, g3_rows, cfg.w_dan, z, proj, later, lay, parts)
         col = self._collision(P, g3, cfg.w_col, later, lay)
         lim, g_lim = self._limits(theta)
         if terms or cfg.w_smo != 0.0:
