@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from test_core_energy import data_near, fist_of, numeric_gradient, silhouette_of
 
-from hand_sog_tracker.core.energy import Objective, TipTargets
 from hand_sog_tracker.core.hand_model import FINGER_ABD, N_PARAMS, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips
+from hand_sog_tracker.core.objective import Objective, TipTargets
 from hand_sog_tracker.core.optimizer import StepSizes, maximise, maximise_batch
 from hand_sog_tracker.core.types import TrackerConfig
 from hand_sog_tracker.errors import InputError
@@ -219,3 +219,38 @@ def test_maximise_batch_with_the_objective_runs_what_maximise_runs_for_each_cand
         _same(res, alone)  # (the batch's values and gradients do not depend on its other poses)
         _same(alone, maximise(obj, start, iterations=8, bounds=bounds))  # (one pose: the one-pose path)
         assert res.success and res.fun > res.history[0]
+
+
+@pytest.mark.parametrize("options", [(), OPTIONS])
+def test_a_batch_with_parts_gives_each_pose_its_parts_objective(options: tuple[str, ...]) -> None:
+    """``parts``: pose ``b`` sees only the data Gaussians ``parts[b]`` and gets what the
+    objective of that subset gives it (up to rounding), dangling rows included; its gradient
+    matches central differences."""
+    obj, truth = _objective(4, options)
+    rng = np.random.default_rng(14)
+    thetas = truth + rng.normal(0.0, 0.05, (5, N_PARAMS)) * np.r_[30.0, 30.0, 30.0, np.ones(23)]
+    parts = rng.random((5, obj.data.n)) < 0.7
+    parts[0] = True
+    parts[1, obj.data.points[:, 1] > np.median(obj.data.points[:, 1])] = False  # (a hand's half without data)
+    values, grads = obj.batch(thetas, parts=parts)
+    dangling = 0
+    for b in range(5):
+        sub = Objective(
+            obj.model, obj.data.subset(parts[b]), obj.config, obj.previous, obj.targets, obj.silhouette, obj.contact,
+            obj.visible_from,
+        )
+        value, grad = sub(thetas[b])
+        assert values[b] == pytest.approx(value, rel=1e-12, abs=1e-14)
+        np.testing.assert_allclose(grads[b], grad, rtol=1e-9, atol=1e-12 * np.abs(grad).max())
+        dangling += sub.evaluate(thetas[b])[0].dan > 0
+    assert dangling >= 2  # (the dangling rows' own code ran with parts)
+
+    def value_at(theta: np.ndarray) -> float:
+        return float(obj.batch(np.stack([theta, thetas[2]]), gradient=False, parts=parts[1:3])[0][0])
+
+    stand_in = type("F", (), {"__call__": lambda self, th, gradient=False: (value_at(th), None)})()
+    np.testing.assert_allclose(grads[1], numeric_gradient(stand_in, thetas[1]), rtol=2e-4, atol=2e-6)
+    with pytest.raises(InputError):
+        obj.batch(thetas, parts=parts[:2])
+    with pytest.raises(InputError):
+        obj.batch(thetas[:1], parts=np.zeros((1, obj.data.n), dtype=bool))

@@ -7,17 +7,6 @@ import numpy as np
 import pytest
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
-from hand_sog_tracker.core.energy import (
-    COUPLING_DIP_PIP,
-    CURL_MAX_RAD,
-    ORDER_MIN_GAP_RAD,
-    SIM_GAIN,
-    SIM_SATURATION,
-    Objective,
-    TipTargets,
-    gaussian_support,
-    visibility_weights,
-)
 from hand_sog_tracker.core.hand_model import (
     FINGER_DIP,
     FINGER_MCP,
@@ -27,6 +16,18 @@ from hand_sog_tracker.core.hand_model import (
     rest_pose,
 )
 from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres
+from hand_sog_tracker.core.objective import (
+    COUPLING_DIP_PIP,
+    CURL_MAX_RAD,
+    ORDER_MIN_GAP_RAD,
+    PAIR_CUT_SIGMAS,
+    SIM_GAIN,
+    SIM_SATURATION,
+    Objective,
+    TipTargets,
+    gaussian_support,
+    visibility_weights,
+)
 from hand_sog_tracker.core.optimizer import maximise
 from hand_sog_tracker.core.silhouette import Silhouette
 from hand_sog_tracker.core.types import TrackerConfig
@@ -295,7 +296,7 @@ def _dense_data_terms(
     sq2 = (data.sigma**2)[None, :]
     r2 = (u[:, None] - data.mu[None, :, 0]) ** 2 + (v[:, None] - data.mu[None, :, 1]) ** 2
     s2 = sp2 + sq2
-    D = 2 * np.pi * sp2 * sq2 / s2 * np.exp(-0.5 * r2 / s2)
+    D = 2 * np.pi * sp2 * sq2 / s2 * np.exp(-0.5 * r2 / s2) * (r2 < PAIR_CUT_SIGMAS**2 * s2)
     if visibility is not None:
         D = D * visibility[:, None]
     dd = (z - model.g_sigmas)[:, None] - data.depth[None, :]
@@ -405,7 +406,7 @@ def test_call_and_evaluate_agree_with_and_without_gradient() -> None:
 @pytest.mark.parametrize("seed", [0, 1])
 def test_candidate_product_keeps_exactly_the_pairs_of_the_definition(seed: int) -> None:
     # The candidate tests are one matrix product of expanded squares; E_sim over the pairs it
-    # keeps equals the sum over the pairs of the plain tests (|dd| < 2 sigma_h, r^2 < 36 s^2)
+    # keeps equals the sum over the pairs of the plain tests (|dd| < 2 sigma_h, r^2 < c^2 s^2)
     # to rounding, and its exact differences give the plain per-pair values.
     model = default_hand_model()
     rng = np.random.default_rng(10 + seed)
@@ -426,11 +427,12 @@ def test_candidate_product_keeps_exactly_the_pairs_of_the_definition(seed: int) 
         dv = v[:, None] - data.mu[None, :, 1]
         r2 = du * du + dv * dv
         dd = (z - sh)[:, None] - data.depth[None, :]
-        keep = (np.abs(dd) < 2.0 * sh[:, None]) & (r2 < (36.0 * sp * sp)[:, None] + 36.0 * data.sigma**2)
+        c2 = PAIR_CUT_SIGMAS**2
+        keep = (np.abs(dd) < 2.0 * sh[:, None]) & (r2 < (c2 * sp * sp)[:, None] + c2 * data.sigma**2)
         s2 = (sp * sp)[:, None] + data.sigma**2
         D = 2 * np.pi * (sp * sp)[:, None] * data.sigma**2 / s2 * np.exp(-0.5 * r2 / s2)
         sim = _saturated(data, np.where(keep, (1.0 - np.abs(dd) / (2.0 * sh[:, None])) * D, 0.0).sum(axis=0))
-        assert 0.2 < keep.mean() < 0.9  # both tests decide
+        assert 0.1 < keep.mean() < 0.9  # both tests decide
         assert obj._data_terms(P, None, 0.0)[0] == pytest.approx(sim, rel=1e-12)
 
 
@@ -456,7 +458,7 @@ def test_gaussian_support_equals_the_dense_definition(seed: int) -> None:
         dv = v[:, None] - data.mu[:, 1]
         r2 = du * du + dv * dv
         dd = np.abs((z - sh)[:, None] - data.depth)
-        p, q = np.nonzero((dd < (2.0 * sh)[:, None]) & (r2 < 36.0 * (sp2[:, None] + sq2)))
+        p, q = np.nonzero((dd < (2.0 * sh)[:, None]) & (r2 < PAIR_CUT_SIGMAS**2 * (sp2[:, None] + sq2)))
         s2 = sp2[p] + sq2[q]
         D = 2 * np.pi * sp2[p] * sq2[q] / s2 * np.exp(-0.5 * r2[p, q] / s2)
         delta = 1.0 - dd[p, q] / (2.0 * sh)[p]
@@ -546,7 +548,7 @@ def _saturated_inverse(data: ImageSoG, sim: float) -> float:
 def test_palm_presses_on_distal_segments_weigh_less_in_the_collision_term() -> None:
     """``E_col``: the palm against a distal segment weighs ``PALM_DISTAL_COLLISION`` (a fist
     presses the finger pads into the palm), every other pair 1; no pair within one chain."""
-    from hand_sog_tracker.core.energy import PALM_DISTAL_COLLISION, _collision_pairs
+    from hand_sog_tracker.core.objective.collision import PALM_DISTAL_COLLISION, _collision_pairs
 
     model = default_hand_model()
     i, j, weight, _ = _collision_pairs(model)
@@ -566,7 +568,7 @@ def test_curled_fingers_touching_side_by_side_or_on_the_palm_pay_only_beyond_the
     finger); the thumb against a finger, or the palm against a middle segment, pay all of
     ``D``, and so does every pair without ``contact``.  Checked pair by pair, every other
     Gaussian far away, with the gradient against central differences."""
-    from hand_sog_tracker.core.energy import COLLISION_CONTACT_FREE, PALM_DISTAL_COLLISION, model_constants
+    from hand_sog_tracker.core.objective.collision import COLLISION_CONTACT_FREE, PALM_DISTAL_COLLISION, model_constants
 
     model = default_hand_model()
     ch, sg, s = model.g_chain, model.g_segment, model.g_sigmas
@@ -625,7 +627,7 @@ def test_contact_shares_grow_with_a_fingers_curl() -> None:
     """:func:`contact_shares`: 0 for the thumb and for fingers flexed (MCP + PIP) up to
     ``CONTACT_CURL_RAD[0]``, 1 from ``CONTACT_CURL_RAD[0] + CONTACT_CURL_RAD[1]``, linear between."""
     from hand_sog_tracker.core.articulations import CLOSED, OPEN
-    from hand_sog_tracker.core.energy import CONTACT_CURL_RAD, contact_shares
+    from hand_sog_tracker.core.objective import CONTACT_CURL_RAD, contact_shares
 
     theta = rest_pose()
     theta[6:] = OPEN

@@ -7,15 +7,11 @@ import pytest
 from test_core_energy import data_near
 from test_core_silhouette import _first_frame
 
-from hand_sog_tracker.core.energy import (
-    _NEAR_SAFE,
-    ORDER_MIN_GAP_RAD,
-    TAU1_MM,
-    Objective,
-    _as_slice,
-)
 from hand_sog_tracker.core.hand_model import FINGER_ABD, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import gaussian_centres
+from hand_sog_tracker.core.objective import ORDER_MIN_GAP_RAD, TAU1_MM, Objective
+from hand_sog_tracker.core.objective.arrays import _as_slice
+from hand_sog_tracker.core.objective.data import _NEAR_SAFE
 from hand_sog_tracker.core.salient import Detections, assign_detections
 from hand_sog_tracker.core.search.score import sq_distances as _sq_distances
 from hand_sog_tracker.core.silhouette import silhouette, silhouette_term

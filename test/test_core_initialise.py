@@ -10,7 +10,6 @@ import pytest
 from hand_sog_tracker.core import tracker as tracker_module
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED, OPEN
 from hand_sog_tracker.core.depth_sog import preprocess
-from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model
 from hand_sog_tracker.core.initialise import (
     DETECTION_DIRECTION_MIN_DEG,
@@ -23,6 +22,7 @@ from hand_sog_tracker.core.initialise import (
     finger_combinations,
 )
 from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
+from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.search import SEARCH_ITERATIONS as RESTART_ITERATIONS
 from hand_sog_tracker.core.search import start as start_module
 from hand_sog_tracker.core.search.start import _balanced, _screened, hand_side

@@ -54,7 +54,7 @@ def test_the_highest_score_that_beats_the_fit_by_its_margin_wins(
         starts.append(Candidate(f"c{int(k)}", x, margin))
     proposal = Proposal("test", "two candidates", lambda f: iter(starts))
     plain = SimpleNamespace(batch=None, data=SimpleNamespace(n=100))  # (the stand-in fit does not evaluate it)
-    frame = Frame(default_hand_model(), fit, None, plain, None, None, (None, None))  # type: ignore[arg-type]
+    frame = Frame(default_hand_model(), fit, plain, plain, None, None, (None, None))  # type: ignore[arg-type]
     res, name = search(frame, (proposal,))
     if expected is None:
         assert res is fit and name is None
@@ -102,3 +102,55 @@ def test_a_detection_whose_pulls_lost_is_not_pulled_onto_again_where_it_stays() 
     assert target(np.zeros((0, 3))) == 0
     assert target(lonely[None] + 0.5 * SAME_DETECTION_MM) is None  # (within it: the same detection)
     assert target(lonely[None] + [2 * SAME_DETECTION_MM, 0.0, 0.0]) == 0  # moved on: another one
+
+
+def test_a_frames_pulls_fitted_as_one_batch_are_the_pulls_fitted_one_by_one() -> None:
+    """The detection pulls of a frame (one objective, each pull with its own targets, some with
+    only a finger free) are fitted as one batch: each start pose is the one its own pull gives."""
+    from dataclasses import replace
+
+    from test_core_energy import data_near, silhouette_of
+
+    from hand_sog_tracker.core.hand_model import chain_slice
+    from hand_sog_tracker.core.objective import Objective, TipTargets
+    from hand_sog_tracker.core.optimizer import maximise
+
+    rng = np.random.default_rng(5)
+    model = default_hand_model()
+    theta = rest_pose((0.0, 10.0, 400.0))
+    obj = Objective(model, data_near(model, theta, rng), TrackerConfig(), silhouette=silhouette_of(model, theta))
+    strong = replace(obj.config, w_sal=20.0)
+    limits = Tracker(TrackerConfig())._limits()
+    candidates = [Candidate("plain", theta + rng.normal(0.0, 0.01, theta.size))]
+    for k in range(5):
+        points = rng.normal(0.0, 15.0, (5, 3)) + [0.0, 10.0, 400.0]
+        weights = (rng.random(5) < 0.5) * rng.random(5)
+        active = None
+        if k % 2:
+            active = np.zeros(theta.size, dtype=bool)
+            active[chain_slice(1 + k % 4)] = True
+        x0 = theta + rng.normal(0.0, 0.02, theta.size)
+        candidates.append(Candidate("detection", x0, 0.0, obj.variant(strong, TipTargets(points, weights)), active))
+    starts = fit_module._pulled(candidates, limits)
+    assert starts[0].tobytes() == candidates[0].x0.tobytes()
+    for c, x in zip(candidates[1:], starts[1:]):
+        alone = maximise(c.pull, c.x0, iterations=fit_module.SEARCH_ITERATIONS, active=c.active, bounds=limits).x
+        assert x.tobytes() == alone.tobytes() and np.abs(x - c.x0).max() > 1e-3
+
+
+def test_the_fits_plain_value_is_its_value_with_the_salient_term_added_back() -> None:
+    from test_core_energy import data_near
+
+    from hand_sog_tracker.core.objective import Objective, TipTargets
+    from hand_sog_tracker.core.search import plain
+
+    rng = np.random.default_rng(8)
+    model = default_hand_model()
+    theta = rest_pose((0.0, 10.0, 400.0))
+    targets = TipTargets(rng.normal(0.0, 20.0, (5, 3)) + [0.0, 10.0, 400.0], np.array([1.0, 0.0, 0.7, 0.4, 1.0]))
+    obj = Objective(model, data_near(model, theta, rng), TrackerConfig(), targets=targets)
+    x = theta + rng.normal(0.0, 0.01, theta.size)
+    fit = OptimizeResult(x, obj(x, gradient=False)[0], 7, True, 0, "", np.zeros(1))
+    frame = Frame(model, fit, obj, plain(obj), obj.data, None, (None, None))  # type: ignore[arg-type]
+    assert obj.salient(x) > 0.0
+    assert fit_module._plain_value(frame) == pytest.approx(plain(obj)(x, gradient=False)[0], rel=1e-13, abs=1e-13)

@@ -10,9 +10,9 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
 from hand_sog_tracker.core.depth_sog import ImageSoG, preprocess
-from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, chain_slice, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
+from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.salient import Detections
 from hand_sog_tracker.core.search import TRACK_PROPOSALS, Frame, plain, search
@@ -587,7 +587,7 @@ def test_a_fist_fitted_from_its_true_pose_stays_closer_when_curled_fingers_may_t
     true pose, as on a tracked frame (``contact`` from that pose), keeps its fingertips closer to
     the truth than with every collision pair at full cost, where the fingers spread apart and
     open at the knuckles (measured: 4.9 against 7.2 mm mean over the five fingertips)."""
-    from hand_sog_tracker.core.energy import contact_shares
+    from hand_sog_tracker.core.objective import contact_shares
 
     tracker = Tracker(TrackerConfig())
     truth, data, det, sil = _fist_data(tracker)
@@ -618,7 +618,7 @@ def _fist_data(tracker: Tracker) -> tuple[NDArray[np.float64], ImageSoG, Detecti
 def _fist_frame(tracker: Tracker) -> tuple[NDArray[np.float64], Objective]:
     """The capsule fist of :func:`_fist_data` and its tracked frame's objective (previous poses
     and ``contact`` from the truth)."""
-    from hand_sog_tracker.core.energy import contact_shares
+    from hand_sog_tracker.core.objective import contact_shares
 
     truth, data, det, sil = _fist_data(tracker)
     obj = Objective(

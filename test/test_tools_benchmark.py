@@ -80,8 +80,8 @@ def test_compare_gives_the_settings_to_this_tree_only(monkeypatch: pytest.Monkey
 def test_batch_rows_time_the_batched_objective_against_one_pose_calls(capsys: pytest.CaptureFixture[str]) -> None:
     from test_core_energy import data_near
 
-    from hand_sog_tracker.core.energy import Objective
     from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
+    from hand_sog_tracker.core.objective import Objective
     from hand_sog_tracker.core.types import TrackerConfig
 
     model = default_hand_model()

@@ -94,7 +94,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.articulations import OPEN
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
-from hand_sog_tracker.core.energy import EnergyTerms, Objective, TipTargets
+from hand_sog_tracker.core.objective import EnergyTerms, Objective, TipTargets
 from hand_sog_tracker.core.hand_model import (
     FINGER_ABD,
     FIRST_JOINT,
@@ -113,7 +113,8 @@ from hand_sog_tracker.core.optimizer import maximise, maximise_batch
 from hand_sog_tracker.core.salient import Detections, assign_detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.skin import SCORE_TOLERANCE_MM, ScoreData, overlap_score, score_data, shape_score
-from hand_sog_tracker.core.tracker import Tracker, _with_targets, coverage, hand_roi
+from hand_sog_tracker.core.search.fit import with_targets
+from hand_sog_tracker.core.tracker import Tracker, coverage, hand_roi
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import CalibrationError, HandSogError
 
@@ -910,7 +911,7 @@ def _guard_refit(
     targets: list[TipTargets | None] = []
     for _ in range(2):
         targets = [_tip_targets(model, th, det) for th in ths]
-        fits = maximise_batch(_with_targets(obj, targets), ths, iterations=half, with_index=True)
+        fits = maximise_batch(with_targets(obj, targets), ths, iterations=half, with_index=True)
         ths = np.array([r.x for r in fits])
     return [(th, obj.variant(config, t).evaluate(th, gradient=False)[0]) for th, t in zip(ths, targets)]
 

@@ -249,7 +249,7 @@ _KIN_CACHE: dict[int, tuple[HandModel, _ModelKinematics]] = {}
 
 def _model_kinematics(model: HandModel) -> _ModelKinematics:
     """The :class:`_ModelKinematics` of a model (cached per model object, like
-    :func:`hand_sog_tracker.core.energy.model_constants`: models are frozen)."""
+    :func:`hand_sog_tracker.core.objective.collision.model_constants`: models are frozen)."""
     hit = _KIN_CACHE.get(id(model))
     if hit is not None and hit[0] is model:
         return hit[1]

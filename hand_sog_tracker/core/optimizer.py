@@ -25,7 +25,7 @@ __all__ = ["OptimizeResult", "StepSizes", "Steps", "maximise", "maximise_batch",
 ObjectiveFn = Callable[..., tuple[float, NDArray[np.float64] | None]]
 #: Batch objective signature: ``fun(thetas (B, 26), gradient=True) -> (values (B,), gradients
 #: (B, 26) or None)``, pose by pose what an :data:`ObjectiveFn` returns
-#: (:meth:`~hand_sog_tracker.core.energy.Objective.batch`).
+#: (:meth:`~hand_sog_tracker.core.objective.Objective.batch`).
 BatchObjectiveFn = Callable[..., tuple[NDArray[np.float64], NDArray[np.float64] | None]]
 
 _T = TypeVar("_T")
@@ -234,7 +234,7 @@ def maximise_steps(
     val, grad = fun(x)
     assert grad is not None
     # An objective that can give the value first and the gradient on demand
-    # (:meth:`~hand_sog_tracker.core.energy.Objective.value_then_gradient`).
+    # (:meth:`~hand_sog_tracker.core.objective.Objective.value_then_gradient`).
     deferred = getattr(fun, "value_then_gradient", None) if extra_iterations > 0 else None
     best_x, best_val = x.copy(), val
     history = [val]

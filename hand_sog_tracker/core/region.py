@@ -11,9 +11,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG
-from hand_sog_tracker.core.energy import gaussian_support
 from hand_sog_tracker.core.hand_model import HandModel
 from hand_sog_tracker.core.kinematics import posed_centres
+from hand_sog_tracker.core.objective import gaussian_support
 from hand_sog_tracker.core.types import Intrinsics
 
 __all__ = ["before_surface", "coverage", "hand_roi", "WINDOW_BEHIND_MM", "SURFACE_SEARCH_MM"]

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import SHARED_MARGIN_PX, Preprocessed, _in_window, hand_window
-from hand_sog_tracker.core.energy import TipTargets
+from hand_sog_tracker.core.objective import TipTargets
 
 # The detector is this package's own (seed 001 trains one): every constant below is chosen
 # here from the default hand's sizes, the reason beside it.

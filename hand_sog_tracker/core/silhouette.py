@@ -241,7 +241,7 @@ def run_or_defer(
     later: list[Callable[[NDArray[np.float64]], None]] | None,
 ) -> None:
     """Add a term's gradient into ``g3`` now, or, with ``later``, append the function that does
-    (a deferred gradient, see :meth:`hand_sog_tracker.core.energy.Objective.value_then_gradient`)."""
+    (a deferred gradient, see :meth:`hand_sog_tracker.core.objective.Objective.value_then_gradient`)."""
     if later is None:
         assert g3 is not None
         backward(g3)
@@ -264,7 +264,7 @@ def silhouette_term(
     ``projected``: ``(z, q)`` when already computed with the silhouette's intrinsics, ``z =
     max(P_z, 1)`` (B m,) mm and ``q = (fx x / z, fy y / z)`` (2, B m) px (the same operations
     as here: the same bits).  ``later``: instead of adding into ``g3`` now, append the function
-    that does (a deferred gradient, :meth:`hand_sog_tracker.core.energy.Objective.value_then_gradient`).
+    that does (a deferred gradient, :meth:`hand_sog_tracker.core.objective.Objective.value_then_gradient`).
     """
     poses = P.shape[0] if P.ndim == 3 else 0
     m = P.shape[-2]  # (per pose)

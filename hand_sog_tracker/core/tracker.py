@@ -35,7 +35,6 @@ from hand_sog_tracker.core.depth_sog import (
     preprocess,
     quadtree_sog,
 )
-from hand_sog_tracker.core.energy import Objective, TipTargets, contact_shares
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, HandModel, HandShape, default_hand_model
 from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, HandGate
 from hand_sog_tracker.core.initialise import INIT_SEARCH
@@ -46,6 +45,7 @@ from hand_sog_tracker.core.kinematics import (
     posed_centres,
     skeleton_points,
 )
+from hand_sog_tracker.core.objective import Objective, TipTargets, contact_shares
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
 from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
 from hand_sog_tracker.core.salient import Detections, assigned_targets, detect_fingertips
@@ -58,7 +58,7 @@ from hand_sog_tracker.core.search import (
     search,
 )
 from hand_sog_tracker.core.search.candidates import pull_target
-from hand_sog_tracker.core.search.fit import fit_batch
+from hand_sog_tracker.core.search.fit import fit_batch, with_targets
 from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
@@ -118,19 +118,6 @@ class _Keep:
 
 _KEEP = _Keep()
 _NO_POINTS = np.zeros((0, 3))
-
-
-def _with_targets(obj: Objective, targets: list[TipTargets | None]) -> Callable[..., tuple]:
-    """``obj.batch`` as :func:`maximise_batch` calls it ``with_index``: candidate ``i`` of the
-    batch with ``targets[i]``."""
-
-    def fun(
-        thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-        assert index is not None
-        return obj.batch(thetas, gradient, targets=[targets[i] for i in index.tolist()])
-
-    return fun
 
 
 def _apart(track: TrackResult, fresh: TrackResult) -> bool:
@@ -569,7 +556,7 @@ class Tracker:
             targets = [obj.targets for _, _, obj in group]
             starts = np.array([found.poses[k] for k, _, _ in group])
             results = fit_batch(
-                _with_targets(shared, targets), starts, shared.data.n,
+                with_targets(shared, targets), starts, shared.data.n,
                 iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
             )
             for (k, data_x, obj), fit in zip(group, results):

@@ -102,12 +102,12 @@ class TrackerConfig:
     w_col: float = 1.0
     w_dan: float = 0.1
     w_lim: float = 0.2
-    w_smo: float = 0.0  #: paper: 1.0; see energy.py for why the default is 0
-    w_ord: float = 1.0  #: finger order across the palm (not in the paper; energy.py)
+    w_smo: float = 0.0  #: paper: 1.0; see core/objective for why the default is 0
+    w_ord: float = 1.0  #: finger order across the palm (not in the paper; core/objective)
     w_sal: float = 0.15  #: salient points (fingertip detections; seed 001; measured here)
     w_sil: float = 1.0  #: silhouette: model Gaussians outside the hand's pixels (silhouette.py)
-    w_cpl: float = 0.0  #: DIP flexed beyond 2/3 of its PIP (seed 004; opt-in, see energy.py)
-    w_curl: float = 0.5  #: PIP + DIP flexed beyond 165 deg (issue 11; measured here, energy.py)
+    w_cpl: float = 0.0  #: DIP flexed beyond 2/3 of its PIP (seed 004; opt-in, see core/objective)
+    w_curl: float = 0.5  #: PIP + DIP flexed beyond 165 deg (issue 11; measured here, core/objective)
     right_hand: bool = True
     roi_radius_mm: float = 160.0  #: data farther than this from the last hand centre is ignored
     lost_confidence: float = 0.2  #: confidence below this for ``lost_frames`` frames means LOST

@@ -47,12 +47,15 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hand_sog_tracker.core.depth_sog import preprocess, quadtree_sog  # noqa: E402
-from hand_sog_tracker.core.energy import Objective  # noqa: E402
 from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres  # noqa: E402
 from hand_sog_tracker.core.salient import assign_detections, detect_fingertips  # noqa: E402
 from hand_sog_tracker.core.tracker import ALPHA, ASSIGN_LAMBDA_MM, Tracker, hand_roi  # noqa: E402
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus, TrackResult  # noqa: E402
 
+try:  # (core/objective/ was core/energy.py in older trees that --compare may run this file on)
+    from hand_sog_tracker.core.objective import Objective
+except ImportError:  # pragma: no cover
+    from hand_sog_tracker.core.energy import Objective
 try:  # the silhouette term (absent from older trees)
     from hand_sog_tracker.core.silhouette import silhouette
 except ImportError:  # pragma: no cover

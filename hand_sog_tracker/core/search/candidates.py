@@ -19,7 +19,6 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
 from hand_sog_tracker.core.depth_sog import ImageSoG
-from hand_sog_tracker.core.energy import Objective, TipTargets
 from hand_sog_tracker.core.hand_model import (
     ABD,
     CHAIN_JOINTS,
@@ -32,6 +31,7 @@ from hand_sog_tracker.core.hand_model import (
     chain_slice,
 )
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
+from hand_sog_tracker.core.objective import Objective, TipTargets
 from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.salient import Detections, assign_detections
 from hand_sog_tracker.core.search.score import (

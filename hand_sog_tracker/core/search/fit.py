@@ -8,10 +8,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS
-from hand_sog_tracker.core.optimizer import OptimizeResult, maximise, maximise_batch
+from hand_sog_tracker.core.hand_model import N_PARAMS
+from hand_sog_tracker.core.objective import Objective, TipTargets
+from hand_sog_tracker.core.optimizer import OptimizeResult, maximise_batch
 from hand_sog_tracker.core.search.candidates import Candidate, Frame, Proposal
 
-__all__ = ["MAX_BATCH", "SEARCH_ITERATIONS", "batch_size", "fit_batch", "search"]
+__all__ = ["MAX_BATCH", "SEARCH_ITERATIONS", "batch_size", "fit_batch", "search", "with_targets"]
 
 #: Iterations each candidate gets (and each detection pull before it; chosen here, commit f16019d).
 SEARCH_ITERATIONS = 12
@@ -43,8 +45,26 @@ def fit_batch(
             def fun(thetas: NDArray[np.float64], gradient: bool = True, index: Any = None, _k: int = k) -> Any:
                 return fun_batch(thetas, gradient, index=index + _k)
 
-        out += maximise_batch(fun, starts[k : k + size], **kwargs)
+        # (Per-candidate ``active`` or ``initial_steps`` (B, 26): this chunk's rows.)
+        chunk = {
+            key: value[k : k + size] if key in ("active", "initial_steps") and np.ndim(value) == 2 else value
+            for key, value in kwargs.items()
+        }
+        out += maximise_batch(fun, starts[k : k + size], **chunk)
     return out
+
+
+def with_targets(obj: Objective, targets: Sequence[TipTargets | None]) -> Callable[..., tuple]:
+    """``obj.batch`` as :func:`maximise_batch` calls it ``with_index``: candidate ``i`` of the
+    batch with ``targets[i]`` (what ``obj.variant(obj.config, targets[i])`` gives it alone)."""
+
+    def fun(
+        thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        assert index is not None
+        return obj.batch(thetas, gradient, targets=[targets[i] for i in index.tolist()])
+
+    return fun
 
 
 def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult, str | None]:
@@ -58,9 +78,9 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
     candidates = [c for p in proposals for c in p.generate(frame)]
     if not candidates:
         return frame.fit, None
-    starts = np.array([_pulled(c, frame.limits) for c in candidates])
+    starts = _pulled(candidates, frame.limits)
     fits = fit_batch(frame.plain.batch, starts, frame.plain.data.n, iterations=SEARCH_ITERATIONS, bounds=frame.limits)
-    base = frame.score(frame.fit.x)
+    base = frame.score(frame.fit.x, _plain_value(frame))
     best, best_val, name = frame.fit, -np.inf, None
     for c, res in zip(candidates, fits):
         val = frame.score(res.x, res.fun)
@@ -69,8 +89,47 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
     return best, name
 
 
-def _pulled(c: Candidate, limits: tuple[NDArray[np.float64], NDArray[np.float64]]) -> NDArray[np.float64]:
-    """The candidate's start pose (26,): after its pull, when it has one (its own objective)."""
-    if c.pull is None:
-        return c.x0
-    return maximise(c.pull, c.x0, iterations=SEARCH_ITERATIONS, active=c.active, bounds=limits).x
+def _plain_value(frame: Frame) -> float:
+    """``frame.plain`` at the fit's pose, from the fit's own value on ``frame.obj``: its salient
+    term added back (the only term the two differ in; the same value up to rounding, without an
+    evaluation of the data terms)."""
+    if frame.plain is frame.obj:
+        return frame.fit.fun
+    return frame.fit.fun + frame.obj.config.w_sal * frame.obj.salient(frame.fit.x)
+
+
+def _pulled(candidates: Sequence[Candidate], limits: tuple[NDArray[np.float64], NDArray[np.float64]]) -> NDArray:
+    """The candidates' start poses (B, 26): after its pull for a candidate with one, fitted
+    ``SEARCH_ITERATIONS`` on its own objective with its ``active`` parameters.  The pulls of a
+    frame differ only in their targets (:meth:`Objective.variant` of one objective with one
+    config): they are fitted as one batch on the first, each with its own targets (the same
+    iterates as one by one)."""
+    starts = np.array([c.x0 for c in candidates])
+    groups: dict[int, list[int]] = {}
+    for i, c in enumerate(candidates):
+        if c.pull is not None:
+            key = next((k for k in groups if _same_pull(candidates[k].pull, c.pull)), i)
+            groups.setdefault(key, []).append(i)
+    for key, ks in groups.items():
+        shared = candidates[key].pull
+        assert shared is not None
+        active = np.ones((len(ks), N_PARAMS), dtype=bool)
+        for row, i in enumerate(ks):
+            if candidates[i].active is not None:
+                active[row] = candidates[i].active
+        fits = fit_batch(
+            with_targets(shared, [candidates[i].pull.targets for i in ks]),  # type: ignore[union-attr]
+            starts[ks], shared.data.n, iterations=SEARCH_ITERATIONS, active=active, bounds=limits,
+            with_index=True,
+        )
+        for i, res in zip(ks, fits):
+            starts[i] = res.x
+    return starts
+
+
+def _same_pull(a: Objective | None, b: Objective) -> bool:
+    """Whether the pull objectives ``a`` and ``b`` differ at most in their targets."""
+    return a is not None and (
+        a.model is b.model and a.data is b.data and a.config == b.config and a.previous is b.previous
+        and a.silhouette is b.silhouette and a.contact is b.contact and a.visible_from is b.visible_from
+    )

@@ -17,9 +17,9 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.energy import SALIENT_SCALE_MM, Objective
 from hand_sog_tracker.core.hand_model import FINGER_DIP, FINGER_PIP, HandModel
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
+from hand_sog_tracker.core.objective import SALIENT_SCALE_MM, Objective
 from hand_sog_tracker.core.salient import Detections, assign_detections
 
 __all__ = [

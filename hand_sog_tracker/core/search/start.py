@@ -8,7 +8,8 @@ palm side articulated on the fine one, and the best by the score become the fina
 even the best scores poorly, single fingers curled (:func:`best_combination`) are tried too.
 No silhouette term yet: it would pull the poses into the outline before the depth has placed
 them.  Each pose drops the data beyond its own wrist; the poses that keep the same data share
-one objective and are fitted as one batch.
+one objective; the poses of a stage are fitted as one batch, each on its own part of the data
+(:meth:`Objective.batch`'s ``parts``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, quadtree_sog
-from hand_sog_tracker.core.energy import Objective
 from hand_sog_tracker.core.hand_model import HandModel
 from hand_sog_tracker.core.initialise import (
     INIT_SEARCH,
@@ -31,6 +31,7 @@ from hand_sog_tracker.core.initialise import (
     initial_hypotheses,
 )
 from hand_sog_tracker.core.kinematics import global_rotation
+from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import detect_fingertips
@@ -92,25 +93,39 @@ def _parts(data: ImageSoG, poses: Sequence[NDArray[np.float64]]) -> list[ImageSo
     return out
 
 
+def _keeps(data: ImageSoG, poses: Sequence[NDArray[np.float64]]) -> list[NDArray[np.bool_]]:
+    """Which Gaussians of ``data`` (n,) bool lie on the hand side of each pose's wrist plane."""
+    return [on_hand_side(data.points, x) for x in poses]
+
+
 def fit_each(
     model: HandModel,
     config: TrackerConfig,
-    items: Sequence[tuple[NDArray[np.float64], ImageSoG]],
+    data: ImageSoG,
+    items: Sequence[tuple[NDArray[np.float64], NDArray[np.bool_]]],
     bounds: Bounds,
     **kwargs: object,
 ) -> list[OptimizeResult]:
-    """Fit each ``(start pose (26,), data)`` of ``items`` on the plain objective of its data;
-    the items sharing a data object as one batch (:func:`~.fit.fit_batch`).  Results in order."""
-    groups: dict[int, list[int]] = {}
-    for k, (_, data) in enumerate(items):
-        groups.setdefault(id(data), []).append(k)
-    out: list[OptimizeResult | None] = [None] * len(items)
-    for ks in groups.values():
-        obj = Objective(model, items[ks[0]][1], config)
-        fits = fit_batch(obj.batch, np.array([items[k][0] for k in ks]), obj.data.n, bounds=bounds, **kwargs)
-        for k, res in zip(ks, fits):
-            out[k] = res
-    return out  # type: ignore[return-value]
+    """Fit each ``(start pose (26,), part (n,) bool)`` of ``items`` on the plain objective of
+    its part of ``data`` (each part with at least one Gaussian), all as one batch
+    (:func:`~.fit.fit_batch`; a lone pose on its part's own objective).  Results in order."""
+    if not items:
+        return []
+    if len(items) == 1:
+        x0, keep = items[0]
+        obj = Objective(model, data if keep.all() else data.subset(keep), config)
+        return fit_batch(obj.batch, x0[None], obj.data.n, bounds=bounds, **kwargs)
+    obj = Objective(model, data, config)
+    parts = np.array([keep for _, keep in items])
+    whole = bool(parts.all())
+
+    def fun(
+        thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        return obj.batch(thetas, gradient, parts=None if whole else parts[index])
+
+    starts = np.array([x0 for x0, _ in items])
+    return fit_batch(fun, starts, data.n, bounds=bounds, with_index=True, **kwargs)
 
 
 def _balanced(ranked: list[tuple], n: int) -> list[tuple]:
@@ -169,10 +184,11 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
     rigid = np.zeros(starts[0].size, dtype=bool)
     rigid[:6] = True
 
-    def align(indexed: list[tuple[int, NDArray[np.float64], ImageSoG]]) -> list[tuple]:
-        """(value, -rank, pose, back toward) of each start rigidly aligned on its coarse data."""
+    def align(indexed: list[tuple[int, NDArray[np.float64], NDArray[np.bool_]]]) -> list[tuple]:
+        """(value, -rank, pose, back toward) of each start rigidly aligned on its part of the
+        coarse data."""
         fits = fit_each(
-            model, cfg, [(x0, d) for _, x0, d in indexed], bounds,
+            model, cfg, coarse, [(x0, keep) for _, x0, keep in indexed], bounds,
             iterations=eff.rigid_iterations, initial_scale=2.0, active=rigid,
         )
         return [(r.fun, -i, r.x, back_toward(x0)) for (i, x0, _), r in zip(indexed, fits)]
@@ -180,10 +196,10 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
     def articulate(kept: list[tuple]) -> list[tuple[float, int, NDArray[np.float64]]]:
         """(score, -rank, pose) of each kept pose articulated on the fine data."""
         poses = [a[2] for a in kept]
-        parts = _parts(fine, poses)
-        items = [(k, x, d) for k, (x, d) in enumerate(zip(poses, parts)) if d.n]
+        items = [(k, x, keep) for k, (x, keep) in enumerate(zip(poses, _keeps(fine, poses))) if keep.any()]
         fits = fit_each(
-            model, cfg, [(x, d) for _, x, d in items], bounds, iterations=eff.full_iterations, initial_scale=2.0
+            model, cfg, fine, [(x, keep) for _, x, keep in items], bounds, iterations=eff.full_iterations,
+            initial_scale=2.0,
         )
         return [
             (r.fun - cfg.w_sal * assignment_cost(model, r.x, det, hidden_tips=False), kept[k][1], r.x)
@@ -191,8 +207,12 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
         ]
 
     parts = _parts(coarse, starts)
+    keeps = _keeps(coarse, starts)
     screened = _screened(model, cfg, starts[:n_blob], parts[:n_blob], eff.screened)
-    chosen = [(i, x0, d) for i, (x0, d) in enumerate(zip(starts, parts)) if (i >= n_blob or i in screened) and d.n]
+    chosen = [
+        (i, x0, keep) for i, (x0, keep) in enumerate(zip(starts, keeps))
+        if (i >= n_blob or i in screened) and keep.any()
+    ]
     aligned = align(chosen)
     # The blob's start poses compete for ``kept``; the best of the hand axis' and the detection
     # direction's is articulated besides them.
@@ -212,7 +232,8 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
         for k, (x0, part) in enumerate(zip(starts[:2], parts)):
             if part.n:
                 screen = Objective(model, part, cfg)
-                combos.append((n + k, best_combination(x0, lambda c, s=screen: s.batch(c, gradient=False)[0]), part))
+                best = best_combination(x0, lambda c, s=screen: s.batch(c, gradient=False)[0])
+                combos.append((n + k, best, keeps[k]))
         tried = sorted(articulate(align(combos)), key=lambda s: s[:2], reverse=True)
         if tried and tried[0][0] >= ranked[0][0] + eff.combination_margin:
             ranked = sorted(ranked + tried, key=lambda s: s[:2], reverse=True)
