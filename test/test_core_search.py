@@ -154,3 +154,25 @@ def test_the_fits_plain_value_is_its_value_with_the_salient_term_added_back() ->
     frame = Frame(model, fit, obj, plain(obj), obj.data, None, (None, None))  # type: ignore[arg-type]
     assert obj.salient(x) > 0.0
     assert fit_module._plain_value(frame) == pytest.approx(plain(obj)(x, gradient=False)[0], rel=1e-13, abs=1e-13)
+
+
+def test_a_fingertip_against_another_hand_calls_for_no_curl() -> None:
+    """The curl proposal curls the open fingers when one has no detection of its own, unless
+    that tip lies against another hand (``Frame.covered``: the detector sees no end there)."""
+    from hand_sog_tracker.core.kinematics import fingertips
+    from hand_sog_tracker.core.salient import Detections
+    from hand_sog_tracker.core.search.candidates import CURL
+
+    model = default_hand_model()
+    theta = rest_pose((0.0, 20.0, 400.0))
+    tips = fingertips(model, theta)[:4]  # (no detection at the little fingertip)
+    det = Detections(tips, np.zeros((4, 2)), np.full(4, 0.95), np.zeros(4, bool))
+    fit = OptimizeResult(theta, 0.5, 7, True, 0, "", np.zeros(1))
+
+    def curls(covered) -> int:
+        frame = Frame(model, fit, None, None, None, det, (None, None), covered=covered)  # type: ignore[arg-type]
+        return len(list(CURL.generate(frame)))
+
+    assert curls(None) == 4  # (each open finger curled)
+    assert curls(lambda t: np.arange(5) == 4) == 0
+    assert curls(lambda t: np.arange(5) == 2) == 4  # (another tip's cover does not explain it)

@@ -275,6 +275,7 @@ class MultiHandTracker:
             for tracker in (slot.tracker, slot.alt):
                 if tracker is not None:
                     tracker.data_filter = self._filter(tracker, others) if others else None
+                    tracker.covered_tips = self._covered(others) if others else None
             slot.result = slot.tracker.process_preprocessed(pre)
             if slot.alt is not None:
                 slot.alt_result = slot.alt.process_preprocessed(pre)
@@ -366,6 +367,20 @@ class MultiHandTracker:
             return data, det
 
         return filt
+
+    def _covered(self, others: Sequence[_Slot]):
+        """The :attr:`Tracker.covered_tips` of a hand beside ``others``: its fingertips (5, 3)
+        mm within :data:`OWN_MARGIN_MM` of another hand's skin or forearm (5,) bool."""
+        poses = [(o.tracker.model, self._pose(o)) for o in others]
+        poses = [(m, x) for m, x in poses if x is not None]
+
+        def covered(tips: NDArray[np.float64]) -> NDArray[np.bool_]:
+            out = np.zeros(tips.shape[0], dtype=bool)
+            for m, x in poses:
+                out |= skin_distance(m, x, tips) < OWN_MARGIN_MM
+            return out
+
+        return covered
 
     def _masked(self, pre: Preprocessed) -> Preprocessed:
         """``pre`` without the pixels of the live tracks' hands and forearms (a new copy)."""

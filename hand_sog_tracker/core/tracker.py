@@ -193,6 +193,9 @@ class Tracker:
         #: at ``theta`` (26,) is this hand's (the multi-hand tracker drops what another hand's
         #: model explains, :mod:`.hands`); None: all of it.
         self.data_filter: DataFilter | None = None
+        #: ``tips (5, 3) mm -> (5,) bool``: the fingertips against another hand (the search's
+        #: :attr:`Frame.covered`, set by the multi-hand tracker); None: none.
+        self.covered_tips: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
 
     @property
     def config(self) -> TrackerConfig:
@@ -422,7 +425,10 @@ class Tracker:
             extra_iterations=EXTRA_ITERATIONS, extra_gain=EXTRA_GAIN,
         )
         self._steps = fit.steps
-        frame = Frame(self._model, fit, obj, plain(obj), data, det, self._limits(), lost_pulls=self._lost_pulls)
+        frame = Frame(
+            self._model, fit, obj, plain(obj), data, det, self._limits(), lost_pulls=self._lost_pulls,
+            covered=self.covered_tips,
+        )
         res, self.last_proposal = search(frame, TRACK_PROPOSALS)
         self._track_frame = (frame, res.x)
         # A detection whose pulls lost is not pulled onto again while it stays where it is.

@@ -111,6 +111,10 @@ class Frame:
         candidates and both finger shifts.
     lost_pulls : array, shape (k, 3), mm
         Detections whose pulls lost on the frame before (see :func:`pull_target`).
+    covered : callable or None
+        ``covered(tips)``: which fingertips (5, 3) mm lie against another hand's skin (5,)
+        bool; the detector sees no end there, so their missing detections call for no curl
+        (the multi-hand tracker's, :mod:`..hands`).  None: none does.
     """
 
     model: HandModel
@@ -122,6 +126,7 @@ class Frame:
     limits: tuple[NDArray[np.float64], NDArray[np.float64]]
     new_track: bool = False
     lost_pulls: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    covered: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
 
     def score(self, theta: NDArray[np.float64], value: float | None = None) -> float:
         """:func:`~hand_sog_tracker.core.search.score.score` of ``theta`` (26,) on this frame."""
@@ -241,7 +246,12 @@ def _curl(f: Frame) -> Iterator[Candidate]:
         return
     flex = x[FINGER_MCP] + x[FINGER_PIP] + x[FINGER_DIP]  # index .. little (4,)
     fingers = [c for c in range(1, 5) if flex[c - 1] < CURL_MAX_FLEX_RAD]
-    if fingers and not own_detections(f.model, x, f.det)[fingers].all():
+    if not fingers:
+        return
+    seen = own_detections(f.model, x, f.det)
+    if f.covered is not None and not seen[fingers].all():
+        seen |= f.covered(fingertips(f.model, x))  # (a tip against another hand has no end to see)
+    if not seen[fingers].all():
         for c in fingers:
             yield Candidate("curl", _with_chain(x, c, FINGER_CURLED), CURL_MARGIN)
 
