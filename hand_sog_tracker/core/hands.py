@@ -9,10 +9,12 @@ Per frame the depth is preprocessed once and shared:
   point belongs to another hand when it lies within :data:`OWN_MARGIN_MM` of that hand's skin
   (its model posed this frame, or its last pose when not fitted yet, plus a forearm capsule)
   and nearer to that skin than to this hand's (at this hand's start pose).  Fingertip
-  detections are divided the same way.  The silhouette stays the whole image's: another hand
-  in front is an occluder the hidden parts may project onto, and another hand's data more than
-  :data:`OCCLUDER_GAP_MM` in front of this hand's skin on its line of sight stay in its data
-  as occluders (:func:`in_front`).
+  detections are divided the same way, and a fingertip against another hand's skin (within
+  :data:`OWN_MARGIN_MM`) needs no detection of its own for the search (``Tracker.covered_tips``:
+  the detector sees no end there, so its curl proposal does not fire).  The silhouette stays
+  the whole image's: another hand in front is an occluder the hidden parts may project onto,
+  and another hand's data more than :data:`OCCLUDER_GAP_MM` in front of this hand's skin on
+  its line of sight stay in its data as occluders (:func:`in_front`).
 * **New hands**: with fewer than ``max_hands`` tracked, the hand finder of a new track
   (:mod:`.search.start`) runs on the depth with every tracked hand's pixels (its skin and
   forearm, :data:`PIXEL_MARGIN_MM`) removed, so a second hand starts its own track without
