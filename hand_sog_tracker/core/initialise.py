@@ -54,10 +54,9 @@ MIN_BLOB_AREA_MM2 = 2500.0
 MAX_BLOB_AREA_MM2 = 150_000.0
 #: ... and a blob covering more than this share of the image's pixels fills the view: its
 #: outline lies outside it, so its area in mm^2 is a lower bound, and under a focal length many
-#: times too large a wall's is a hand's (fx 10x: a wall at 0.9 m measures 7,500 mm^2, and its
-#: search costs 5-10 clean new tracks on data at the cap, issue 50).  A hand, even one held at
-#: ``near_mm``, leaves the view free between and around its fingers (dev scenes: at most 0.51,
-#: the labelled real frames 0.07-0.12; chosen here, measurements: doc/design/bounded_input.md).
+#: times too large a wall's is a hand's (fx 10x: a wall at 0.9 m measures 7,500 mm^2; issue 50).
+#: A hand leaves the view free between and around its fingers (dev scenes: at most 0.51, the
+#: labelled real frames 0.07-0.12; chosen here, measurements: doc/design/bounded_input.md).
 MAX_VIEW_SHARE = 0.9
 #: A blob reaching this far beyond its thickest point (and 1.4x farther than
 #: on the other side) is taken to hold a forearm on that side (mm; a hand reaches about 135
