@@ -333,3 +333,50 @@ def test_a_wall_at_the_end_of_the_120_mm_band_is_not_taken_for_the_hand() -> Non
     res = Tracker(config).process(frame.depth_mm, INTR)
     errors = np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1)
     assert errors.max() < 15.0, errors.round(1)
+
+
+def test_a_scene_under_a_focal_length_10x_too_large_is_no_hand_and_costs_no_search() -> None:
+    """Issue 50's plausible but wrong CameraInfo: a hand at 420 mm in front of a wall at 900 mm,
+    the intrinsics' fx and fy 10x the true ones.  The hand then measures 1/100 of its area and
+    the wall a hand's (7,500 mm^2), but the wall fills the view (:data:`MAX_VIEW_SHARE`): no
+    blob, no data, no pose.  (Without the check the whole view was the blob, the search ran on
+    1,100-1,500 data Gaussians at 1-4 s a frame.)  With the true intrinsics the hand is found."""
+    from hand_sog_tracker.core.hand_model import rest_pose
+    from hand_sog_tracker.core.initialise import MAX_VIEW_SHARE
+    from hand_sog_tracker.synth.render import RenderOptions, render_depth
+
+    model = default_hand_model()
+    depth = render_depth(model, rest_pose((5.0, 10.0, 420.0)), INTR, RenderOptions(), rng=np.random.default_rng(0))
+    depth = np.round(depth).astype(np.float32)
+    config = TrackerConfig()
+    wrong = replace(INTR, fx=10.0 * INTR.fx, fy=10.0 * INTR.fy)
+    assert (depth > 0).mean() > MAX_VIEW_SHARE  # (the wall)
+    assert find_hand(preprocess(depth, wrong, config), config) is None
+    res = Tracker(config).process(depth, wrong)
+    assert res.pose is None and res.n_image_gaussians == 0
+    pre = preprocess(depth, INTR, config)
+    blob = _nearest_blob(pre)
+    assert blob is not None and blob.mean() < 0.3 and find_hand(pre, config) is not None
+
+
+def test_a_hand_close_in_front_of_a_wall_that_fills_the_view_is_cut_from_it() -> None:
+    """An open hand at 300 mm, a wall 40 mm behind its centre: hand and wall within 250, 175 and
+    120 mm of the hand's nearest points fill the view (:data:`MAX_VIEW_SHARE`; 0.93 z^2 mm^2, under
+    :data:`MAX_BLOB_AREA_MM2`), so a narrower band is taken, which holds the hand alone, and the
+    first frame is tracked.  (Taken whole, hand and wall were the blob: no hand reported, 0.4-1.8 s
+    a frame.)"""
+    from hand_sog_tracker.core.hand_model import rest_pose
+    from hand_sog_tracker.core.kinematics import fingertips
+    from hand_sog_tracker.synth.render import RenderOptions, render_depth
+
+    model = default_hand_model()
+    pose = rest_pose((0.0, 30.0, 300.0))
+    options = RenderOptions(background_mm=340.0)
+    depth = render_depth(model, pose, INTR, options, rng=np.random.default_rng(0)).astype(np.float32)
+    config = TrackerConfig()
+    blob = _nearest_blob(preprocess(depth, INTR, config))
+    assert blob is not None and blob.mean() < 0.5
+    res = Tracker(config).process(depth, INTR)
+    assert res.pose is not None
+    errors = np.linalg.norm(res.fingertips_mm - fingertips(model, pose), axis=1)
+    assert errors.mean() < 15.0, errors.round(1)

@@ -680,7 +680,9 @@ kind("camera_info", "skew and K[8] != 1 (ignored)", "track")(_with_info(lambda: 
 kind("camera_info", "distortion with NaN (ignored)", "track")(_with_info(lambda: info(d=[np.nan] * 5)))
 kind("camera_info", "principal point 1 px off every frame", "track")(
     _with_info(lambda: info(k=_k(F, cx=INTR.cx + 1.0))))
-kind("camera_info", "fx 10x too large (plausible)", "bounded")(_info_kind(lambda: info(k=_k(10 * F))))
+# fx 10x: the clean frame's wall then measures a hand's area in mm but fills the view: no hand,
+# without a search (initialise.MAX_VIEW_SHARE; before, 1-6 s on data at the cap).
+kind("camera_info", "fx 10x too large (plausible)", "no_pose")(_info_kind(lambda: info(k=_k(10 * F))))
 kind("camera_info", "fx 2x too large (plausible)", "bounded")(_info_kind(lambda: info(k=_k(2 * F))))
 kind("camera_info", "fx 3x too small (plausible)", "bounded")(_info_kind(lambda: info(k=_k(F / 3))))
 
@@ -1034,8 +1036,8 @@ def test_battery_memory_and_time(bench: Bench) -> None:
     assert after - bench.steady_rss < 12.0
     # No bad input costs more than a small factor of a clean frame's initialisation (the clean
     # frames after each kind, measured in the same run: the machine's load scales both).  A frame
-    # runs its whole search, never cut (issue 45): intrinsics 10x too large (the hand 10x wider,
-    # its data at the cap) take 3-6 initialisations.
+    # runs its whole search, never cut (issue 45); the dearest are those that start a new track
+    # (a resolution or intrinsics change).
     init_ms = max(r["recover_ms"] for r in RESULTS)
     assert worst["worst_ms"] <= 8.0 * init_ms, (worst, init_ms)
 

@@ -34,6 +34,7 @@ __all__ = [
     "DETECTION_DIRECTION_MIN_DETECTIONS",
     "DETECTION_DIRECTION_MIN_DEG",
     "HAND_AXIS_BEHIND_PALM_MM",
+    "MAX_VIEW_SHARE",
     "detection_direction",
     "find_hand",
     "finger_combinations",
@@ -51,6 +52,12 @@ MIN_BLOB_AREA_MM2 = 2500.0
 #: 16,000-20,000 mm^2 in the RealSense frames and 38,000 in the NYU Kinect frame; a wall
 #: filling the view at 0.9 m, 750,000). (measurements: doc/design/search.md)
 MAX_BLOB_AREA_MM2 = 150_000.0
+#: ... and a blob covering more than this share of the image's pixels fills the view: its
+#: outline lies outside it, so its area in mm^2 is a lower bound, and under a focal length many
+#: times too large a wall's is a hand's (fx 10x: a wall at 0.9 m measures 7,500 mm^2; issue 50).
+#: A hand leaves the view free between and around its fingers (dev scenes: at most 0.51, the
+#: labelled real frames 0.07-0.12; chosen here, measurements: doc/design/bounded_input.md).
+MAX_VIEW_SHARE = 0.9
 #: A blob reaching this far beyond its thickest point (and 1.4x farther than
 #: on the other side) is taken to hold a forearm on that side (mm; a hand reaches about 135
 #: mm from its palm centre to the fingertips).
@@ -171,7 +178,8 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
     """The nearest blob of valid depth that can be a hand (plus forearm), or None.
 
     Blobs (8-connected valid pixels) are taken nearest first (median depth); a blob must
-    measure at least :data:`MIN_BLOB_AREA_MM2`, and at most :data:`MAX_BLOB_AREA_MM2` after
+    measure at least :data:`MIN_BLOB_AREA_MM2`, and at most :data:`MAX_BLOB_AREA_MM2` and
+    :data:`MAX_VIEW_SHARE` of the image after
     the cut at :data:`HAND_DEPTH_BAND_MM` behind its nearest points (or a narrower band of
     :data:`NARROW_BANDS_MM`, or of :data:`SURFACE_BANDS_MM` whose last millimetres are nearly
     empty; the narrowest of :data:`NARROW_BANDS_MM` only when they are, or when no narrower
@@ -201,7 +209,7 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
         for band_mm, share, keep in _BANDS:
             blob = _hand_part(depth, component, intr, band_mm, near)
             z = depth[blob]
-            if _area_mm2(z.size, float(np.median(z)), intr) > MAX_BLOB_AREA_MM2:
+            if z.size > MAX_VIEW_SHARE * depth.size or _area_mm2(z.size, float(np.median(z)), intr) > MAX_BLOB_AREA_MM2:
                 continue
             if share is not None and np.count_nonzero(z > near + band_mm - SURFACE_GAP_MM) > share * z.size:
                 # (a slice of a surface, not a hand in front of one; or, kept, a hand with a
