@@ -131,8 +131,7 @@ def check_hand(
     if result.pose is None or result.gaussians_mm is None or result.skeleton_mm is None:
         return HandDecision(False, 0.0)
     s = max(1, int(round(intr.width / _GRID_WIDTH)))
-    depth = np.asarray(depth_mm, dtype=np.float32)[::s, ::s]
-    depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+    depth = _grid_depth(np.asarray(depth_mm, dtype=np.float32), s)
     gh, gw = depth.shape
     fx, fy, cx, cy = intr.fx / s, intr.fy / s, intr.cx / s, intr.cy / s
     C = np.asarray(result.gaussians_mm, dtype=np.float64)
@@ -201,11 +200,13 @@ def check_hand(
     n_fg = int(np.count_nonzero(fg))
     explained = float(np.count_nonzero(fg & covered)) / max(n_fg, 1) if n_fg else 0.0
 
-    outline = _outline(data, valid, inside, on_model, (uu, vv), (fx, fy, cx, cy), result.pose, axis)
+    own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
+    outline, finger_edges = _outline(
+        data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis
+    )
     ends = _finger_ends(depth, result, model, (fx, fy, cx, cy), on_model, (u0, v0))
     fingers = np.zeros(5)  # per finger: on / all (occluded counts against: not shown)
     visible_on = np.zeros(5)  # per finger: on / (on + off)
-    own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
     for c in range(5):
         mine = (own_chain == c) & core
         n = int(np.count_nonzero(mine))
@@ -224,8 +225,28 @@ def check_hand(
     )
     fingers *= confidence > 0  # (no finger of a frame that is no hand)
     return HandDecision(
-        False, confidence, fingers, HandEvidence(on_share, explained, fingers_on, ends, in_view, outline)
+        False, confidence, fingers, HandEvidence(on_share, explained, fingers_on, ends, in_view, outline, finger_edges)
     )
+
+
+def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> NDArray[np.float32]:
+    """The check's grid, every ``s``-th pixel (mm, 0 no data), shape (ceil(H/s), ceil(W/s)).
+
+    A grid pixel whose image pixel is invalid (0, NaN, Inf) takes the first valid pixel of its
+    ``s`` x ``s`` block: an invalid pixel is unknown, not evidence against the model, so a cell
+    is "no data" only when none of its pixels has data (a stream with every third row invalid
+    is checked like a clean one)."""
+    full = np.where(np.isfinite(depth_mm) & (depth_mm > 0), depth_mm, 0.0).astype(np.float32)
+    grid = full[::s, ::s].copy()
+    for dy in range(s):
+        for dx in range(s):
+            if dy == dx == 0:
+                continue
+            cand = full[dy::s, dx::s]
+            view = grid[: cand.shape[0], : cand.shape[1]]
+            fill = (view <= 0) & (cand > 0)
+            view[fill] = cand[fill]
+    return grid
 
 
 def _outline(
@@ -233,15 +254,18 @@ def _outline(
     valid: NDArray[np.bool_],
     inside: NDArray[np.bool_],
     on_model: NDArray[np.bool_],
+    own_chain: NDArray[np.int64],
     grid: tuple[NDArray[np.float64], NDArray[np.float64]],
     k: tuple[float, float, float, float],
     theta: NDArray[np.float64],
     axis: NDArray[np.float64],
-) -> float:
+) -> tuple[float, float]:
     """Share of the outline ring (``OUTLINE_RING_PX`` outside the silhouette) that is a depth
-    edge: no data, or data more than ``EDGE_MM`` behind the data of the nearest model pixel."""
+    edge: no data, or data more than ``EDGE_MM`` behind the data of the nearest model pixel;
+    and the same share over the ring pixels whose nearest model pixel is a finger's
+    (``own_chain``: the chain of each box pixel's front Gaussian, 0-4 the fingers; NaN: none)."""
     if not on_model.any():
-        return 0.0
+        return 0.0, math.nan
     dist, labels = cv2.distanceTransformWithLabels(
         (~on_model).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
     )
@@ -255,7 +279,7 @@ def _outline(
     ok = valid.ravel()[near]
     ring_idx, near, inner = ring_idx[ok], near[ok], inner[ok]
     if ring_idx.size == 0:
-        return 0.0
+        return 0.0, math.nan
     fx, fy, cx, cy = k
     uu, vv = grid
     w = on_model.shape[1]
@@ -268,7 +292,10 @@ def _outline(
     occluder = has & (d < inner - DEPTH_TOL_MM)
     count = hand_side & ~occluder
     n = int(np.count_nonzero(count))
-    return float(np.count_nonzero(edge & count)) / n if n else 0.0
+    finger = count & (own_chain.ravel()[near] >= 0) & (own_chain.ravel()[near] < 5)
+    n_f = int(np.count_nonzero(finger))
+    finger_edges = float(np.count_nonzero(edge & finger)) / n_f if n_f else math.nan
+    return (float(np.count_nonzero(edge & count)) / n if n else 0.0), finger_edges
 
 
 def _hand_axis(theta: NDArray[np.float64]) -> NDArray[np.float64]:
