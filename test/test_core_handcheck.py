@@ -143,11 +143,11 @@ def test_a_new_track_is_reported_from_its_first_frame_with_a_finger_end(monkeypa
     gate, t = HandGate(), _Counting()
     wall = np.zeros((INTR.height, INTR.width), np.float32)
     assert not gate.decide(t, wall, INTR, MODEL, _result(THETA)).present  # no finger seen yet
-    ends[0], edges[0] = 1.0, 0.6
+    ends[0], edges[0] = 1.0, 0.5
     assert not gate.decide(t, wall, INTR, MODEL, _result(THETA)).present  # fingers not outlined
     edges[0] = 1.0
     assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present
-    edges[0] = 0.6  # a confirmed track: its confidence alone decides
+    edges[0] = 0.5  # a confirmed track: its confidence alone decides
     assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present
     edges[0] = 1.0
     ends[0] = math.nan  # the hand closes: still the same track

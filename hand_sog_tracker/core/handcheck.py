@@ -94,7 +94,7 @@ ON_LOW, ON_HIGH = 0.60, 0.85  #: ``on`` mapped onto 0 .. 1 (chosen on scenes_dev
 FINGERS_LOW, FINGERS_HIGH = 0.35, 0.65  #: ``fingers_on`` mapped onto 0 .. 1 (chosen on scenes_dev)
 OUTLINE_LOW, OUTLINE_HIGH = 0.2, 0.6  #: ``outline`` mapped onto 0 .. 1 (chosen on scenes_dev)
 EXPLAINED_LOW, EXPLAINED_HIGH = 0.70, 0.92  #: ``explained`` mapped onto 0 .. 1 (chosen on scenes_dev)
-FINGER_EDGES_LOW, FINGER_EDGES_HIGH = 0.4, 0.7  #: ``finger_edges`` mapped onto 0 .. 1 (chosen on scenes_dev)
+FINGER_EDGES_LOW, FINGER_EDGES_HIGH = 0.4, 0.6  #: ``finger_edges`` mapped onto 0 .. 1 (chosen on scenes_dev)
 ENDS_LOW: Final = 0.3  #: share of ending fingers mapped onto 0 (chosen on scenes_dev)
 #: Default threshold of :class:`HandGate` (and of the node's ``hand_threshold``).
 HAND_THRESHOLD: Final = 0.2
@@ -138,7 +138,7 @@ def check_hand(
     if result.pose is None or result.gaussians_mm is None or result.skeleton_mm is None:
         return HandDecision(False, 0.0)
     s = max(1, int(round(intr.width / _GRID_WIDTH)))
-    depth = _grid_depth(np.asarray(depth_mm, dtype=np.float32), s)
+    depth, filled = _grid_depth(np.asarray(depth_mm, dtype=np.float32), s)
     gh, gw = depth.shape
     fx, fy, cx, cy = intr.fx / s, intr.fy / s, intr.cx / s, intr.cy / s
     C = np.asarray(result.gaussians_mm, dtype=np.float64)
@@ -179,15 +179,18 @@ def check_hand(
     on_model = np.isfinite(front)
     # The data in the box (0 outside the image).
     data = np.zeros((bh, bw), dtype=np.float32)
+    data_f = np.zeros((bh, bw), dtype=np.float32)  # (invalid pixels unknown: for ``on``)
     iu0, iu1, iv0, iv1 = max(u0, 0), min(u1, gw), max(v0, 0), min(v1, gh)
     if iu0 < iu1 and iv0 < iv1:
         data[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = depth[iv0:iv1, iu0:iu1]
+        data_f[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = filled[iv0:iv1, iu0:iu1]
     inside = np.zeros((bh, bw), dtype=bool)
     inside[max(iv0 - v0, 0) : max(iv1 - v0, 0), max(iu0 - u0, 0) : max(iu1 - u0, 0)] = True
     valid = data > 0
-    diff = np.where(valid, data - np.where(on_model, front, 0.0), np.inf)
-    on = core & valid & (np.abs(diff) <= DEPTH_TOL_MM)
-    occluded = core & valid & (diff < -DEPTH_TOL_MM)
+    valid_f = data_f > 0
+    diff = np.where(valid_f, data_f - np.where(on_model, front, 0.0), np.inf)
+    on = core & valid_f & (np.abs(diff) <= DEPTH_TOL_MM)
+    occluded = core & valid_f & (diff < -DEPTH_TOL_MM)
     off = core & ~on & ~occluded
     n_on, n_off = int(np.count_nonzero(on)), int(np.count_nonzero(off))
     on_share = n_on / max(n_on + n_off, 1)
@@ -237,15 +240,19 @@ def check_hand(
     )
 
 
-def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> NDArray[np.float32]:
-    """The check's grid, every ``s``-th pixel (mm, 0 no data), shape (ceil(H/s), ceil(W/s)).
+def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """The check's grid, every ``s``-th pixel (mm, 0 no data), shape (ceil(H/s), ceil(W/s)),
+    and the same grid with each invalid pixel (0, NaN, Inf) replaced by the first valid pixel
+    of its ``s`` x ``s`` block.
 
-    A grid pixel whose image pixel is invalid (0, NaN, Inf) takes the first valid pixel of its
-    ``s`` x ``s`` block: an invalid pixel is unknown, not evidence against the model, so a cell
-    is "no data" only when none of its pixels has data (a stream with every third row invalid
-    is checked like a clean one)."""
+    The second is for the evidence where no data counts against the model (``on``,
+    ``fingers_on``): there an invalid pixel is unknown, and a cell is "no data" only when none
+    of its pixels has data (a stream with every third row invalid is checked like a clean
+    one).  Where no data speaks for a hand (an outline, a finger end) the plain grid is used: a
+    block's other pixel there is often the hand's own edge."""
     full = np.where(np.isfinite(depth_mm) & (depth_mm > 0), depth_mm, 0.0).astype(np.float32)
-    grid = full[::s, ::s].copy()
+    plain = np.ascontiguousarray(full[::s, ::s])
+    grid = plain.copy()
     for dy in range(s):
         for dx in range(s):
             if dy == dx == 0:
@@ -254,7 +261,7 @@ def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> NDArray[np.float32]:
             view = grid[: cand.shape[0], : cand.shape[1]]
             fill = (view <= 0) & (cand > 0)
             view[fill] = cand[fill]
-    return grid
+    return plain, grid
 
 
 def _outline(
