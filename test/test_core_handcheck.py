@@ -129,27 +129,19 @@ def test_the_gate_resets_at_once_on_no_hand_and_after_reset_frames_when_unsure(m
 
 
 def test_a_new_track_is_reported_from_its_first_frame_with_a_finger_end(monkeypatch) -> None:
-    """A model curled into a fist fits a head: a new track waits for a finger seen to end and
-    for its fingers' outline to be depth edges (model fingers spread over a head are not)."""
+    """A model curled into a fist fits a head: a new track waits for a finger seen to end."""
     import hand_sog_tracker.core.handcheck as hc
 
-    ends, edges = [math.nan], [1.0]
+    ends = [math.nan]
     monkeypatch.setattr(
         hc, "check_hand",
-        lambda *a: hc.HandDecision(
-            False, 0.9, np.ones(5), hc.HandEvidence(1.0, 1.0, 1.0, ends[0], 1.0, 1.0, edges[0])
-        ),
+        lambda *a: hc.HandDecision(False, 0.9, np.ones(5), hc.HandEvidence(1.0, 1.0, 1.0, ends[0], 1.0, 1.0)),
     )
     gate, t = HandGate(), _Counting()
     wall = np.zeros((INTR.height, INTR.width), np.float32)
     assert not gate.decide(t, wall, INTR, MODEL, _result(THETA)).present  # no finger seen yet
-    ends[0], edges[0] = 1.0, 0.5
-    assert not gate.decide(t, wall, INTR, MODEL, _result(THETA)).present  # fingers not outlined
-    edges[0] = 1.0
+    ends[0] = 1.0
     assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present
-    edges[0] = 0.5  # a confirmed track: its confidence alone decides
-    assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present
-    edges[0] = 1.0
     ends[0] = math.nan  # the hand closes: still the same track
     assert gate.decide(t, wall, INTR, MODEL, _result(THETA)).present
     gate.decide(t, wall, INTR, MODEL, TrackResult(TrackerStatus.LOST, None, None, None, 0.0, 0.0, 0))
