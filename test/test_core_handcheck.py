@@ -51,6 +51,18 @@ def test_a_hand_under_its_model_passes_with_every_finger_shown() -> None:
     assert np.all(dec.fingers > 0.6)
 
 
+@pytest.mark.parametrize("factor", [1.0, 2.0])
+def test_invalid_pixels_are_unknown_not_evidence_against(factor: float) -> None:
+    """Every third row Inf (a 32FC1 stream's invalid rows), at 320x240 and 640x480: the hand
+    is checked as on the clean frame, not as a model partly off its data."""
+    intr = INTR.scaled(factor)
+    depth = render_depth(MODEL, THETA, intr, RenderOptions(noise_mm=1.0, background_mm=None), np.random.default_rng(3))
+    clean = check_hand(depth, intr, MODEL, _result(THETA))
+    depth[::3] = np.inf
+    rows = check_hand(depth, intr, MODEL, _result(THETA))
+    assert clean.confidence >= 0.9 and rows.confidence >= clean.confidence - 0.05, rows.evidence
+
+
 def test_a_hand_resting_on_a_wall_passes() -> None:
     """The wall 25 mm behind the hand's centre (the back of the hand on it) is background."""
     rng = np.random.default_rng(5)
@@ -101,7 +113,7 @@ def test_the_gate_resets_at_once_on_no_hand_and_after_reset_frames_when_unsure(m
     import hand_sog_tracker.core.handcheck as hc
 
     conf = [0.0]
-    ev = hc.HandEvidence(1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+    ev = hc.HandEvidence(1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
     monkeypatch.setattr(hc, "check_hand", lambda *a: hc.HandDecision(False, conf[0], np.ones(5), ev))
     t = _Counting()
     gate = HandGate(threshold=0.5, reset_frames=3)

@@ -25,14 +25,20 @@ coarse pixel grid (about 160 px wide) and measures what a hand gives and those d
   share where the depth steps back by more than ``EDGE_MM`` from the data of the nearest model
   pixel, or has none: a hand's outline is a depth edge, also on a table; a model lying on a
   head, a box or a table top has the same surface on both sides of its outline.
+* **finger edges** (``finger_edges``, reported, not used): the outline share over the part of
+  the ring next to the model's fingers (their nearest model pixel is a finger's).  Model
+  fingers spread over a head lie on one surface; but a real hand's or an adducted hand's
+  finger outline is also partly on its own data.
 * **finger ends** (``ends``): past each fingertip, along the finger in the image, the data must
   end or step back by more than ``EDGE_MM`` (a finger-like extremity): a model finger lying on
   a forearm, a head or a box runs into more surface there.  Fingers seen end-on are left out.
 
-The confidence is the product of the five, each mapped linearly onto [0, 1]: ``on`` from
+The confidence is the product of five of them, each mapped linearly onto [0, 1]: ``on`` from
 ``ON_LOW`` to ``ON_HIGH``, ``fingers_on`` from ``FINGERS_LOW`` to ``FINGERS_HIGH``,
 ``explained`` from ``EXPLAINED_LOW`` to ``EXPLAINED_HIGH``, ``outline`` from ``OUTLINE_LOW`` to
-``OUTLINE_HIGH``, ``ends`` from ``ENDS_LOW`` to 1 (no finger checked: 1).  A product, because
+``OUTLINE_HIGH``, ``ends`` from ``ENDS_LOW`` to 1 (no finger checked: 1); ``finger_edges`` is
+measured and reported but not in the product (see the design note: it separates a synthetic
+head from synthetic hands, not from real hands or fingers held together).  A product, because
 each failure alone means "no hand": a model on a head or among cups lies on data but explains
 little of it and has no outline, a model on a forearm stump explains it but its fingers hang off
 it, a model flat on a table top does both but has no outline.
@@ -131,8 +137,7 @@ def check_hand(
     if result.pose is None or result.gaussians_mm is None or result.skeleton_mm is None:
         return HandDecision(False, 0.0)
     s = max(1, int(round(intr.width / _GRID_WIDTH)))
-    depth = np.asarray(depth_mm, dtype=np.float32)[::s, ::s]
-    depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+    depth, filled = _grid_depth(np.asarray(depth_mm, dtype=np.float32), s)
     gh, gw = depth.shape
     fx, fy, cx, cy = intr.fx / s, intr.fy / s, intr.cx / s, intr.cy / s
     C = np.asarray(result.gaussians_mm, dtype=np.float64)
@@ -173,15 +178,18 @@ def check_hand(
     on_model = np.isfinite(front)
     # The data in the box (0 outside the image).
     data = np.zeros((bh, bw), dtype=np.float32)
+    data_f = np.zeros((bh, bw), dtype=np.float32)  # (invalid pixels unknown: for ``on``)
     iu0, iu1, iv0, iv1 = max(u0, 0), min(u1, gw), max(v0, 0), min(v1, gh)
     if iu0 < iu1 and iv0 < iv1:
         data[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = depth[iv0:iv1, iu0:iu1]
+        data_f[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = filled[iv0:iv1, iu0:iu1]
     inside = np.zeros((bh, bw), dtype=bool)
     inside[max(iv0 - v0, 0) : max(iv1 - v0, 0), max(iu0 - u0, 0) : max(iu1 - u0, 0)] = True
     valid = data > 0
-    diff = np.where(valid, data - np.where(on_model, front, 0.0), np.inf)
-    on = core & valid & (np.abs(diff) <= DEPTH_TOL_MM)
-    occluded = core & valid & (diff < -DEPTH_TOL_MM)
+    valid_f = data_f > 0
+    diff = np.where(valid_f, data_f - np.where(on_model, front, 0.0), np.inf)
+    on = core & valid_f & (np.abs(diff) <= DEPTH_TOL_MM)
+    occluded = core & valid_f & (diff < -DEPTH_TOL_MM)
     off = core & ~on & ~occluded
     n_on, n_off = int(np.count_nonzero(on)), int(np.count_nonzero(off))
     on_share = n_on / max(n_on + n_off, 1)
@@ -201,11 +209,13 @@ def check_hand(
     n_fg = int(np.count_nonzero(fg))
     explained = float(np.count_nonzero(fg & covered)) / max(n_fg, 1) if n_fg else 0.0
 
-    outline = _outline(data, valid, inside, on_model, (uu, vv), (fx, fy, cx, cy), result.pose, axis)
+    own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
+    outline, finger_edges = _outline(
+        data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis
+    )
     ends = _finger_ends(depth, result, model, (fx, fy, cx, cy), on_model, (u0, v0))
     fingers = np.zeros(5)  # per finger: on / all (occluded counts against: not shown)
     visible_on = np.zeros(5)  # per finger: on / (on + off)
-    own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
     for c in range(5):
         mine = (own_chain == c) & core
         n = int(np.count_nonzero(mine))
@@ -224,8 +234,32 @@ def check_hand(
     )
     fingers *= confidence > 0  # (no finger of a frame that is no hand)
     return HandDecision(
-        False, confidence, fingers, HandEvidence(on_share, explained, fingers_on, ends, in_view, outline)
+        False, confidence, fingers, HandEvidence(on_share, explained, fingers_on, ends, in_view, outline, finger_edges)
     )
+
+
+def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """The check's grid, every ``s``-th pixel (mm, 0 no data), shape (ceil(H/s), ceil(W/s)),
+    and the same grid with each invalid pixel (0, NaN, Inf) replaced by the first valid pixel
+    of its ``s`` x ``s`` block.
+
+    The second is for the evidence where no data counts against the model (``on``,
+    ``fingers_on``): there an invalid pixel is unknown, and a cell is "no data" only when none
+    of its pixels has data (a stream with every third row invalid is checked like a clean
+    one).  Where no data speaks for a hand (an outline, a finger end) the plain grid is used: a
+    block's other pixel there is often the hand's own edge."""
+    full = np.where(np.isfinite(depth_mm) & (depth_mm > 0), depth_mm, 0.0).astype(np.float32)
+    plain = np.ascontiguousarray(full[::s, ::s])
+    grid = plain.copy()
+    for dy in range(s):
+        for dx in range(s):
+            if dy == dx == 0:
+                continue
+            cand = full[dy::s, dx::s]
+            view = grid[: cand.shape[0], : cand.shape[1]]
+            fill = (view <= 0) & (cand > 0)
+            view[fill] = cand[fill]
+    return plain, grid
 
 
 def _outline(
@@ -233,15 +267,18 @@ def _outline(
     valid: NDArray[np.bool_],
     inside: NDArray[np.bool_],
     on_model: NDArray[np.bool_],
+    own_chain: NDArray[np.int64],
     grid: tuple[NDArray[np.float64], NDArray[np.float64]],
     k: tuple[float, float, float, float],
     theta: NDArray[np.float64],
     axis: NDArray[np.float64],
-) -> float:
+) -> tuple[float, float]:
     """Share of the outline ring (``OUTLINE_RING_PX`` outside the silhouette) that is a depth
-    edge: no data, or data more than ``EDGE_MM`` behind the data of the nearest model pixel."""
+    edge: no data, or data more than ``EDGE_MM`` behind the data of the nearest model pixel;
+    and the same share over the ring pixels whose nearest model pixel is a finger's
+    (``own_chain``: the chain of each box pixel's front Gaussian, 0-4 the fingers; NaN: none)."""
     if not on_model.any():
-        return 0.0
+        return 0.0, math.nan
     dist, labels = cv2.distanceTransformWithLabels(
         (~on_model).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
     )
@@ -255,7 +292,7 @@ def _outline(
     ok = valid.ravel()[near]
     ring_idx, near, inner = ring_idx[ok], near[ok], inner[ok]
     if ring_idx.size == 0:
-        return 0.0
+        return 0.0, math.nan
     fx, fy, cx, cy = k
     uu, vv = grid
     w = on_model.shape[1]
@@ -268,7 +305,10 @@ def _outline(
     occluder = has & (d < inner - DEPTH_TOL_MM)
     count = hand_side & ~occluder
     n = int(np.count_nonzero(count))
-    return float(np.count_nonzero(edge & count)) / n if n else 0.0
+    finger = count & (own_chain.ravel()[near] >= 0) & (own_chain.ravel()[near] < 5)
+    n_f = int(np.count_nonzero(finger))
+    finger_edges = float(np.count_nonzero(edge & finger)) / n_f if n_f else math.nan
+    return (float(np.count_nonzero(edge & count)) / n if n else 0.0), finger_edges
 
 
 def _hand_axis(theta: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -162,6 +163,10 @@ class HandEvidence:
     outline : float
         Share of the ring just outside the silhouette (hand side of the wrist) where the depth
         steps back from the model's data or has none: the hand's outline is a depth edge.
+    finger_edges : float
+        The same share over the part of the ring next to the model's fingers: a finger has a
+        depth edge on both sides, a model finger lying on a head or a torso has none (NaN: no
+        finger next to the ring).
     """
 
     on: float
@@ -170,6 +175,7 @@ class HandEvidence:
     ends: float
     in_view: float
     outline: float
+    finger_edges: float = math.nan
 
 
 @dataclass(frozen=True, eq=False)
