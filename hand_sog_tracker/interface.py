@@ -136,6 +136,7 @@ DIAG_KEYS: Final[tuple[str, ...]] = (
     "answer_ms",
     "latency_ms",
     "worst_frame_ms",
+    "backlog_ms",
     "status",
     "confidence",
     "frames_received",

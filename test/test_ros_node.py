@@ -313,22 +313,94 @@ def test_runtime_parameter_changes_reach_the_tracker(rig: Rig) -> None:
     assert rig.node._tracker.config.iterations == 4
 
 
-def test_no_backlog_under_a_burst(rig: Rig) -> None:
-    """Frames sent faster than they can be processed are dropped and counted; the newest is processed."""
+def _burst(rig: Rig, n: int, period_ns: int = 10**7) -> tuple[list[np.ndarray], list[int]]:
+    """Publish ``n`` frames of a hand (stamps ``period_ns`` apart) while nobody spins, and wait
+    until DDS holds them all: the node then finds them waiting at once, as after a long frame."""
+    frames = [hand_depth(th, seed=i) for i, th in enumerate(hand_poses(n))]
+    stamps = [T0_NS + i * period_ns for i in range(n)]
+    for depth, stamp in zip(frames, stamps):
+        rig.image_pub.publish(image_msg(depth, stamp))
+    time.sleep(0.5)
+    return frames, stamps
+
+
+def _settle(rig: Rig, n: int) -> None:
+    """Spin until the node has handled (processed, rejected or dropped) ``n`` frames, and a bit more."""
+    assert rig.spin_until(lambda: (lambda s: s.processed + s.rejected + s.dropped)(rig.node.stats) >= n, 30.0)
+    rig.spin_until(lambda: False, 0.3)  # (anything else would arrive now)
+
+
+def test_a_burst_within_max_lag_is_tracked_in_order_as_the_core_tracks_it(rig: Rig) -> None:
+    """A 100 Hz burst that arrives while the node is busy (the first frame starts a track, ~100
+    ms): every frame is tracked, in order, with the answers of the core tracker."""
     rig.send_info()
-    frames = [hand_depth(th, seed=i) for i, th in enumerate(hand_poses(12))]
-    stamps = [T0_NS + i * 10**7 for i in range(12)]  # a 100 Hz camera
-    for i in range(2):  # paced: the node learns the frame interval
-        rig.send(image_msg(frames[i], stamps[i]))
-    for i in range(2, 12):  # a burst while nobody spins: DDS keeps only the newest (depth 1)
-        rig.image_pub.publish(image_msg(frames[i], stamps[i]))
-    rig.wait_joint(stamps[-1])
-    rig.spin_until(lambda: False, 0.3)  # let anything still in flight arrive
+    frames, stamps = _burst(rig, 8)
+    _settle(rig, 8)
     s = rig.node.stats
-    assert s.processed < 12 and s.rejected == 0
-    assert s.processed + s.dropped + s.missed == 12, s
-    got = [stamp_to_ns(m.header.stamp) for m, _ in rig.joints]
-    assert got == sorted(got) and got[-1] == stamps[-1]
+    assert (s.received, s.processed, s.dropped, s.rejected) == (8, 8, 0, 0), s
+    assert [stamp_to_ns(m.header.stamp) for m, _ in rig.joints] == stamps
+    reference = Tracker(TrackerConfig())
+    for (js, _), depth in zip(rig.joints, frames):
+        expected = reference.process(depth, INTR)
+        np.testing.assert_allclose(js.position, expected.pose[6:], atol=1e-9)
+
+
+def test_a_backlog_older_than_max_lag_is_dropped_whole_from_its_oldest_frame(ros_context, tmp_path: Path) -> None:
+    """max_lag_ms 25 with a 90 ms burst waiting: the frames more than 25 ms behind the newest are
+    dropped (counted), the last three tracked in order; max_lag_ms 0 tracks only the newest."""
+    rig = Rig(ros_context, tmp_path, max_lag_ms=25.0)
+    try:
+        rig.send_info()
+        _, stamps = _burst(rig, 10)
+        _settle(rig, 10)
+        s = rig.node.stats
+        assert (s.received, s.processed, s.dropped, s.rejected) == (10, 3, 7, 0), s
+        assert [stamp_to_ns(m.header.stamp) for m, _ in rig.joints] == stamps[-3:]
+        rig.node.set_parameters([Parameter("max_lag_ms", value=0.0)])
+        rig.joints.clear()
+        frames = [hand_depth(th, seed=i) for i, th in enumerate(hand_poses(16))][10:]
+        later = [stamps[-1] + (i + 1) * 10**7 for i in range(6)]
+        for depth, stamp in zip(frames, later):
+            rig.image_pub.publish(image_msg(depth, stamp))
+        time.sleep(0.5)
+        _settle(rig, 16)
+        s = rig.node.stats
+        assert (s.processed, s.dropped) == (4, 12), s
+        assert [stamp_to_ns(m.header.stamp) for m, _ in rig.joints] == later[-1:]
+        values = _diagnostics_values(rig)
+        assert values["frames_dropped"] == "12" and float(values["backlog_ms"]) >= 0.0
+    finally:
+        rig.close()
+
+
+def test_each_frame_of_a_backlog_gets_the_camera_info_of_its_stamp(rig: Rig) -> None:
+    """CameraInfo that arrives after its image (same stamp) but before it is processed pairs with
+    it, not with the images before it."""
+    rig.send_info()
+    frames = [hand_depth(th, seed=i) for i, th in enumerate(hand_poses(6))]
+    stamps = [T0_NS + i * 10**7 for i in range(6)]
+    other = Intrinsics(fx=574.5, fy=574.5, cx=319.5, cy=239.5, width=640, height=480)
+    for depth, stamp in zip(frames, stamps):
+        rig.image_pub.publish(image_msg(depth, stamp))
+    for i, stamp in enumerate(stamps):
+        info = info_msg(INTR if i < 3 else other)
+        info.header.stamp.sec, info.header.stamp.nanosec = divmod(stamp, 10**9)
+        rig.info_pub.publish(info)
+    time.sleep(0.5)
+    _settle(rig, 6)
+    s = rig.node.stats
+    assert (s.processed, s.rejected, s.dropped) == (3, 3, 0), s
+    assert "CameraInfo is 640x480" in s.last_problem
+    assert [stamp_to_ns(m.header.stamp) for m, _ in rig.joints] == stamps[:3]
+
+
+def _diagnostics_values(rig: Rig) -> dict[str, str]:
+    """The values of the node's next /diagnostics report."""
+    name = f"hand_sog_tracker: {rig.ns}/hand_sog_tracker"
+    n = len(rig.diagnostics)
+    assert rig.spin_until(lambda: any(s.name == name for d in rig.diagnostics[n:] for s in d.status), 3.0)
+    status = next(s for d in rig.diagnostics[n:] for s in d.status if s.name == name)
+    return {kv.key: kv.value for kv in status.values}
 
 
 def test_calibrate_fails_cleanly_without_frames(rig: Rig) -> None:

@@ -22,7 +22,7 @@ def test_every_tracker_setting_is_a_parameter_with_the_core_default() -> None:
     fields = {f.name for f in dataclasses.fields(TrackerConfig)} - {"right_hand"}
     node_only = {"handedness", "user_model_path", "debug_image", "calibration_frames", "auto_calibrate",
                  "input_transport", "publish_wrist_joints", "publish_tf", "frame_prefix", "max_hands",
-                 "max_image_pixels", "frame_budget_ms"}
+                 "max_image_pixels", "frame_budget_ms", "max_lag_ms"}
     assert fields | node_only == set(PARAM_NAMES)
     defaults = TrackerConfig()
     spec = {s.name: s for s in PARAM_SPECS}

@@ -27,17 +27,21 @@ Topics (relative names, so a namespace or remapping moves them):
 
 Every output is stamped with the input image's header (stamp and frame_id).
 
-Real time: the subscriptions use sensor-data QoS with depth 1 (overridable via
-``qos_overrides.*`` parameters), so DDS keeps only the newest image while a
-frame is being processed and there is never a backlog.  The image callback
-takes a CameraInfo waiting in its subscription and tracks the image at once, with the
-core tracker's whole search (the same answers as ``evaluate_bag``'s core mode; an image
-re-sent with the stamp of the last one gets the same answer again).  A machine that cannot
-keep up drops whole frames, never part of a frame's search.  Frames that are never processed are counted: ``dropped``
-(received but replaced by a newer one before processing) and ``missed`` (replaced inside
-DDS, so never received; estimated from gaps in the image stamps against the camera period,
-the running median of the last :data:`RATE_WINDOW` intervals, learned anew after a pause or
-a jump back).
+Real time: the subscriptions use sensor-data QoS with depth :data:`INPUT_DEPTH` (overridable
+via ``qos_overrides.*`` parameters).  The images are tracked in order, each with the core
+tracker's whole search (the same answers as ``evaluate_bag``'s core mode; an image re-sent with
+the stamp of the last one gets the same answer again): the images that arrive while a frame is
+processed wait in a backlog (:class:`_Backlog`, at most the subscription's depth), which the node
+catches up on one frame per executor turn, and the oldest are dropped whole only when the newest
+image's stamp is more than ``max_lag_ms`` ahead of theirs (0: only the newest is tracked).  A
+new track's search (~100 ms) is so caught up on, without a drop, at 30-60 Hz on a machine that
+keeps up on average; a machine that cannot keep up runs up to ``max_lag_ms`` behind, dropping
+whole frames, never part of a frame's search.  Each image is tracked with the CameraInfo of its
+stamp, else with the newest one received before it.  Frames that are never processed are
+counted: ``dropped`` (received, but left behind by more than ``max_lag_ms`` before they were
+processed) and ``missed`` (replaced inside DDS, so never received; estimated from gaps in the
+image stamps against the camera period, the running median of the last :data:`RATE_WINDOW`
+intervals, learned anew after a pause or a jump back).
 :func:`main` spins a single-threaded executor (see :func:`make_executor`).
 
 Robustness: a bad frame (encoding, size, truncated data, no CameraInfo yet,
@@ -84,7 +88,7 @@ from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.subscription import Subscription
 from rclpy.utilities import remove_ros_args
@@ -156,6 +160,12 @@ IMAGE_TOPIC = DEPTH_TOPIC
 COMPRESSED_TOPIC = COMPRESSED_DEPTH_TOPIC
 #: Minimum seconds between two warnings of the same kind.
 WARN_THROTTLE_S = 2.0
+#: Depth (KEEP_LAST) of the image and CameraInfo subscriptions, and the most images the backlog
+#: holds (a KEEP_LAST override of the depth sets both): 200 ms of a 100 Hz camera, what
+#: ``max_lag_ms`` keeps by default; images of 640x480 16UC1 take 0.6 MB each.
+INPUT_DEPTH = 20
+#: CameraInfo messages kept to pair with the images of the backlog by stamp.
+INFO_HISTORY = 2 * INPUT_DEPTH
 #: A gap between two received images longer than this is a pause, not missed frames.
 MAX_GAP_S = 1.0
 #: Intervals between received images whose running median is the camera period (a burst at
@@ -186,7 +196,8 @@ class NodeStats:
     processed : int
         Frames the tracker ran on.
     dropped : int
-        Received frames replaced by a newer one before they could be processed.
+        Received frames dropped from the backlog unprocessed (more than ``max_lag_ms`` behind
+        the newest image, or beyond the backlog's size).
     missed : int
         Frames the camera sent that never reached the node (replaced inside DDS while a
         frame was processed), estimated from gaps in the image stamps.
@@ -225,7 +236,47 @@ class _Window:
     latency_ms: float = 0.0
     latency_frames: int = 0  # frames whose stamp is within STAMP_SKEW_S of the clock
     worst_ms: float = 0.0  # the longest processing of a frame
+    backlog_ms: float = 0.0  # the oldest backlog met: newest received stamp - stamp processed
     start: float = field(default_factory=time.monotonic)
+
+
+@dataclass
+class _Backlog:
+    """Images received but not yet processed, oldest first, with the CameraInfo to pair them with.
+
+    ``images`` holds (image, CameraInfo count when it was received); ``infos`` the last
+    :data:`INFO_HISTORY` CameraInfo messages as (count, stamp ns, intrinsics or None, problem).
+    """
+
+    images: collections.deque[tuple[Image | CompressedImage, int]] = field(default_factory=collections.deque)
+    infos: collections.deque[tuple[int, int, Intrinsics | None, str]] = field(
+        default_factory=lambda: collections.deque(maxlen=INFO_HISTORY)
+    )
+    n_infos: int = 0  # CameraInfo messages received
+
+    def intrinsics_for(self, stamp: int, seen: int) -> tuple[Intrinsics | None, str] | None:
+        """The intrinsics (or the problem) for an image of ``stamp`` received after ``seen``
+        CameraInfo messages: those of the newest CameraInfo of the same stamp (it may come just
+        after the image), else of the newest received before the image; None if there is none."""
+        before = None
+        for n, info_stamp, intr, problem in reversed(self.infos):
+            if info_stamp == stamp:
+                return intr, problem
+            if before is None and n <= seen:
+                before = (intr, problem)
+        return before
+
+    def trim(self, newest_ns: int, max_lag_ms: float, size: int) -> int:
+        """Drop the oldest images while more than ``size`` wait or the newest received stamp
+        is more than ``max_lag_ms`` ahead of theirs (never the last); how many were dropped."""
+        dropped = 0
+        while len(self.images) > 1 and (
+            len(self.images) > size
+            or (newest_ns - stamp_to_ns(self.images[0][0].header.stamp)) * 1e-6 > max_lag_ms
+        ):
+            self.images.popleft()
+            dropped += 1
+        return dropped
 
 
 class TrackerNode(CalibrationService, Node):
@@ -265,17 +316,16 @@ class TrackerNode(CalibrationService, Node):
         self._warn_loggers: dict[str, RcutilsLogger] = {}
         self._stats = NodeStats()
         self._window = _Window()
-        self._pending: Image | CompressedImage | None = None
+        self._backlog = _Backlog()
         self._rx_stamp_ns: int | None = None  # stamp of the last received image
         self._period_ns: int | None = None  # camera period: median of the recent intervals
         self._intervals: collections.deque[int] = collections.deque(maxlen=RATE_WINDOW)
-        self._intrinsics: Intrinsics | None = None
-        self._intrinsics_problem = ""
+        self._intrinsics: Intrinsics | None = None  # of the newest CameraInfo
         # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).
         user_model = self._initial_model()
         # The node runs the core tracker as evaluate_bag's core mode does: every frame's whole
         # search, nothing timed by the wall clock (issue 45).  A frame that arrives meanwhile
-        # replaces the one waiting in the depth-1 subscription: whole frames are dropped.
+        # waits in the backlog; whole frames are dropped when it falls max_lag_ms behind.
         self._tracker = Tracker(self._settings.tracker, user_model)
         # (stamp, result, depth, intrinsics) of the last processed frame: an image
         # re-sent with its stamp is answered again, not tracked (nor checked) twice.
@@ -301,7 +351,7 @@ class TrackerNode(CalibrationService, Node):
         # exclusive one left such calls in the service's queue, beyond which they were lost).
         self._calib_group = ReentrantCallbackGroup()
         sensor_qos = copy.copy(qos_profile_sensor_data)
-        sensor_qos.depth = 1
+        sensor_qos.depth = INPUT_DEPTH
         out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
         overrides = QoSOverridingOptions.with_default_policies()
 
@@ -313,6 +363,11 @@ class TrackerNode(CalibrationService, Node):
         self._info_sub = self.create_subscription(
             CameraInfo, INFO_TOPIC, self._on_camera_info, sensor_qos, qos_overriding_options=overrides,
         )
+        qos = self._image_sub.qos_profile
+        self._backlog_size = max(qos.depth, 1) if qos.history == HistoryPolicy.KEEP_LAST else INPUT_DEPTH
+        # Triggered while the backlog holds images: the executor's next turn tracks the next one
+        # (other callbacks, ~/calibrate and /diagnostics, get their turns in between).
+        self._backlog_wake = self.create_guard_condition(self._on_backlog)
         self._joint_pub = self.create_publisher(
             JointState, JOINTS_TOPIC, out_qos, qos_overriding_options=overrides
         )
@@ -428,27 +483,42 @@ class TrackerNode(CalibrationService, Node):
 
     # -- input ------------------------------------------------------------------
     def _on_image_message(self, msg: Image | CompressedImage) -> None:
-        """The image subscription's callback: track the image now.
+        """The image subscription's callback: into the backlog, then track the oldest image.
 
-        A CameraInfo waiting in its subscription is taken first (it may belong to this image).
-        An image that arrives meanwhile waits in the subscription (depth 1: the newest; older
-        ones are dropped whole, counted as ``missed``) for the executor's next turn.
+        The CameraInfo messages waiting in their subscription are taken first (one may belong
+        to this image), then the images waiting behind this one.
         """
+        self._take_all(self._info_sub, self._on_camera_info)
         self._on_image(msg)
-        self._take_waiting(self._info_sub, self._on_camera_info)
+        self._take_all(self._image_sub, self._on_image)
+        self._process_pending()
+
+    def _on_backlog(self) -> None:
+        """The backlog's guard condition: take what waits, track the oldest image."""
+        self._take_all(self._info_sub, self._on_camera_info)
+        self._take_all(self._image_sub, self._on_image)
         self._process_pending()
 
     def _on_image(self, msg: Image | CompressedImage) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         s = self._stats
-        self._stats = replace(
-            s,
-            received=s.received + 1,
-            dropped=s.dropped + (self._pending is not None),
-            missed=s.missed + self._missed_before(stamp),
-        )
+        self._stats = replace(s, received=s.received + 1, missed=s.missed + self._missed_before(stamp))
         self._window.received += 1
-        self._pending = msg
+        self._backlog.images.append((msg, self._backlog.n_infos))
+        self._trim_backlog()
+
+    def _trim_backlog(self) -> None:
+        """Drop (and count) the images more than ``max_lag_ms`` behind the newest one received."""
+        if self._rx_stamp_ns is None:
+            return
+        n = self._backlog.trim(self._rx_stamp_ns, self._settings.max_lag_ms, self._backlog_size)
+        if n:
+            self._stats = replace(self._stats, dropped=self._stats.dropped + n)
+            if self._settings.max_lag_ms > 0:
+                self._warn(
+                    f"{n} frames dropped: the node is more than max_lag_ms = {self._settings.max_lag_ms:g} ms "
+                    "behind the camera"
+                )
 
     def _missed_before(self, stamp: int) -> int:
         """Frames the camera must have sent between the last received image and this one.
@@ -474,22 +544,27 @@ class TrackerNode(CalibrationService, Node):
         return max(int(round(gap / period)) - 1, 0)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
-        """Keep the intrinsics of a usable CameraInfo; an unusable one (its reason warned
-        about) leaves none, so the images meanwhile are rejected with that reason."""
+        """Keep the intrinsics of a usable CameraInfo for the images of its stamp and after; an
+        unusable one (its reason warned about) leaves none, so those images are rejected with
+        that reason."""
+        intr: Intrinsics | None = None
+        problem = ""
         try:
             intr = camera_info_to_intrinsics(msg)
         except IntrinsicsError as err:
-            self._intrinsics = None
-            self._intrinsics_problem = f"unusable CameraInfo: {err}"
+            problem = f"unusable CameraInfo: {err}"
             self._warn(f"unusable CameraInfo on {self._info_sub.topic_name}: {err}")
-            return
         except (TypeError, ValueError, OverflowError, AttributeError) as err:  # (fields of other types)
-            self._intrinsics = None
-            self._intrinsics_problem = f"unusable CameraInfo: {err!r}"
+            problem = f"unusable CameraInfo: {err!r}"
             self._warn(f"unusable CameraInfo on {self._info_sub.topic_name}: {err!r}")
-            return
+        try:
+            stamp = stamp_to_ns(msg.header.stamp)
+        except (TypeError, ValueError, OverflowError, AttributeError):
+            stamp = -1  # (paired by arrival only)
+        b = self._backlog
+        b.n_infos += 1
+        b.infos.append((b.n_infos, stamp, intr, problem))
         self._intrinsics = intr
-        self._intrinsics_problem = ""
 
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()
@@ -504,6 +579,7 @@ class TrackerNode(CalibrationService, Node):
             # (NaN when no frame's stamp was within STAMP_SKEW_S of the clock)
             "latency_ms": w.latency_ms / w.latency_frames if w.latency_frames else (math.nan if n_proc else 0.0),
             "worst_frame_ms": w.worst_ms,
+            "backlog_ms": w.backlog_ms,
             "status": c.status.value,
             "confidence": c.confidence,
             "frames_received": c.received,
@@ -535,10 +611,19 @@ class TrackerNode(CalibrationService, Node):
 
     # -- tracking ---------------------------------------------------------------
     def _process_pending(self) -> None:
-        msg, self._pending = self._pending, None
-        intr, intr_problem = self._intrinsics, self._intrinsics_problem
-        if msg is None:
+        """Track the oldest image of the backlog (after dropping those too far behind)."""
+        backlog = self._backlog
+        self._trim_backlog()
+        if not backlog.images:
             return
+        msg, seen = backlog.images.popleft()
+        if backlog.images:
+            self._backlog_wake.trigger()
+        stamp = stamp_to_ns(msg.header.stamp)
+        if self._rx_stamp_ns is not None:
+            self._window.backlog_ms = max(self._window.backlog_ms, (self._rx_stamp_ns - stamp) * 1e-6)
+        paired = backlog.intrinsics_for(stamp, seen)
+        intr, intr_problem = paired if paired is not None else (None, "")
         t0 = time.perf_counter()
         try:
             with self._tracker_lock:
@@ -730,23 +815,23 @@ class TrackerNode(CalibrationService, Node):
                 )
         return ""
 
-    @staticmethod
-    def _take_waiting(sub: Subscription, callback: Callable[[Any], None]) -> bool:
-        """Hand a message waiting in ``sub`` to ``callback``; whether there was one.
+    def _take_all(self, sub: Subscription, callback: Callable[[Any], None]) -> None:
+        """Hand the messages waiting in ``sub`` to ``callback``, oldest first (at most the
+        backlog's size: a faster stream must not keep the executor here).
 
-        The single-threaded executor runs one callback at a time, so a message that arrived
-        while a frame was processed is still in its subscription; the executor takes from it
+        The single-threaded executor runs one callback at a time, so the messages that arrived
+        while a frame was processed are still in their subscription; the executor takes from it
         the same way and finds it empty afterwards.
         """
-        try:
-            with sub.handle:
-                taken = sub.handle.take_message(sub.msg_type, sub.raw)
-        except Exception:  # noqa: BLE001 - a destroyed subscription (shutdown): nothing waits
-            return False
-        if taken is None:
-            return False
-        callback(taken[0])
-        return True
+        for _ in range(self._backlog_size):
+            try:
+                with sub.handle:
+                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+            except Exception:  # noqa: BLE001 - a destroyed subscription (shutdown): nothing waits
+                return
+            if taken is None:
+                return
+            callback(taken[0])
 
     def _process_hands(self, header: Header, depth: NDArray[np.float32], intr: Intrinsics) -> TrackResult:
         """max_hands 2: track and publish every hand on its topics; the result (with its hand

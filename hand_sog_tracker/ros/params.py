@@ -5,7 +5,7 @@ parameter of the same name (units in the name), except ``right_hand`` which is
 the string parameter ``handedness`` (``right`` / ``left``).  Node-only
 parameters: ``user_model_path``, ``debug_image``, ``calibration_frames``,
 ``auto_calibrate``, ``input_transport``, ``publish_wrist_joints``, ``publish_tf``,
-``frame_prefix``, ``max_image_pixels`` and ``frame_budget_ms``.
+``frame_prefix``, ``max_image_pixels``, ``frame_budget_ms`` and ``max_lag_ms``.
 
 The values are validated as a whole by building a :class:`NodeSettings` (which
 builds a ``TrackerConfig``), both at start-up and in the on-set callback, so a
@@ -250,6 +250,15 @@ PARAM_SPECS: tuple[ParamSpec, ...] = _tracker_specs() + (
         10.0,
         10000.0,
     ),
+    ParamSpec(
+        "max_lag_ms",
+        200.0,
+        "Longest backlog of images (ms, by their header stamps) the node catches up on: images are "
+        "tracked in order, and the oldest are dropped whole (frames_dropped) only when the newest "
+        "received image is more than this ahead of them. 0 = track only the newest image.",
+        0.0,
+        5000.0,
+    ),
 )
 PARAM_NAMES: tuple[str, ...] = tuple(s.name for s in PARAM_SPECS)
 _SPEC_BY_NAME = {s.name: s for s in PARAM_SPECS}
@@ -275,6 +284,7 @@ class NodeSettings:
     max_hands : int
     max_image_pixels : int
     frame_budget_ms : float
+    max_lag_ms : float
     """
 
     tracker: TrackerConfig
@@ -289,6 +299,7 @@ class NodeSettings:
     max_hands: int = 1
     max_image_pixels: int = MAX_IMAGE_PIXELS
     frame_budget_ms: float = 200.0
+    max_lag_ms: float = 200.0
 
 
 #: Characters a frame prefix may hold (those of ROS names and TF frame ids).
@@ -359,6 +370,7 @@ def settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
         max_hands=int(v["max_hands"]),
         max_image_pixels=int(v["max_image_pixels"]),
         frame_budget_ms=float(v["frame_budget_ms"]),
+        max_lag_ms=float(v["max_lag_ms"]),
     )
 
 
