@@ -77,8 +77,8 @@ def info_msg(intr: Intrinsics = INTR, k: list[float] | None = None) -> CameraInf
 class Rig:
     """The node under test plus a helper node that plays camera and listener."""
 
-    def __init__(self, context, tmp_path: Path, compressed: bool = False, **params) -> None:
-        self.ns = f"/t{uuid.uuid4().hex[:10]}"
+    def __init__(self, context, tmp_path: Path, compressed: bool = False, namespace: str = "", **params) -> None:
+        self.ns = namespace or f"/t{uuid.uuid4().hex[:10]}"
         if compressed:
             params["input_transport"] = "compressedDepth"
         # The automatic fit (a child process at half a second of tracking) is off unless a test
@@ -369,6 +369,24 @@ def test_a_backlog_older_than_max_lag_is_dropped_whole_from_its_oldest_frame(ros
         assert [stamp_to_ns(m.header.stamp) for m, _ in rig.joints] == later[-1:]
         values = _diagnostics_values(rig)
         assert values["frames_dropped"] == "12" and float(values["backlog_ms"]) >= 0.0
+    finally:
+        rig.close()
+
+
+def test_a_qos_override_of_the_depth_bounds_the_backlog(ros_context, tmp_path: Path) -> None:
+    """``qos_overrides.<topic>.subscription.depth: 1`` keeps only the newest image, in DDS and in
+    the node's backlog."""
+    ns = f"/t{uuid.uuid4().hex[:10]}"
+    key = f"qos_overrides.{ns}/camera/depth/image_rect_raw.subscription.depth"
+    rig = Rig(ros_context, tmp_path, namespace=ns, **{key: 1})
+    try:
+        assert rig.node._image_sub.qos_profile.depth == 1
+        rig.send_info()
+        _, stamps = _burst(rig, 5)
+        assert rig.spin_until(lambda: rig.node.stats.processed >= 1, 30.0)
+        rig.spin_until(lambda: False, 0.3)
+        assert [stamp_to_ns(m.header.stamp) for m, _ in rig.joints] == stamps[-1:]
+        assert rig.node.stats.received == 1
     finally:
         rig.close()
 

@@ -634,12 +634,12 @@ class TrackerNode(CalibrationService, Node):
                 self._window.answer_ms += (answered_at - t0) * 1e3
                 self._window.worst_ms = max(self._window.worst_ms, ms)
                 if ms > self._settings.frame_budget_ms:
-                    # (Reported, never cut: a frame runs its whole search, issue 45; the frames
-                    # the camera sent meanwhile are dropped whole and counted as missed.)
+                    # (Reported, never cut: a frame runs its whole search, issue 45; the images
+                    # the camera sent meanwhile wait in the backlog, up to max_lag_ms.)
                     self._stats = replace(self._stats, cut=self._stats.cut + 1)
                     self._warn(
                         f"frame took {ms:.0f} ms, over its budget of {self._settings.frame_budget_ms:.0f} ms "
-                        "(frame_budget_ms); the frames that arrived meanwhile are dropped"
+                        "(frame_budget_ms); the images that arrived meanwhile wait (max_lag_ms)"
                     )
         except Exception as err:  # noqa: BLE001 - a bug in one frame must not kill the node
             if not self.context.ok():
