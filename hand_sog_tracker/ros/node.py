@@ -483,15 +483,19 @@ class TrackerNode(CalibrationService, Node):
 
     # -- input ------------------------------------------------------------------
     def _on_image_message(self, msg: Image | CompressedImage) -> None:
-        """The image subscription's callback: into the backlog, then track the oldest image.
+        """The image subscription's callback: into the backlog, then track the oldest image
+        unless the backlog's guard condition is due to (one frame per executor turn, so the
+        other callbacks keep their turns).
 
         The CameraInfo messages waiting in their subscription are taken first (one may belong
         to this image), then the images waiting behind this one.
         """
+        waiting = bool(self._backlog.images)  # (then the guard condition has been triggered)
         self._take_all(self._info_sub, self._on_camera_info)
         self._on_image(msg)
         self._take_all(self._image_sub, self._on_image)
-        self._process_pending()
+        if not waiting:
+            self._process_pending()
 
     def _on_backlog(self) -> None:
         """The backlog's guard condition: take what waits, track the oldest image."""
