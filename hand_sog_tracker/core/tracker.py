@@ -48,7 +48,7 @@ from hand_sog_tracker.core.kinematics import (
 from hand_sog_tracker.core.objective import Objective, TipTargets, contact_shares
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
 from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
-from hand_sog_tracker.core.salient import Detections, assigned_targets, detect_fingertips
+from hand_sog_tracker.core.salient import MAX_DETECTIONS, Detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.search import (
     ASSIGN_LAMBDA_MM,
     NEW_TRACK_PROPOSALS,
@@ -196,6 +196,10 @@ class Tracker:
         #: ``tips (5, 3) mm -> (5,) bool``: the fingertips against another hand (the search's
         #: :attr:`Frame.covered`, set by the multi-hand tracker); None: none.
         self.covered_tips: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
+        #: ``theta (26,) -> (26,) bool``: the parameters a tracked frame's fit holds at its start
+        #: pose ``theta`` (the joints of fingers another hand hides: no data speak for them; set by
+        #: the multi-hand tracker); None: none.
+        self.held: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
 
     @property
     def config(self) -> TrackerConfig:
@@ -381,7 +385,9 @@ class Tracker:
         det = Detections.empty()
         axis = global_rotation(theta)[:, 1]  # the hand's long axis (camera frame)
         if detect:
-            det = detect_fingertips(pre, roi, window)
+            # (With a data filter the cap applies to what the filter leaves: another hand's
+            # tips in the region would take this hand's places, and the filter drops them.)
+            det = detect_fingertips(pre, roi, window, None if self.data_filter is not None else MAX_DETECTIONS)
             if det.n:
                 det = det.subset((det.points - theta[:3]) @ axis > 0.0)
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf)
@@ -390,6 +396,8 @@ class Tracker:
             data = data if keep.all() else data.subset(keep)
         if self.data_filter is not None:
             data, det = self.data_filter(data, det, theta)
+            if det.n > MAX_DETECTIONS:  # (most confident first: the detector's order)
+                det = det.subset(np.arange(det.n) < MAX_DETECTIONS)
         return data, det, sil
 
     def _targets(self, theta: NDArray[np.float64], det: Detections) -> TipTargets | None:
@@ -420,9 +428,11 @@ class Tracker:
         )
         base = _INITIAL_STEPS
         start = base if self._steps is None else np.minimum(np.maximum(self._steps * WARM_GROW, base * WARM_MIN), base)
+        held = None if self.held is None else self.held(x0)
         fit = self._maximise(
             obj, x0, iterations=cfg.iterations, initial_steps=start,
             extra_iterations=EXTRA_ITERATIONS, extra_gain=EXTRA_GAIN,
+            active=None if held is None or not held.any() else ~held,
         )
         self._steps = fit.steps
         frame = Frame(
