@@ -7,9 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
 from hand_sog_tracker.core.depth_sog import Preprocessed
-from hand_sog_tracker.core.hand_model import chain_slice
+from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
 from hand_sog_tracker.core.hands import FOREARM_RADIUS_MM, MultiHandTracker, hidden_by, skin_distance
 from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
 from hand_sog_tracker.core.tracker import Tracker
