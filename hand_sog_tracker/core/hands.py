@@ -12,7 +12,9 @@ Per frame the depth is preprocessed once and shared:
   detections are divided the same way (the detector's cap applies after the division), and a
   fingertip near another hand's skin (within :data:`COVERED_MM`) needs no detection of its own
   for the search (``Tracker.covered_tips``: the detector sees no end there, so its curl
-  proposal does not fire).  The silhouette stays
+  proposal does not fire), nor does a fingertip another hand hides (:func:`hidden_by`), which
+  does not dangle either; a finger whose tip another hand hides keeps its joints in the fit
+  (``Tracker.held``: no data speak for it).  The silhouette stays
   the whole image's: another hand in front is an occluder the hidden parts may project onto,
   and another hand's data more than :data:`OCCLUDER_GAP_MM` in front of this hand's skin on
   its line of sight stay in its data as occluders (:func:`in_front`).
