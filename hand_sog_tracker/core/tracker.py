@@ -61,6 +61,7 @@ from hand_sog_tracker.core.search.candidates import pull_target
 from hand_sog_tracker.core.search.fit import fit_batch, with_targets
 from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
+from hand_sog_tracker.core.support import without_support
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
 
 __all__ = ["ALPHA", "ASSIGN_LAMBDA_MM", "Tracker", "before_surface", "coverage", "hand_roi"]
@@ -270,6 +271,7 @@ class Tracker:
         """
         t0 = time.perf_counter()  # (timings only: nothing below depends on the clock)
         pre = preprocess(depth_mm, intrinsics, self._config)  # raises before any change of state
+        pre, depth_mm = without_support(pre, depth_mm, intrinsics)
         t1 = time.perf_counter()
         checked = None
         if self._prev is not None:
