@@ -21,7 +21,9 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.depth_sog import Preprocessed
 from hand_sog_tracker.core.types import Intrinsics
 
-__all__ = ["SupportPlane", "find_support", "drop_support", "without_support", "SUPPORT_MIN_AREA_MM2", "SUPPORT_CLEARANCE_MM"]
+__all__ = [
+    "SupportPlane", "find_support", "drop_support", "without_support", "SUPPORT_MIN_AREA_MM2", "SUPPORT_CLEARANCE_MM",
+]
 
 #: A plane is a support when its inliers cover this much (mm^2, summed pixel footprints at
 #: their depth): twice an open hand's outline (about 180 x 100 mm), so that no hand (nor a
@@ -66,7 +68,9 @@ def _grid_points(depth: NDArray[np.float32], intr: Intrinsics) -> tuple[NDArray[
     return P, np.isfinite(z) & (z > 0), s
 
 
-def find_support(depth_mm: NDArray, intr: Intrinsics, min_area_mm2: float = SUPPORT_MIN_AREA_MM2) -> SupportPlane | None:
+def find_support(
+    depth_mm: NDArray, intr: Intrinsics, min_area_mm2: float = SUPPORT_MIN_AREA_MM2
+) -> SupportPlane | None:
     """The dominant plane of ``depth_mm`` (H, W) mm (0, NaN invalid) if its inliers cover more
     than ``min_area_mm2``, else None.  Deterministic (a fixed seed per call)."""
     depth = np.asarray(depth_mm, dtype=np.float32)
