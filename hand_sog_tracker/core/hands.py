@@ -48,6 +48,7 @@ from hand_sog_tracker.core.hand_model import HandModel, chain_slice
 from hand_sog_tracker.core.kinematics import global_rotation, posed_centres
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import RING_RADIUS_MM, TIP_DEPTH_OFFSET_MM, Detections
+from hand_sog_tracker.core.support import without_support
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
 from hand_sog_tracker.errors import InputError
@@ -284,6 +285,7 @@ class MultiHandTracker:
 
         t0 = time.perf_counter()
         pre = preprocess(depth_mm, intrinsics, self._config)
+        pre = without_support(pre)[0]  # (a table under the hands, core/support.py)
         t1 = time.perf_counter()
         self._track(pre)
         t2 = time.perf_counter()
