@@ -3,7 +3,9 @@
 Units: depth images and every position in millimetres, camera optical frame (x right, y down,
 z forward); angles in radians.
 
-Per frame (paper 000, sec. 5): the depth near the hand's extrapolated pose is clustered into
+Per frame (paper 000, sec. 5), after a supporting plane much larger than a hand (a table under
+the hand, a wall behind it: :mod:`.support`) is dropped from the frame, the depth near the
+hand's extrapolated pose is clustered into
 Gaussians, the pose is fitted from there by the adaptive gradient ascent, and the search
 (:mod:`hand_sog_tracker.core.search`) fits the candidates its proposals make from that fit
 (fingers shifted, swapped, curled, pulled onto unexplained detections) as one batch; one
