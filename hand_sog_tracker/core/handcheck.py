@@ -282,17 +282,16 @@ def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> tuple[NDArray[np.float
     of its pixels has data (a stream with every third row invalid is checked like a clean
     one).  Where no data speaks for a hand (an outline, a finger end) the plain grid is used: a
     block's other pixel there is often the hand's own edge."""
-    full = np.where(np.isfinite(depth_mm) & (depth_mm > 0), depth_mm, 0.0).astype(np.float32)
-    plain = np.ascontiguousarray(full[::s, ::s])
-    grid = plain.copy()
-    for dy in range(s):
-        for dx in range(s):
-            if dy == dx == 0:
-                continue
-            cand = full[dy::s, dx::s]
-            view = grid[: cand.shape[0], : cand.shape[1]]
-            fill = (view <= 0) & (cand > 0)
-            view[fill] = cand[fill]
+    h, w = depth_mm.shape
+    gh, gw = -(-h // s), -(-w // s)
+    # Each cell's s x s block as its last axis, row by row (the image's edge padded with no data).
+    block = np.zeros((gh * s, gw * s), dtype=np.float32)
+    block[:h, :w] = depth_mm
+    cells = block.reshape(gh, s, gw, s).transpose(0, 2, 1, 3).reshape(gh, gw, s * s)
+    valid = (cells > 0) & (cells < np.inf)  # (NaN: neither)
+    plain = np.where(valid[:, :, 0], cells[:, :, 0], np.float32(0.0))
+    first = np.argmax(valid, axis=2)  # the first valid pixel of each block (0 when none)
+    grid = np.where(valid.any(axis=2), np.take_along_axis(cells, first[:, :, None], axis=2)[:, :, 0], np.float32(0.0))
     return plain, grid
 
 
