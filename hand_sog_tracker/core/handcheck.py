@@ -137,7 +137,7 @@ def check_hand(
     if result.pose is None or result.gaussians_mm is None or result.skeleton_mm is None:
         return HandDecision(False, 0.0)
     s = max(1, int(round(intr.width / _GRID_WIDTH)))
-    full = np.asarray(depth_mm, dtype=np.float32)
+    full = np.asarray(depth_mm)  # (read as float32 where read: the box and the finger ends' pixels)
     gh, gw = -(-full.shape[0] // s), -(-full.shape[1] // s)  # the grid's shape
     fx, fy, cx, cy = intr.fx / s, intr.fy / s, intr.cx / s, intr.cy / s
     C = np.asarray(result.gaussians_mm, dtype=np.float64)
@@ -271,7 +271,7 @@ def _front(
     return front.reshape(bh, bw), owner.reshape(bh, bw), core.reshape(bh, bw)
 
 
-def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+def _grid_depth(depth_mm: NDArray, s: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """The check's grid of ``depth_mm`` (the image or a block of it starting at a multiple of
     ``s``), every ``s``-th pixel (mm, 0 no data), shape (ceil(H/s), ceil(W/s)),
     and the same grid with each invalid pixel (0, NaN, Inf) replaced by the first valid pixel
@@ -351,7 +351,7 @@ def _hand_axis(theta: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _finger_ends(
-    full: NDArray[np.float32],
+    full: NDArray,
     s: int,
     result: TrackResult,
     model: HandModel,
@@ -390,7 +390,7 @@ def _finger_ends(
             bu, bv = iu - origin[0], iv - origin[1]
             if 0 <= bu < bw and 0 <= bv < bh and on_model[bv, bu]:
                 continue  # another part of the model lies there (a crossing thumb)
-            dz = float(full[iv * s, iu * s])  # (the grid's pixel: 0 without data)
+            dz = float(np.float32(full[iv * s, iu * s]))  # (the grid's pixel: 0 without data)
             dz = dz if math.isfinite(dz) and dz > 0 else 0.0
             surface = tip[2] - float(model.tip_radii[c])
             if 0 < dz < surface - DEPTH_TOL_MM:
