@@ -234,3 +234,26 @@ def test_front_draws_the_spheres_one_by_one() -> None:
     assert np.array_equal(owner, want_owner)
     assert np.array_equal(core, want_core)
     assert (owner == 4).any() and not (owner == 5).any()
+
+
+@pytest.mark.parametrize("s", [1, 2, 3, 4])
+def test_grid_depth_takes_each_blocks_first_valid_pixel(s: int) -> None:
+    """The check's grid: every s-th pixel (0 without data), and the same with an invalid pixel
+    (0, NaN, +-Inf) replaced by the first valid one of its s x s block, row by row."""
+    from hand_sog_tracker.core.handcheck import _grid_depth
+
+    rng = np.random.default_rng(s)
+    depth = rng.uniform(-50.0, 900.0, (17, 23))
+    depth[rng.random(depth.shape) < 0.3] = np.nan
+    depth[rng.random(depth.shape) < 0.1] = np.inf
+    depth[rng.random(depth.shape) < 0.2] = 0.0
+    plain, grid = _grid_depth(depth, s)
+    ok = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+    want = ok[::s, ::s]
+    assert plain.dtype == grid.dtype == np.float32
+    assert np.array_equal(plain, want)
+    for gv in range(want.shape[0]):
+        for gu in range(want.shape[1]):
+            block = ok[gv * s : (gv + 1) * s, gu * s : (gu + 1) * s].ravel()
+            first = block[block > 0][:1]
+            assert grid[gv, gu] == (first[0] if first.size else 0.0)

@@ -289,9 +289,10 @@ def _grid_depth(depth_mm: NDArray, s: int) -> tuple[NDArray[np.float32], NDArray
     block[:h, :w] = depth_mm
     cells = block.reshape(gh, s, gw, s).transpose(0, 2, 1, 3).reshape(gh, gw, s * s)
     valid = (cells > 0) & (cells < np.inf)  # (NaN: neither)
-    plain = np.where(valid[:, :, 0], cells[:, :, 0], np.float32(0.0))
-    first = np.argmax(valid, axis=2)  # the first valid pixel of each block (0 when none)
-    grid = np.where(valid.any(axis=2), np.take_along_axis(cells, first[:, :, None], axis=2)[:, :, 0], np.float32(0.0))
+    cells = np.where(valid, cells, np.float32(0.0))
+    plain = cells[:, :, 0]
+    first = np.argmax(valid, axis=2)  # the first valid pixel of each block (0 when none: no data)
+    grid = np.take_along_axis(cells, first[:, :, None], axis=2)[:, :, 0]
     return plain, grid
 
 
