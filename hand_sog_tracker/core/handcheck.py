@@ -147,7 +147,8 @@ def check_hand(
     u = fx * C[:, 0] / z + cx
     v = fy * C[:, 1] / z + cy
     rp = fx * r / z
-    z_mid = float(np.median(z))
+    z_sorted = sorted(z.tolist())  # (the median as np.median takes it, without its cost)
+    z_mid = z_sorted[len(z_sorted) // 2] if len(z_sorted) % 2 else (z_sorted[len(z_sorted) // 2 - 1] + z_sorted[len(z_sorted) // 2]) / 2
     pad = int(math.ceil(fx * MARGIN_MM / z_mid)) + 1
     # The grid box around the model (may extend past the image: those pixels are off the data).
     u0, u1 = int(math.floor((u - rp).min())) - pad, int(math.ceil((u + rp).max())) + pad + 1
@@ -284,15 +285,19 @@ def _grid_depth(depth_mm: NDArray, s: int) -> tuple[NDArray[np.float32], NDArray
     block's other pixel there is often the hand's own edge."""
     h, w = depth_mm.shape
     gh, gw = -(-h // s), -(-w // s)
-    # Each cell's s x s block as its last axis, row by row (the image's edge padded with no data).
+    # Each cell's s x s block as axes 1 and 3 (the image's edge padded with no data).
     block = np.zeros((gh * s, gw * s), dtype=np.float32)
     block[:h, :w] = depth_mm
-    cells = block.reshape(gh, s, gw, s).transpose(0, 2, 1, 3).reshape(gh, gw, s * s)
+    cells = block.reshape(gh, s, gw, s)
     valid = (cells > 0) & (cells < np.inf)  # (NaN: neither)
     cells = np.where(valid, cells, np.float32(0.0))
-    plain = cells[:, :, 0]
-    first = np.argmax(valid, axis=2)  # the first valid pixel of each block (0 when none: no data)
-    grid = np.take_along_axis(cells, first[:, :, None], axis=2)[:, :, 0]
+    plain = cells[:, 0, :, 0]
+    grid = plain
+    for k in range(s * s - 1, 0, -1):  # (the block's pixels from its last: the first valid one stays)
+        dy, dx = divmod(k, s)
+        grid = np.where(valid[:, dy, :, dx], cells[:, dy, :, dx], grid) if k < s * s - 1 else cells[:, dy, :, dx]
+    if s > 1:
+        grid = np.where(valid[:, 0, :, 0], plain, grid)
     return plain, grid
 
 
@@ -331,7 +336,8 @@ def _outline(
     uu, vv = grid
     w = on_model.shape[1]
     pu, pv = uu[ring_idx % w], vv[ring_idx // w]
-    p = np.stack([(pu - cx) / fx * inner, (pv - cy) / fy * inner, inner.astype(np.float64)], 1)
+    p = np.empty((inner.size, 3))
+    p[:, 0], p[:, 1], p[:, 2] = (pu - cx) / fx * inner, (pv - cy) / fy * inner, inner
     hand_side = (p - theta[:3]) @ axis > -WRIST_MARGIN_MM
     d = data.ravel()[ring_idx]
     has = valid.ravel()[ring_idx]
