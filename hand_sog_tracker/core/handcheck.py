@@ -292,12 +292,10 @@ def _grid_depth(depth_mm: NDArray, s: int) -> tuple[NDArray[np.float32], NDArray
     valid = (cells > 0) & (cells < np.inf)  # (NaN: neither)
     cells = np.where(valid, cells, np.float32(0.0))
     plain = cells[:, 0, :, 0]
-    grid = plain
-    for k in range(s * s - 1, 0, -1):  # (the block's pixels from its last: the first valid one stays)
+    grid = cells[:, s - 1, :, s - 1]
+    for k in range(s * s - 2, -1, -1):  # (the block's pixels from its last: the first valid one stays)
         dy, dx = divmod(k, s)
-        grid = np.where(valid[:, dy, :, dx], cells[:, dy, :, dx], grid) if k < s * s - 1 else cells[:, dy, :, dx]
-    if s > 1:
-        grid = np.where(valid[:, 0, :, 0], plain, grid)
+        grid = np.where(valid[:, dy, :, dx], cells[:, dy, :, dx], grid)
     return plain, grid
 
 
