@@ -137,8 +137,8 @@ def check_hand(
     if result.pose is None or result.gaussians_mm is None or result.skeleton_mm is None:
         return HandDecision(False, 0.0)
     s = max(1, int(round(intr.width / _GRID_WIDTH)))
-    depth, filled = _grid_depth(np.asarray(depth_mm, dtype=np.float32), s)
-    gh, gw = depth.shape
+    full = np.asarray(depth_mm)  # (read as float32 where read: the box and the finger ends' pixels)
+    gh, gw = -(-full.shape[0] // s), -(-full.shape[1] // s)  # the grid's shape
     fx, fy, cx, cy = intr.fx / s, intr.fy / s, intr.cx / s, intr.cy / s
     C = np.asarray(result.gaussians_mm, dtype=np.float64)
     r = np.asarray(model.g_sigmas, dtype=np.float64)
@@ -147,7 +147,8 @@ def check_hand(
     u = fx * C[:, 0] / z + cx
     v = fy * C[:, 1] / z + cy
     rp = fx * r / z
-    z_mid = float(np.median(z))
+    z_sorted, half = sorted(z.tolist()), z.size // 2  # (the median as np.median takes it, cheaper)
+    z_mid = z_sorted[half] if z.size % 2 else (z_sorted[half - 1] + z_sorted[half]) / 2
     pad = int(math.ceil(fx * MARGIN_MM / z_mid)) + 1
     # The grid box around the model (may extend past the image: those pixels are off the data).
     u0, u1 = int(math.floor((u - rp).min())) - pad, int(math.ceil((u + rp).max())) + pad + 1
@@ -157,32 +158,16 @@ def check_hand(
     uu = np.arange(u0, u1, dtype=np.float64)
     vv = np.arange(v0, v1, dtype=np.float64)
     bh, bw = vv.size, uu.size
-    # Model front depth (inf: off the model) and the Gaussian that makes it.
-    front = np.full((bh, bw), np.inf)
-    owner = np.full((bh, bw), -1, dtype=np.int64)
-    core = np.zeros((bh, bw), dtype=bool)
-    for i in range(C.shape[0]):
-        a0, a1 = max(int(u[i] - rp[i]) - u0, 0), min(int(u[i] + rp[i]) + 2 - u0, bw)
-        b0, b1 = max(int(v[i] - rp[i]) - v0, 0), min(int(v[i] + rp[i]) + 2 - v0, bh)
-        if a0 >= a1 or b0 >= b1:
-            continue
-        du = (uu[a0:a1] - u[i])[None, :] * (z[i] / fx)
-        dv = (vv[b0:b1] - v[i])[:, None] * (z[i] / fy)
-        d2 = r[i] * r[i] - du * du - dv * dv
-        zf = np.where(d2 >= 0, C[i, 2] - np.sqrt(np.maximum(d2, 0.0)), np.inf)
-        view, own = front[b0:b1, a0:a1], owner[b0:b1, a0:a1]
-        closer = zf < view
-        view[closer] = zf[closer]
-        own[closer] = i
-        core[b0:b1, a0:a1] |= d2 >= (1.0 - ON_CORE * ON_CORE) * r[i] * r[i]
+    front, owner, core = _front(C, r, z, (u, v, rp), (fx, fy), (uu, vv))
     on_model = np.isfinite(front)
     # The data in the box (0 outside the image).
     data = np.zeros((bh, bw), dtype=np.float32)
     data_f = np.zeros((bh, bw), dtype=np.float32)  # (invalid pixels unknown: for ``on``)
     iu0, iu1, iv0, iv1 = max(u0, 0), min(u1, gw), max(v0, 0), min(v1, gh)
-    if iu0 < iu1 and iv0 < iv1:
-        data[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = depth[iv0:iv1, iu0:iu1]
-        data_f[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = filled[iv0:iv1, iu0:iu1]
+    if iu0 < iu1 and iv0 < iv1:  # (the grid of the box's part in the image only)
+        depth, filled = _grid_depth(full[iv0 * s : iv1 * s, iu0 * s : iu1 * s], s)
+        data[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = depth
+        data_f[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = filled
     inside = np.zeros((bh, bw), dtype=bool)
     inside[max(iv0 - v0, 0) : max(iv1 - v0, 0), max(iu0 - u0, 0) : max(iu1 - u0, 0)] = True
     valid = data > 0
@@ -213,7 +198,7 @@ def check_hand(
     outline, finger_edges = _outline(
         data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis
     )
-    ends = _finger_ends(depth, result, model, (fx, fy, cx, cy), on_model, (u0, v0))
+    ends = _finger_ends(full, s, result, model, (fx, fy, cx, cy), on_model, (u0, v0))
     fingers = np.zeros(5)  # per finger: on / all (occluded counts against: not shown)
     visible_on = np.zeros(5)  # per finger: on / (on + off)
     for c in range(5):
@@ -238,8 +223,58 @@ def check_hand(
     )
 
 
-def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """The check's grid, every ``s``-th pixel (mm, 0 no data), shape (ceil(H/s), ceil(W/s)),
+def _front(
+    C: NDArray[np.float64],
+    r: NDArray[np.float64],
+    z: NDArray[np.float64],
+    proj: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    f: tuple[float, float],
+    grid: tuple[NDArray[np.float64], NDArray[np.float64]],
+) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_]]:
+    """The model's front surface on the grid box ``grid`` (the box's u (bw,) and v (bh,)
+    pixel coordinates): its depth (bh, bw) mm (inf: off the model), the Gaussian that makes it
+    (-1: none; the first on a tie) and the cores (discs of ``ON_CORE`` times the radius).
+
+    ``C`` (m, 3) mm the Gaussians' centres, ``r`` (m,) their skin radii, ``z`` (m,) their
+    depths, ``proj`` their projections u, v and projected radii (m,) each, grid px.  Each
+    Gaussian is a sphere drawn on the pixels of its own box; all of them at once, as patches
+    of one size, then the nearest per pixel."""
+    u, v, rp = proj
+    fx, fy = f
+    uu, vv = grid
+    bh, bw = vv.size, uu.size
+    u0, v0 = int(uu[0]), int(vv[0])
+    m = C.shape[0]
+    # Each Gaussian's box (as ints: truncated toward zero, as ``int()``), clipped to the grid box.
+    a0 = np.maximum((u - rp).astype(np.int64) - u0, 0)
+    a1 = np.minimum((u + rp).astype(np.int64) + 2 - u0, bw)
+    b0 = np.maximum((v - rp).astype(np.int64) - v0, 0)
+    b1 = np.minimum((v + rp).astype(np.int64) + 2 - v0, bh)
+    pw, ph = max(int((a1 - a0).max()), 1), max(int((b1 - b0).max()), 1)
+    cols = a0[:, None] + np.arange(pw)  # (m, pw) box columns of each patch
+    rows = b0[:, None] + np.arange(ph)  # (m, ph)
+    in_box = (rows < b1[:, None])[:, :, None] & (cols < a1[:, None])[:, None, :]  # (m, ph, pw)
+    du = (uu.take(np.minimum(cols, bw - 1)) - u[:, None]) * (z / fx)[:, None]
+    dv = (vv.take(np.minimum(rows, bh - 1)) - v[:, None]) * (z / fy)[:, None]
+    d2 = (r * r)[:, None, None] - (du * du)[:, None, :] - (dv * dv)[:, :, None]
+    disc = in_box & (d2 >= 0)
+    idx = (rows[:, :, None] * bw + cols[:, None, :])[disc]  # flat box pixels, Gaussian after Gaussian
+    zf = (C[:, 2][:, None, None] - np.sqrt(np.maximum(d2, 0.0)))[disc]
+    gi = np.broadcast_to(np.arange(m)[:, None, None], d2.shape)[disc]
+    front = np.full(bh * bw, np.inf)
+    np.minimum.at(front, idx, zf)
+    nearest = zf == front[idx]
+    owner = np.full(bh * bw, m, dtype=np.int64)
+    np.minimum.at(owner, idx[nearest], gi[nearest])
+    owner[owner == m] = -1
+    core = np.zeros(bh * bw, dtype=bool)
+    core[idx[(d2 >= ((1.0 - ON_CORE * ON_CORE) * r * r)[:, None, None])[disc]]] = True
+    return front.reshape(bh, bw), owner.reshape(bh, bw), core.reshape(bh, bw)
+
+
+def _grid_depth(depth_mm: NDArray, s: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """The check's grid of ``depth_mm`` (the image or a block of it starting at a multiple of
+    ``s``), every ``s``-th pixel (mm, 0 no data), shape (ceil(H/s), ceil(W/s)),
     and the same grid with each invalid pixel (0, NaN, Inf) replaced by the first valid pixel
     of its ``s`` x ``s`` block.
 
@@ -248,17 +283,19 @@ def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> tuple[NDArray[np.float
     of its pixels has data (a stream with every third row invalid is checked like a clean
     one).  Where no data speaks for a hand (an outline, a finger end) the plain grid is used: a
     block's other pixel there is often the hand's own edge."""
-    full = np.where(np.isfinite(depth_mm) & (depth_mm > 0), depth_mm, 0.0).astype(np.float32)
-    plain = np.ascontiguousarray(full[::s, ::s])
-    grid = plain.copy()
-    for dy in range(s):
-        for dx in range(s):
-            if dy == dx == 0:
-                continue
-            cand = full[dy::s, dx::s]
-            view = grid[: cand.shape[0], : cand.shape[1]]
-            fill = (view <= 0) & (cand > 0)
-            view[fill] = cand[fill]
+    h, w = depth_mm.shape
+    gh, gw = -(-h // s), -(-w // s)
+    # Each cell's s x s block as axes 1 and 3 (the image's edge padded with no data).
+    block = np.zeros((gh * s, gw * s), dtype=np.float32)
+    block[:h, :w] = depth_mm
+    cells = block.reshape(gh, s, gw, s)
+    valid = (cells > 0) & (cells < np.inf)  # (NaN: neither)
+    cells = np.where(valid, cells, np.float32(0.0))
+    plain = cells[:, 0, :, 0]
+    grid = cells[:, s - 1, :, s - 1]
+    for k in range(s * s - 2, -1, -1):  # (the block's pixels from its last: the first valid one stays)
+        dy, dx = divmod(k, s)
+        grid = np.where(valid[:, dy, :, dx], cells[:, dy, :, dx], grid)
     return plain, grid
 
 
@@ -297,7 +334,8 @@ def _outline(
     uu, vv = grid
     w = on_model.shape[1]
     pu, pv = uu[ring_idx % w], vv[ring_idx // w]
-    p = np.stack([(pu - cx) / fx * inner, (pv - cy) / fy * inner, inner.astype(np.float64)], 1)
+    p = np.empty((inner.size, 3))
+    p[:, 0], p[:, 1], p[:, 2] = (pu - cx) / fx * inner, (pv - cy) / fy * inner, inner
     hand_side = (p - theta[:3]) @ axis > -WRIST_MARGIN_MM
     d = data.ravel()[ring_idx]
     has = valid.ravel()[ring_idx]
@@ -318,7 +356,8 @@ def _hand_axis(theta: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _finger_ends(
-    depth: NDArray[np.float32],
+    full: NDArray,
+    s: int,
     result: TrackResult,
     model: HandModel,
     k: tuple[float, float, float, float],
@@ -326,12 +365,13 @@ def _finger_ends(
     origin: tuple[int, int],
 ) -> float:
     """Share of the extended fingers seen from the side whose data end past the tip (NaN:
-    none checked).  ``on_model``: the model's silhouette on the grid box at ``origin`` (u0, v0)."""
+    none checked).  ``full``: the depth image (mm), read on the grid of every ``s``-th pixel;
+    ``on_model``: the model's silhouette on the grid box at ``origin`` (u0, v0)."""
     fx, fy, cx, cy = k
     assert result.skeleton_mm is not None and result.fingertips_mm is not None
     sk = np.asarray(result.skeleton_mm)
     tips = np.asarray(result.fingertips_mm)
-    gh, gw = depth.shape
+    gh, gw = -(-full.shape[0] // s), -(-full.shape[1] // s)
     bh, bw = on_model.shape
     checked = ended = 0
     for c in range(5):
@@ -355,7 +395,8 @@ def _finger_ends(
             bu, bv = iu - origin[0], iv - origin[1]
             if 0 <= bu < bw and 0 <= bv < bh and on_model[bv, bu]:
                 continue  # another part of the model lies there (a crossing thumb)
-            dz = float(depth[iv, iu])
+            dz = float(np.float32(full[iv * s, iu * s]))  # (the grid's pixel: 0 without data)
+            dz = dz if math.isfinite(dz) and dz > 0 else 0.0
             surface = tip[2] - float(model.tip_radii[c])
             if 0 < dz < surface - DEPTH_TOL_MM:
                 continue  # something in front of the finger: cannot tell

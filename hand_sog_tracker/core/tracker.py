@@ -580,9 +580,12 @@ class Tracker:
                 with_targets(shared, targets), starts, shared.data.n,
                 iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
             )
-            for (k, data_x, obj), fit in zip(group, results):
+            # (The finalists' plain objectives equal ``shared`` without targets: their values
+            # at the fits in one batch, the same bits as one by one.)
+            values = shared.batch(np.array([fit.x for fit in results]), gradient=False)[0]
+            for (k, data_x, obj), fit, value in zip(group, results, values.tolist()):
                 frame = Frame(self._model, fit, obj, plain(obj), data_x, det, self._limits(), new_track=True)
-                fits.append((k, (frame.score(fit.x), frame)))
+                fits.append((k, (frame.score(fit.x, value), frame)))
         fits.sort(key=lambda f: f[0])
         fits.sort(key=lambda f: f[1][0], reverse=True)  # (stable: the earlier first on a tie)
         return fits
