@@ -334,7 +334,7 @@ def test_frames_of_a_hand_held_still_count_as_one_observation() -> None:
 def test_guard_refits_of_a_frame_in_one_batch_are_each_ones_own_fit() -> None:
     """The guard's refit and re-track of a frame run as one batch: each start gets the pose and
     the terms it gets alone (its own fingertip assignment), bit for bit."""
-    from hand_sog_tracker.core.calibration import _guard_refit, _prepare
+    from hand_sog_tracker.core.calibration_guard import _guard_refit, _prepare
     from hand_sog_tracker.core.salient import detect_fingertips
     from hand_sog_tracker.core.silhouette import silhouette
 
