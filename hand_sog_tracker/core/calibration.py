@@ -118,7 +118,7 @@ from hand_sog_tracker.core.hand_model import (
 )
 from hand_sog_tracker.core.measure import WidthMeasurement, measure_widths, shape_from_widths
 from hand_sog_tracker.core.optimizer import maximise
-from hand_sog_tracker.core.skin import SCORE_TOLERANCE_MM, overlap_score, shape_score
+from hand_sog_tracker.core.skin import SCORE_TOLERANCE_MM, draw_skin, overlap_score, shape_score
 from hand_sog_tracker.core.tracker import coverage
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 from hand_sog_tracker.errors import CalibrationError
@@ -405,14 +405,32 @@ def calibrate(
         raise CalibrationError("no hand in view (hold an open hand toward the camera)")
     intr = pres[0].intrinsics
 
-    def evaluate(shape: HandShape, ref_model: HandModel) -> tuple[float, list[NDArray[np.float64]]]:
-        """Mean score of ``shape`` over the fit frames, scaled about each palm centre."""
+    others_drawn: dict[tuple[object, ...], NDArray[np.float32]] = {}
+
+    def evaluate(
+        shape: HandShape, ref_model: HandModel, chain: int | None = None
+    ) -> tuple[float, list[NDArray[np.float64]]]:
+        """Mean score of ``shape`` over the fit frames, scaled about each palm centre.
+
+        With ``chain`` (a candidate that differs from the others of its search in that chain's
+        length factor alone) only that chain's capsules are drawn anew; the other chains' skin
+        is drawn once per frame and kept (:func:`draw_skin`: the two drawings' minimum is the
+        whole skin, bit for bit).
+        """
         m = mirrored.scaled(shape)
         ths = [_keep_palm_centre(fr.pose, ref_model, m) for fr in fits]
-        return (
-            sum(overlap_score(m, th, fr.scoring, intr, SCORE_TOLERANCE_MM) for th, fr in zip(ths, fits)) / len(fits),
-            ths,
-        )
+        total = 0.0
+        for k, (th, fr) in enumerate(zip(ths, fits)):
+            skin = None
+            if chain is not None:
+                rest = shape.fingers[:chain] + shape.fingers[chain + 1:]
+                key = (k, chain, th.tobytes(), shape.as_array().tobytes(), rest)
+                if key not in others_drawn:
+                    others = tuple(c for c in range(-1, 5) if c != chain)
+                    others_drawn[key] = draw_skin(m, th, intr, fr.scoring.roi, others)
+                skin = np.minimum(others_drawn[key], draw_skin(m, th, intr, fr.scoring.roi, (chain,)))
+            total += overlap_score(m, th, fr.scoring, intr, SCORE_TOLERANCE_MM, skin=skin)
+        return total / len(fits), ths
 
     best_shape = model.shape
     measured: WidthMeasurement | None = None
@@ -540,7 +558,7 @@ def _fit_finger_lengths(
     shape: HandShape,
     value: float,
     poses: list[NDArray[np.float64]],
-    evaluate: Callable[[HandShape, HandModel], tuple[float, list[NDArray[np.float64]]]],
+    evaluate: Callable[..., tuple[float, list[NDArray[np.float64]]]],
     ref_model: HandModel,
 ) -> tuple[HandShape, float, list[NDArray[np.float64]]]:
     """Per-finger length factors by a 1-D search each, after the four overall factors.
@@ -570,7 +588,7 @@ def _fit_finger_lengths(
                     continue
                 fingers = list(shape.fingers)
                 fingers[c] = v
-                val, ths = evaluate(shape.with_fingers(fingers), ref_model)
+                val, ths = evaluate(shape.with_fingers(fingers), ref_model, c)
                 if val > value:
                     value, shape, poses = val, shape.with_fingers(fingers), ths
     f = shape.finger_array()
