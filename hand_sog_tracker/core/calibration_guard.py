@@ -12,20 +12,16 @@ least a floor; the frames count as independent only as far as the hand moved bet
 the frame's pose, palm centre kept (:data:`GUARD_RIGID_ITERATIONS` global, then
 :data:`GUARD_REFIT_ITERATIONS` full iterations of the tracking objective with its silhouette
 and fingertip-detection terms, as the tracker fits a frame) and are compared by the
-:func:`~hand_sog_tracker.core.skin.shape_score` and by the distance of their fingertips to the
-fingertip detections; each model also re-tracks the held-out frames in order from its own pose
-on the previous one (in the same batch as the refit) and is scored again.  Any evidence worse
-beyond its noise, or one frame losing more than :data:`GUARD_FRAME_DROP`, refuses the fit; the
-best-pose score (each model's better score of its two pose fits on a frame: the refit from the
-tracked pose favours the current model) must rise beyond its noise, or by the margin for a hand
-whose measured finger thickness factor is at most :data:`MAX_THICKNESS_PER_WIDTH` times its palm
-width factor (there the fit is the measured shape and the scores' gains are small against their noise
-on a hand held still; beyond it the objective's side-by-side finger bias makes better-scoring
-fits track worse), else "the current model already fits" (nothing to do).  Either way
-:class:`CalibrationRejected` is raised (with the numbers) and the caller keeps (and does not
-save) the current model.  None of this has fingertip truth: the measurements that chose the
-rules, the predictors tried and the hands whose true shape tracks worse than the default model
-are in ``doc/design/calibration_guard.md``.
+:func:`shape_score` and by the distance of their fingertips to the fingertip detections; each
+model also re-tracks the held-out frames in order from its own pose on the previous one (in the
+same batch as the refit) and is scored again.  Any evidence worse beyond its noise, or one frame
+losing more than :data:`GUARD_FRAME_DROP`, refuses the fit; the best-pose score (each model's
+better score of its two pose fits on a frame: the refit from the tracked pose favours the
+current model) must rise beyond its noise, else "the current model already fits" (nothing to
+do).  Either way :class:`CalibrationRejected` is raised
+(with the numbers) and the caller keeps (and does not save) the current model.  None of this
+has fingertip truth: the measurements that chose the rules, the predictors tried and the hands
+whose true shape tracks worse than the default model are in ``doc/design/calibration_guard.md``.
 """
 
 from __future__ import annotations
