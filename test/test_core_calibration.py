@@ -370,22 +370,3 @@ def test_skin_drawn_by_chains_composes_to_the_whole_skin() -> None:
         split = np.minimum(draw_skin(model, theta, INTR, roi, rest), draw_skin(model, theta, INTR, roi, (chain,)))
         assert np.array_equal(split, whole)
     assert not np.isfinite(draw_skin(model, theta, INTR, roi, ())).any()
-
-
-def test_a_hand_measured_within_the_thickness_bound_needs_the_margin_not_the_noise() -> None:
-    """With measured widths and the measured thickness within the bound (the fit is the measured
-    shape) a best-pose gain of the margin accepts; the same gain on a hand measured thicker than
-    the bound, or without a measurement, is within the noise ("already fits"); worse evidence
-    refuses either way."""
-    noisy = _rows([0.06, -0.005, 0.01, 0.0], [0] * 4, [0.0] * 3, [0] * 3)
-    within = dict(widths_from_measurement=True, measured_width=1.05, measured_sigma=1.05 * MAX_THICKNESS_PER_WIDTH)
-    thick = dict(within, measured_sigma=1.1 * within["measured_width"])
-    v = Validation(**noisy, **within)
-    best = v.evidence()[0]
-    assert v.within_thickness_bound and best.change > GUARD_MARGIN and not best.better and v.accepted
-    assert Validation(**noisy, **thick).already_fits and not Validation(**noisy, **thick).within_thickness_bound
-    assert Validation(**noisy).already_fits
-    small = Validation(**_rows([0.002] * 4, [0] * 4, [0.002] * 3, [0] * 3), **within)
-    assert small.already_fits and "(within the margin)" in small.failures()[0]
-    worse = Validation(**_rows([0.02] * 4, [2.0] * 4, [0.02] * 3, [0] * 3), **within)
-    assert not worse.accepted and not worse.already_fits

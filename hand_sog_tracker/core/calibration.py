@@ -89,7 +89,6 @@ from hand_sog_tracker.core.calibration_guard import (
     GUARD_RIGID_ITERATIONS,
     GUARD_TIP_FLOOR_MM,
     GUARD_TIP_LAMBDA_MM,
-    MAX_THICKNESS_PER_WIDTH,
     PER_FRAME_COLUMNS,
     RETRACK_COLUMNS,
     CalibrationRejected,
@@ -155,6 +154,9 @@ __all__ = [
 SEARCH_RANGE = (0.8, 1.25)
 #: Frames the fit uses by default (the node's ``calibration_frames``); more are accepted.
 DEFAULT_FIT_FRAMES = 3
+#: The fitted thickness (depth and sigma) is at most this times the fitted width (unitless;
+#: the default model's ratio): see :func:`_bounded_thickness`.
+MAX_THICKNESS_PER_WIDTH = 1.0
 #: Search rounds: span and step of the grid each factor is searched on about the best so far.
 #: A third round like the second (poses refitted and widths measured again with the second
 #: round's model, the length searched again) was tried on ``calibration_benchmark``: on the dev

@@ -59,7 +59,6 @@ __all__ = [
     "GUARD_RIGID_ITERATIONS",
     "GUARD_FRAME_DROP",
     "GUARD_TIP_LAMBDA_MM",
-    "MAX_THICKNESS_PER_WIDTH",
     "DEFAULT_HOLDOUT_FRAMES",
     "PER_FRAME_COLUMNS",
     "RETRACK_COLUMNS",
@@ -96,11 +95,6 @@ GUARD_FRAME_DROP = 0.05
 #: The guard's fingertip-detection distance (``tip_current`` / ``tip_fitted``, one kind of its
 #: evidence): a model fingertip without a detection within this (mm) counts as this far.
 GUARD_TIP_LAMBDA_MM = 30.0
-#: The fitted thickness (depth and sigma) is at most this times the fitted width (unitless;
-#: the default model's ratio): see :func:`~hand_sog_tracker.core.calibration._bounded_thickness`.
-#: A hand measured within it is fitted as measured, and the guard then accepts a best-pose gain
-#: of at least the margin (:meth:`Validation.failures`).
-MAX_THICKNESS_PER_WIDTH = 1.0
 _SCORE_MARGIN_PX = 12
 _RIGID = np.arange(N_PARAMS) < FIRST_JOINT
 
@@ -349,41 +343,23 @@ class Validation:
             out.append(_evidence("re-tracked score", rt[both, 1] - rt[both, 0], self.margin, True, independent=n))
         return out
 
-    @property
-    def within_thickness_bound(self) -> bool:
-        """Whether the widths were measured and the measured finger thickness is at most
-        :data:`MAX_THICKNESS_PER_WIDTH` times the measured palm width (the fit is the measured
-        shape, not one the thickness bound changed)."""
-        return bool(
-            self.widths_from_measurement
-            and np.isfinite(self.measured_sigma)
-            and np.isfinite(self.measured_width)
-            and self.measured_sigma <= MAX_THICKNESS_PER_WIDTH * self.measured_width
-        )
-
     def failures(self) -> list[str]:
         """Why the guard does not accept the fitted model (empty: accepted).
 
         Refused when any evidence is worse beyond its noise or one held-out frame loses more
-        than :attr:`frame_drop`.  Otherwise the deciding score (the best-pose score) must rise
-        beyond its noise, or, for a hand measured within the thickness bound
-        (:attr:`within_thickness_bound`), by at least :attr:`margin`: else "the current model
-        already fits".  (Beyond the bound the objective's side-by-side finger bias makes fits
-        that score better track worse: doc/design/calibration_guard.md.)
+        than :attr:`frame_drop`; "the current model already fits" when nothing is worse but the
+        deciding score (the best-pose score) does not rise beyond its noise.
         """
         ev = self.evidence()
         out = [f"{e.name} worse: {e.describe()}" for e in ev if e.worse]
         if np.isfinite(self.worst_frame_gain) and self.worst_frame_gain < -self.frame_drop:
             out.append(f"one held-out frame loses {-self.worst_frame_gain:.4f} > {self.frame_drop:.4f}")
         if not out:
-            if self.within_thickness_bound:
-                need, flat = "the margin", [e for e in ev if e.decides and e.change < self.margin]
-            else:
-                need, flat = "the noise", [e for e in ev if e.decides and not e.better]
+            flat = [e for e in ev if e.decides and not e.better]
             if flat:
                 out.append(
                     "the current model already fits: "
-                    + "; ".join(f"{e.name} {e.describe()} (within {need})" for e in flat)
+                    + "; ".join(f"{e.name} {e.describe()} (within the noise)" for e in flat)
                 )
         return out
 
