@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
-from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, HandGate, check_hand
+from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, STEEP_HIGH, STEEP_LOW, HandGate, check_hand
 from hand_sog_tracker.core.kinematics import gaussian_centres, skeleton_points
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerStatus, TrackResult
@@ -64,11 +64,25 @@ def test_invalid_pixels_are_unknown_not_evidence_against(factor: float) -> None:
 
 
 def test_a_hand_resting_on_a_wall_passes() -> None:
-    """The wall 25 mm behind the hand's centre (the back of the hand on it) is background."""
+    """The wall 25 mm behind the hand's centre (the back of the hand on it) is background; the
+    hand's outline steps onto it and the wall does not recede beyond: steep edges."""
     rng = np.random.default_rng(5)
     depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=445.0), rng)
     dec = check_hand(depth, INTR, MODEL, _result(THETA))
     assert dec.confidence >= 0.9, dec.evidence
+    assert dec.evidence is not None and dec.evidence.steep >= STEEP_HIGH
+
+
+def test_the_outline_of_a_model_on_a_head_curves_away() -> None:
+    """The model in front of a head-sized ellipsoid: its outline is the head's surface receding,
+    not a step (``steep`` low); the same model on its hand has steep edges."""
+    palm = THETA[:3] + np.array([0.0, -50.0, 0.0])
+    res = _result(THETA)
+    head = check_hand(_mesh_depth(_ellipsoid(palm + [0.0, 0.0, 60.0], (75.0, 95.0, 85.0))), INTR, MODEL, res)
+    depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), np.random.default_rng(5))
+    hand = check_hand(depth, INTR, MODEL, res)
+    assert head.evidence is not None and hand.evidence is not None
+    assert head.evidence.steep < STEEP_LOW <= STEEP_HIGH <= hand.evidence.steep, (head.evidence, hand.evidence)
 
 
 def test_a_head_a_forearm_stump_and_a_wall_are_no_hand() -> None:

@@ -29,19 +29,26 @@ coarse pixel grid (about 160 px wide) and measures what a hand gives and those d
   the ring next to the model's fingers (their nearest model pixel is a finger's).  Model
   fingers spread over a head lie on one surface; but a real hand's or an adducted hand's
   finger outline is also partly on its own data.
+* **steep edges** (``steep``): of the outline ring's depth edges, the share that are steps: a
+  hand's outline drops to what lies behind it (far, or a wall or a table close behind, flat
+  beyond the step), while a head's surface curves away, so a model lying on a head has edges
+  of 10-30 mm that keep receding one ring width further out.
 * **finger ends** (``ends``): past each fingertip, along the finger in the image, the data must
   end or step back by more than ``EDGE_MM`` (a finger-like extremity): a model finger lying on
   a forearm, a head or a box runs into more surface there.  Fingers seen end-on are left out.
 
-The confidence is the product of five of them, each mapped linearly onto [0, 1]: ``on`` from
+The confidence is the product of six of them, each mapped linearly onto [0, 1]: ``on`` from
 ``ON_LOW`` to ``ON_HIGH``, ``fingers_on`` from ``FINGERS_LOW`` to ``FINGERS_HIGH``,
 ``explained`` from ``EXPLAINED_LOW`` to ``EXPLAINED_HIGH``, ``outline`` from ``OUTLINE_LOW`` to
-``OUTLINE_HIGH``, ``ends`` from ``ENDS_LOW`` to 1 (no finger checked: 1); ``finger_edges`` is
+``OUTLINE_HIGH``, ``steep`` from ``STEEP_LOW`` to ``STEEP_HIGH`` (no edge: 1), ``ends`` from
+``ENDS_LOW`` to 1 (no finger checked: 1); ``finger_edges`` is
 measured and reported but not in the product (see the design note: it separates a synthetic
 head from synthetic hands, not from real hands or fingers held together).  A product, because
 each failure alone means "no hand": a model on a head or among cups lies on data but explains
 little of it and has no outline, a model on a forearm stump explains it but its fingers hang off
-it, a model flat on a table top does both but has no outline.
+it, a model flat on a table top does both but has no outline, a model on a head passes all of
+those on some frames (on data, covering it, fingers ending at the head's rim) but its outline
+is the head's surface curving away.
 
 Per finger: the share of that finger's
 silhouette on data (occluded pixels count against: a finger the data cannot show is reported
@@ -88,6 +95,9 @@ ON_CORE: Final = 0.6  #: ``on`` looks at discs of this share of each Gaussian's 
 WRIST_MARGIN_MM: Final = 10.0  #: data beyond the wrist plane by more than this are the forearm
 OUTLINE_RING_PX: Final = (1.5, 3.5)  #: the outline ring, grid pixels outside the silhouette
 EDGE_MM: Final = 10.0  #: a step back of more than this is an edge (chosen here)
+#: An edge stepping back by more than this is a step, whatever lies beyond it (a head's side
+#: recedes 10-30 mm across the outline ring at 0.6 m; chosen on scenes_dev).
+STEEP_MM: Final = 30.0
 END_GAP_MM: Final = 25.0  #: finger-end samples this far (and 1.5 times) past the tip's skin (chosen here)
 END_STRAIGHT_COS: Final = 0.5  #: fingers whose distal and proximal bones are nearer than 60 deg are checked
 ON_LOW, ON_HIGH = 0.60, 0.85  #: ``on`` mapped onto 0 .. 1 (chosen on scenes_dev)
@@ -95,6 +105,9 @@ FINGERS_LOW, FINGERS_HIGH = 0.35, 0.65  #: ``fingers_on`` mapped onto 0 .. 1 (ch
 OUTLINE_LOW, OUTLINE_HIGH = 0.2, 0.6  #: ``outline`` mapped onto 0 .. 1 (chosen on scenes_dev)
 EXPLAINED_LOW, EXPLAINED_HIGH = 0.70, 0.92  #: ``explained`` mapped onto 0 .. 1 (chosen on scenes_dev)
 ENDS_LOW: Final = 0.3  #: share of ending fingers mapped onto 0 (chosen on scenes_dev)
+#: ``steep`` mapped onto 0 .. 1 (chosen on scenes_dev and 16 dev heads: heads median 0.55-0.74,
+#: 1% of their frames above 0.8; good hands at least 0.86, the labelled real frames 0.86).
+STEEP_LOW, STEEP_HIGH = 0.8, 0.9
 #: Default threshold of :class:`HandGate` (and of the node's ``hand_threshold``).
 HAND_THRESHOLD: Final = 0.2
 #: Default ``reset_frames`` of :class:`HandGate` (0.1 s at 30 Hz; chosen on scenes_dev).
@@ -195,7 +208,7 @@ def check_hand(
     explained = float(np.count_nonzero(fg & covered)) / max(n_fg, 1) if n_fg else 0.0
 
     own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
-    outline, finger_edges = _outline(
+    outline, finger_edges, steep = _outline(
         data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis
     )
     ends = _finger_ends(full, s, result, model, (fx, fy, cx, cy), on_model, (u0, v0))
@@ -210,17 +223,18 @@ def check_hand(
         visible_on[c] = n_c_on / max(n_c_on + n_c_off, 1)
     fingers_on = float(visible_on.mean())
     e_factor = 1.0 if math.isnan(ends) else _ramp(ends, ENDS_LOW, 1.0)
+    s_factor = 1.0 if math.isnan(steep) else _ramp(steep, STEEP_LOW, STEEP_HIGH)
     confidence = (
         _ramp(on_share, ON_LOW, ON_HIGH)
         * _ramp(fingers_on, FINGERS_LOW, FINGERS_HIGH)
         * _ramp(explained, EXPLAINED_LOW, EXPLAINED_HIGH)
         * _ramp(outline, OUTLINE_LOW, OUTLINE_HIGH)
         * e_factor
+        * s_factor
     )
     fingers *= confidence > 0  # (no finger of a frame that is no hand)
-    return HandDecision(
-        False, confidence, fingers, HandEvidence(on_share, explained, fingers_on, ends, in_view, outline, finger_edges)
-    )
+    evidence = HandEvidence(on_share, explained, fingers_on, ends, in_view, outline, finger_edges, steep)
+    return HandDecision(False, confidence, fingers, evidence)
 
 
 def _front(
@@ -309,13 +323,15 @@ def _outline(
     k: tuple[float, float, float, float],
     theta: NDArray[np.float64],
     axis: NDArray[np.float64],
-) -> tuple[float, float]:
+) -> tuple[float, float, float]:
     """Share of the outline ring (``OUTLINE_RING_PX`` outside the silhouette) that is a depth
     edge: no data, or data more than ``EDGE_MM`` behind the data of the nearest model pixel;
-    and the same share over the ring pixels whose nearest model pixel is a finger's
-    (``own_chain``: the chain of each box pixel's front Gaussian, 0-4 the fingers; NaN: none)."""
+    the same share over the ring pixels whose nearest model pixel is a finger's
+    (``own_chain``: the chain of each box pixel's front Gaussian, 0-4 the fingers; NaN: none);
+    and the share of those edges that are steps, not a surface curving away (see
+    :class:`~hand_sog_tracker.core.types.HandEvidence`; NaN: no edge)."""
     if not on_model.any():
-        return 0.0, math.nan
+        return 0.0, math.nan, math.nan
     dist, labels = cv2.distanceTransformWithLabels(
         (~on_model).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
     )
@@ -329,7 +345,7 @@ def _outline(
     ok = valid.ravel()[near]
     ring_idx, near, inner = ring_idx[ok], near[ok], inner[ok]
     if ring_idx.size == 0:
-        return 0.0, math.nan
+        return 0.0, math.nan, math.nan
     fx, fy, cx, cy = k
     uu, vv = grid
     w = on_model.shape[1]
@@ -346,7 +362,17 @@ def _outline(
     finger = count & (own_chain.ravel()[near] >= 0) & (own_chain.ravel()[near] < 5)
     n_f = int(np.count_nonzero(finger))
     finger_edges = float(np.count_nonzero(edge & finger)) / n_f if n_f else math.nan
-    return (float(np.count_nonzero(edge & count)) / n if n else 0.0), finger_edges
+    n_edge = int(np.count_nonzero(edge & count))
+    # A surface curving away: an edge less than STEEP_MM behind that keeps receding (or ends)
+    # one ring width further out; a step onto a wall or a table close behind does not recede.
+    ru, rv = ring_idx % w, ring_idx // w
+    du, dv = ru - near % w, rv - near // w
+    reach = (OUTLINE_RING_PX[1] - OUTLINE_RING_PX[0]) / np.maximum(np.hypot(du, dv), 1e-6)
+    ou = np.clip(np.rint(ru + du * reach).astype(np.int64), 0, w - 1)
+    ov = np.clip(np.rint(rv + dv * reach).astype(np.int64), 0, on_model.shape[0] - 1)
+    receding = has & (d <= inner + STEEP_MM) & (~valid[ov, ou] | (data[ov, ou] > d + EDGE_MM))
+    steep = float(np.count_nonzero(edge & count & ~receding)) / n_edge if n_edge else math.nan
+    return (n_edge / n if n else 0.0), finger_edges, steep
 
 
 def _hand_axis(theta: NDArray[np.float64]) -> NDArray[np.float64]:
