@@ -334,7 +334,7 @@ def test_frames_of_a_hand_held_still_count_as_one_observation() -> None:
 def test_guard_refits_of_a_frame_in_one_batch_are_each_ones_own_fit() -> None:
     """The guard's refit and re-track of a frame run as one batch: each start gets the pose and
     the terms it gets alone (its own fingertip assignment), bit for bit."""
-    from hand_sog_tracker.core.calibration import _guard_refit, _prepare
+    from hand_sog_tracker.core.calibration_guard import _guard_refit, _prepare
     from hand_sog_tracker.core.salient import detect_fingertips
     from hand_sog_tracker.core.silhouette import silhouette
 
@@ -351,3 +351,22 @@ def test_guard_refits_of_a_frame_in_one_batch_are_each_ones_own_fit() -> None:
         alone = _guard_refit(model, starts[k : k + 1], fr.data, config, det, sil)[0]
         assert np.array_equal(both[k][0], alone[0]) and both[k][1] == alone[1]
     assert not np.array_equal(both[0][0], both[1][0])
+
+
+def test_skin_drawn_by_chains_composes_to_the_whole_skin() -> None:
+    """Each pixel keeps the nearest capsule's depth, so the minimum of the drawings of a split
+    of the chains is the whole skin, bit for bit (the per-finger search draws one chain anew)."""
+    rng = np.random.default_rng(3)
+    model = default_hand_model(True).scaled(HandShape(1.05, 0.95, 1.0, 1.02, fingers=(1.0, 1.04, 0.97, 1.0, 1.02)))
+    theta = np.zeros(26)
+    theta[:3] = (0.0, 40.0, 420.0)
+    theta[3] = np.pi
+    theta[6:] = rng.normal(0.0, 0.2, 20)
+    roi = (0, 0, INTR.width, INTR.height)
+    whole = draw_skin(model, theta, INTR, roi)
+    assert np.isfinite(whole).sum() > 500
+    for chain in range(5):
+        rest = tuple(c for c in range(-1, 5) if c != chain)
+        split = np.minimum(draw_skin(model, theta, INTR, roi, rest), draw_skin(model, theta, INTR, roi, (chain,)))
+        assert np.array_equal(split, whole)
+    assert not np.isfinite(draw_skin(model, theta, INTR, roi, ())).any()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
-from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, HandGate, check_hand
+from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, STEEP_HIGH, STEEP_LOW, HandGate, check_hand
 from hand_sog_tracker.core.kinematics import gaussian_centres, skeleton_points
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerStatus, TrackResult
@@ -64,11 +64,25 @@ def test_invalid_pixels_are_unknown_not_evidence_against(factor: float) -> None:
 
 
 def test_a_hand_resting_on_a_wall_passes() -> None:
-    """The wall 25 mm behind the hand's centre (the back of the hand on it) is background."""
+    """The wall 25 mm behind the hand's centre (the back of the hand on it) is background; the
+    hand's outline steps onto it and the wall does not recede beyond: steep edges."""
     rng = np.random.default_rng(5)
     depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=445.0), rng)
     dec = check_hand(depth, INTR, MODEL, _result(THETA))
     assert dec.confidence >= 0.9, dec.evidence
+    assert dec.evidence is not None and dec.evidence.steep >= STEEP_HIGH
+
+
+def test_the_outline_of_a_model_on_a_head_curves_away() -> None:
+    """The model in front of a head-sized ellipsoid: its outline is the head's surface receding,
+    not a step (``steep`` low); the same model on its hand has steep edges."""
+    palm = THETA[:3] + np.array([0.0, -50.0, 0.0])
+    res = _result(THETA)
+    head = check_hand(_mesh_depth(_ellipsoid(palm + [0.0, 0.0, 60.0], (75.0, 95.0, 85.0))), INTR, MODEL, res)
+    depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), np.random.default_rng(5))
+    hand = check_hand(depth, INTR, MODEL, res)
+    assert head.evidence is not None and hand.evidence is not None
+    assert head.evidence.steep < STEEP_LOW <= STEEP_HIGH <= hand.evidence.steep, (head.evidence, hand.evidence)
 
 
 def test_a_head_a_forearm_stump_and_a_wall_are_no_hand() -> None:
@@ -197,3 +211,63 @@ def test_a_doubted_track_is_replaced_by_a_fresh_start_on_the_hand_in_the_same_fr
     t, res = second_frame()
     assert res.pose is None and t.last_fit is not None and t.last_fit.pose is not None
     assert np.linalg.norm(t.last_fit.pose[:3] - a[:3]) < 60.0  # (the track stayed on the head)
+
+
+def test_front_draws_the_spheres_one_by_one() -> None:
+    """The model's front surface, drawn for all Gaussians at once, is what drawing them one
+    after the other gives (the nearest per pixel, the first on a tie; the cores)."""
+    from hand_sog_tracker.core.handcheck import ON_CORE, _front
+
+    rng = np.random.default_rng(3)
+    m, fx, fy = 40, 140.0, 150.0
+    C = np.column_stack([rng.uniform(-60, 60, m), rng.uniform(-60, 60, m), rng.uniform(300, 420, m)])
+    C[5] = C[4]  # (a tie: the first Gaussian keeps the pixels)
+    r = rng.uniform(4.0, 16.0, m)
+    z = C[:, 2]
+    u, v, rp = fx * C[:, 0] / z + 20.0, fy * C[:, 1] / z + 15.0, fx * r / z
+    uu, vv = np.arange(-15, 50, dtype=np.float64), np.arange(-20, 45, dtype=np.float64)
+    front, owner, core = _front(C, r, z, (u, v, rp), (fx, fy), (uu, vv))
+    bh, bw = vv.size, uu.size
+    want = np.full((bh, bw), np.inf)
+    want_owner = np.full((bh, bw), -1)
+    want_core = np.zeros((bh, bw), dtype=bool)
+    for i in range(m):  # (each sphere on its own box of +-rp px, clipped to the grid box)
+        a0, a1 = max(int(u[i] - rp[i]) + 15, 0), min(int(u[i] + rp[i]) + 2 + 15, bw)
+        b0, b1 = max(int(v[i] - rp[i]) + 20, 0), min(int(v[i] + rp[i]) + 2 + 20, bh)
+        for b in range(b0, b1):
+            for a in range(a0, a1):
+                du, dv = (uu[a] - u[i]) * (z[i] / fx), (vv[b] - v[i]) * (z[i] / fy)
+                d2 = r[i] * r[i] - du * du - dv * dv
+                if d2 < 0:
+                    continue
+                zf = C[i, 2] - math.sqrt(d2)
+                if zf < want[b, a]:
+                    want[b, a], want_owner[b, a] = zf, i
+                want_core[b, a] |= d2 >= (1.0 - ON_CORE * ON_CORE) * r[i] * r[i]
+    assert np.array_equal(front, want)
+    assert np.array_equal(owner, want_owner)
+    assert np.array_equal(core, want_core)
+    assert (owner == 4).any() and not (owner == 5).any()
+
+
+@pytest.mark.parametrize("s", [1, 2, 3, 4])
+def test_grid_depth_takes_each_blocks_first_valid_pixel(s: int) -> None:
+    """The check's grid: every s-th pixel (0 without data), and the same with an invalid pixel
+    (0, NaN, +-Inf) replaced by the first valid one of its s x s block, row by row."""
+    from hand_sog_tracker.core.handcheck import _grid_depth
+
+    rng = np.random.default_rng(s)
+    depth = rng.uniform(-50.0, 900.0, (17, 23))
+    depth[rng.random(depth.shape) < 0.3] = np.nan
+    depth[rng.random(depth.shape) < 0.1] = np.inf
+    depth[rng.random(depth.shape) < 0.2] = 0.0
+    plain, grid = _grid_depth(depth, s)
+    ok = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+    want = ok[::s, ::s]
+    assert plain.dtype == grid.dtype == np.float32
+    assert np.array_equal(plain, want)
+    for gv in range(want.shape[0]):
+        for gu in range(want.shape[1]):
+            block = ok[gv * s : (gv + 1) * s, gu * s : (gu + 1) * s].ravel()
+            first = block[block > 0][:1]
+            assert grid[gv, gu] == (first[0] if first.size else 0.0)

@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
-from hand_sog_tracker.core.hands import FOREARM_RADIUS_MM, MultiHandTracker, skin_distance
+from hand_sog_tracker.core.depth_sog import Preprocessed
+from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
+from hand_sog_tracker.core.hands import FOREARM_RADIUS_MM, MultiHandTracker, hidden_by, skin_distance
 from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
@@ -82,6 +83,73 @@ def test_skin_distance_of_the_model_and_its_forearm() -> None:
     d = skin_distance(model, theta, np.array([arm, arm + np.array([0.0, 0.0, 200.0])]))
     assert d[0] == pytest.approx(-FOREARM_RADIUS_MM)
     assert d[1] > 100.0
+
+
+def _sphere_depth(model, theta, intr: Intrinsics) -> np.ndarray:
+    """A depth image (mm) of the model's Gaussians as spheres seen from the camera (nearest
+    surface per pixel), without noise: the hand in front of a scene."""
+    depth = np.zeros((intr.height, intr.width), np.float32)
+    vv, uu = np.mgrid[0 : intr.height, 0 : intr.width]
+    for c, s in zip(gaussian_centres(model, theta), model.g_sigmas):
+        u, v = intr.fx * c[0] / c[2] + intr.cx, intr.fy * c[1] / c[2] + intr.cy
+        r2 = ((uu - u) ** 2 + (vv - v) ** 2) * (c[2] / intr.fx) ** 2
+        on = r2 < s * s
+        z = c[2] - np.sqrt(np.maximum(s * s - r2, 0.0))
+        depth[on] = np.where((depth[on] == 0) | (z[on] < depth[on]), z[on], depth[on])
+    return depth
+
+
+def test_hidden_by_another_hand() -> None:
+    """A sphere behind another hand's skin (its pixel shows that hand far in front) is hidden;
+    one beside the hand, one in front of it, or one behind a surface that is no hand is not."""
+    intr = Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
+    model = default_hand_model()
+    front = rest_pose((0.0, 0.0, 350.0))
+    depth = _sphere_depth(model, front, intr)
+    palm = gaussian_centres(model, front)[0]
+    pre = Preprocessed(depth_mm=depth, intrinsics=intr, decimation=1)
+    points = np.array([
+        palm * (500.0 / palm[2]),  # on the palm's line of sight, 150 mm behind it
+        palm * (500.0 / palm[2]) + np.array([150.0, 0.0, 0.0]),  # beside the hand
+        palm * (330.0 / palm[2]),  # in front of the palm
+    ])
+    radii = np.full(3, 10.0)
+    np.testing.assert_array_equal(hidden_by(pre, [(model, front)], points, radii), [True, False, False])
+    # (the same surface, but the hand said to be elsewhere: an occluder that is no hand)
+    away = rest_pose((300.0, 0.0, 350.0))
+    assert not hidden_by(pre, [(model, away)], points, radii).any()
+    assert not hidden_by(pre, [], points, radii).any()
+
+
+def test_held_joints_keep_their_start_in_the_fit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``Tracker.held`` holds the joints it names at the fit's start pose; without it (None)
+    the same frame's fit moves them (the search's candidates left out: the fit answers)."""
+    import hand_sog_tracker.core.tracker as tracker_module
+
+    depth, intr, _ = next(_frames(1))
+    one = Tracker(TrackerConfig())
+    first = one.process(depth, intr)
+    assert first.pose is not None
+    thumb = np.zeros(26, dtype=bool)
+    thumb[chain_slice(0)] = True
+    start = first.pose.copy()
+    start[chain_slice(0)] += 0.2  # (off the data: a free fit would move it back)
+    from hand_sog_tracker.core.depth_sog import preprocess
+
+    pre = preprocess(depth, intr, TrackerConfig())
+    monkeypatch.setattr(tracker_module, "search", lambda frame, proposals: (frame.fit, None))
+    fits, proposals = {}, {}
+    for name, held in (("free", None), ("held", lambda theta: thumb)):
+        t = Tracker(TrackerConfig(), one.model)
+        t.start_at(start)
+        t.held = held
+        fits[name] = t.process_preprocessed(pre).pose
+        proposals[name] = t.last_proposal
+    assert fits["held"] is not None and fits["free"] is not None
+    assert proposals["held"] is None  # (the answer is the fit's)
+    np.testing.assert_array_equal(fits["held"][chain_slice(0)], start[chain_slice(0)])
+    assert not np.array_equal(fits["held"][:6], start[:6])  # (the rest is fitted)
+    assert np.abs(fits["free"][chain_slice(0)] - start[chain_slice(0)]).max() > 0.05
 
 
 def test_invalid_arguments_are_refused() -> None:

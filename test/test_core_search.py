@@ -176,3 +176,28 @@ def test_a_fingertip_against_another_hand_calls_for_no_curl() -> None:
     assert curls(None) == 4  # (each open finger curled)
     assert curls(lambda t: np.arange(5) == 4) == 0
     assert curls(lambda t: np.arange(5) == 2) == 4  # (another tip's cover does not explain it)
+
+
+def test_a_fingertip_another_hand_hides_does_not_dangle() -> None:
+    """The dangling proposal restarts the finger whose tip lies farthest from the data, unless
+    another hand covers that tip (``Frame.covered``: hidden behind it or against it)."""
+    from hand_sog_tracker.core.depth_sog import ImageSoG
+    from hand_sog_tracker.core.kinematics import fingertips
+    from hand_sog_tracker.core.search.candidates import DANGLING
+
+    model = default_hand_model()
+    theta = rest_pose((0.0, 20.0, 400.0))
+    tips = fingertips(model, theta)
+    pts = np.delete(tips, 1, axis=0)  # (data at every tip but the index finger's)
+    intr = default_intrinsics(320, 240)
+    uv = intr.project(pts)
+    data = ImageSoG(uv, np.full(4, 2.0), pts[:, 2].copy(), pts, intr, 1.0)
+    fit = OptimizeResult(theta, 0.5, 7, True, 0, "", np.zeros(1))
+
+    def dangling(covered) -> int:
+        frame = Frame(model, fit, None, None, data, None, (None, None), covered=covered)  # type: ignore[arg-type]
+        return len(list(DANGLING.generate(frame)))
+
+    assert dangling(None) == 3  # (the index finger extended, curled, like the others)
+    assert dangling(lambda t: np.arange(5) == 1) == 0
+    assert dangling(lambda t: np.arange(5) == 3) == 3

@@ -29,19 +29,26 @@ coarse pixel grid (about 160 px wide) and measures what a hand gives and those d
   the ring next to the model's fingers (their nearest model pixel is a finger's).  Model
   fingers spread over a head lie on one surface; but a real hand's or an adducted hand's
   finger outline is also partly on its own data.
+* **steep edges** (``steep``): of the outline ring's depth edges, the share that are steps: a
+  hand's outline drops to what lies behind it (far, or a wall or a table close behind, flat
+  beyond the step), while a head's surface curves away, so a model lying on a head has edges
+  of 10-30 mm that keep receding one ring width further out.
 * **finger ends** (``ends``): past each fingertip, along the finger in the image, the data must
   end or step back by more than ``EDGE_MM`` (a finger-like extremity): a model finger lying on
   a forearm, a head or a box runs into more surface there.  Fingers seen end-on are left out.
 
-The confidence is the product of five of them, each mapped linearly onto [0, 1]: ``on`` from
+The confidence is the product of six of them, each mapped linearly onto [0, 1]: ``on`` from
 ``ON_LOW`` to ``ON_HIGH``, ``fingers_on`` from ``FINGERS_LOW`` to ``FINGERS_HIGH``,
 ``explained`` from ``EXPLAINED_LOW`` to ``EXPLAINED_HIGH``, ``outline`` from ``OUTLINE_LOW`` to
-``OUTLINE_HIGH``, ``ends`` from ``ENDS_LOW`` to 1 (no finger checked: 1); ``finger_edges`` is
+``OUTLINE_HIGH``, ``steep`` from ``STEEP_LOW`` to ``STEEP_HIGH`` (no edge: 1), ``ends`` from
+``ENDS_LOW`` to 1 (no finger checked: 1); ``finger_edges`` is
 measured and reported but not in the product (see the design note: it separates a synthetic
 head from synthetic hands, not from real hands or fingers held together).  A product, because
 each failure alone means "no hand": a model on a head or among cups lies on data but explains
 little of it and has no outline, a model on a forearm stump explains it but its fingers hang off
-it, a model flat on a table top does both but has no outline.
+it, a model flat on a table top does both but has no outline, a model on a head passes all of
+those on some frames (on data, covering it, fingers ending at the head's rim) but its outline
+is the head's surface curving away.
 
 Per finger: the share of that finger's
 silhouette on data (occluded pixels count against: a finger the data cannot show is reported
@@ -88,6 +95,9 @@ ON_CORE: Final = 0.6  #: ``on`` looks at discs of this share of each Gaussian's 
 WRIST_MARGIN_MM: Final = 10.0  #: data beyond the wrist plane by more than this are the forearm
 OUTLINE_RING_PX: Final = (1.5, 3.5)  #: the outline ring, grid pixels outside the silhouette
 EDGE_MM: Final = 10.0  #: a step back of more than this is an edge (chosen here)
+#: An edge stepping back by more than this is a step, whatever lies beyond it (a head's side
+#: recedes 10-30 mm across the outline ring at 0.6 m; chosen on scenes_dev).
+STEEP_MM: Final = 30.0
 END_GAP_MM: Final = 25.0  #: finger-end samples this far (and 1.5 times) past the tip's skin (chosen here)
 END_STRAIGHT_COS: Final = 0.5  #: fingers whose distal and proximal bones are nearer than 60 deg are checked
 ON_LOW, ON_HIGH = 0.60, 0.85  #: ``on`` mapped onto 0 .. 1 (chosen on scenes_dev)
@@ -95,6 +105,9 @@ FINGERS_LOW, FINGERS_HIGH = 0.35, 0.65  #: ``fingers_on`` mapped onto 0 .. 1 (ch
 OUTLINE_LOW, OUTLINE_HIGH = 0.2, 0.6  #: ``outline`` mapped onto 0 .. 1 (chosen on scenes_dev)
 EXPLAINED_LOW, EXPLAINED_HIGH = 0.70, 0.92  #: ``explained`` mapped onto 0 .. 1 (chosen on scenes_dev)
 ENDS_LOW: Final = 0.3  #: share of ending fingers mapped onto 0 (chosen on scenes_dev)
+#: ``steep`` mapped onto 0 .. 1 (chosen on scenes_dev and 16 dev heads: heads median 0.55-0.74,
+#: 1% of their frames above 0.8; good hands at least 0.86, the labelled real frames 0.86).
+STEEP_LOW, STEEP_HIGH = 0.8, 0.9
 #: Default threshold of :class:`HandGate` (and of the node's ``hand_threshold``).
 HAND_THRESHOLD: Final = 0.2
 #: Default ``reset_frames`` of :class:`HandGate` (0.1 s at 30 Hz; chosen on scenes_dev).
@@ -137,8 +150,8 @@ def check_hand(
     if result.pose is None or result.gaussians_mm is None or result.skeleton_mm is None:
         return HandDecision(False, 0.0)
     s = max(1, int(round(intr.width / _GRID_WIDTH)))
-    depth, filled = _grid_depth(np.asarray(depth_mm, dtype=np.float32), s)
-    gh, gw = depth.shape
+    full = np.asarray(depth_mm)  # (read as float32 where read: the box and the finger ends' pixels)
+    gh, gw = -(-full.shape[0] // s), -(-full.shape[1] // s)  # the grid's shape
     fx, fy, cx, cy = intr.fx / s, intr.fy / s, intr.cx / s, intr.cy / s
     C = np.asarray(result.gaussians_mm, dtype=np.float64)
     r = np.asarray(model.g_sigmas, dtype=np.float64)
@@ -147,7 +160,8 @@ def check_hand(
     u = fx * C[:, 0] / z + cx
     v = fy * C[:, 1] / z + cy
     rp = fx * r / z
-    z_mid = float(np.median(z))
+    z_sorted, half = sorted(z.tolist()), z.size // 2  # (the median as np.median takes it, cheaper)
+    z_mid = z_sorted[half] if z.size % 2 else (z_sorted[half - 1] + z_sorted[half]) / 2
     pad = int(math.ceil(fx * MARGIN_MM / z_mid)) + 1
     # The grid box around the model (may extend past the image: those pixels are off the data).
     u0, u1 = int(math.floor((u - rp).min())) - pad, int(math.ceil((u + rp).max())) + pad + 1
@@ -157,32 +171,16 @@ def check_hand(
     uu = np.arange(u0, u1, dtype=np.float64)
     vv = np.arange(v0, v1, dtype=np.float64)
     bh, bw = vv.size, uu.size
-    # Model front depth (inf: off the model) and the Gaussian that makes it.
-    front = np.full((bh, bw), np.inf)
-    owner = np.full((bh, bw), -1, dtype=np.int64)
-    core = np.zeros((bh, bw), dtype=bool)
-    for i in range(C.shape[0]):
-        a0, a1 = max(int(u[i] - rp[i]) - u0, 0), min(int(u[i] + rp[i]) + 2 - u0, bw)
-        b0, b1 = max(int(v[i] - rp[i]) - v0, 0), min(int(v[i] + rp[i]) + 2 - v0, bh)
-        if a0 >= a1 or b0 >= b1:
-            continue
-        du = (uu[a0:a1] - u[i])[None, :] * (z[i] / fx)
-        dv = (vv[b0:b1] - v[i])[:, None] * (z[i] / fy)
-        d2 = r[i] * r[i] - du * du - dv * dv
-        zf = np.where(d2 >= 0, C[i, 2] - np.sqrt(np.maximum(d2, 0.0)), np.inf)
-        view, own = front[b0:b1, a0:a1], owner[b0:b1, a0:a1]
-        closer = zf < view
-        view[closer] = zf[closer]
-        own[closer] = i
-        core[b0:b1, a0:a1] |= d2 >= (1.0 - ON_CORE * ON_CORE) * r[i] * r[i]
+    front, owner, core = _front(C, r, z, (u, v, rp), (fx, fy), (uu, vv))
     on_model = np.isfinite(front)
     # The data in the box (0 outside the image).
     data = np.zeros((bh, bw), dtype=np.float32)
     data_f = np.zeros((bh, bw), dtype=np.float32)  # (invalid pixels unknown: for ``on``)
     iu0, iu1, iv0, iv1 = max(u0, 0), min(u1, gw), max(v0, 0), min(v1, gh)
-    if iu0 < iu1 and iv0 < iv1:
-        data[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = depth[iv0:iv1, iu0:iu1]
-        data_f[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = filled[iv0:iv1, iu0:iu1]
+    if iu0 < iu1 and iv0 < iv1:  # (the grid of the box's part in the image only)
+        depth, filled = _grid_depth(full[iv0 * s : iv1 * s, iu0 * s : iu1 * s], s)
+        data[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = depth
+        data_f[iv0 - v0 : iv1 - v0, iu0 - u0 : iu1 - u0] = filled
     inside = np.zeros((bh, bw), dtype=bool)
     inside[max(iv0 - v0, 0) : max(iv1 - v0, 0), max(iu0 - u0, 0) : max(iu1 - u0, 0)] = True
     valid = data > 0
@@ -210,10 +208,10 @@ def check_hand(
     explained = float(np.count_nonzero(fg & covered)) / max(n_fg, 1) if n_fg else 0.0
 
     own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
-    outline, finger_edges = _outline(
+    outline, finger_edges, steep = _outline(
         data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis
     )
-    ends = _finger_ends(depth, result, model, (fx, fy, cx, cy), on_model, (u0, v0))
+    ends = _finger_ends(full, s, result, model, (fx, fy, cx, cy), on_model, (u0, v0))
     fingers = np.zeros(5)  # per finger: on / all (occluded counts against: not shown)
     visible_on = np.zeros(5)  # per finger: on / (on + off)
     for c in range(5):
@@ -225,21 +223,72 @@ def check_hand(
         visible_on[c] = n_c_on / max(n_c_on + n_c_off, 1)
     fingers_on = float(visible_on.mean())
     e_factor = 1.0 if math.isnan(ends) else _ramp(ends, ENDS_LOW, 1.0)
+    s_factor = 1.0 if math.isnan(steep) else _ramp(steep, STEEP_LOW, STEEP_HIGH)
     confidence = (
         _ramp(on_share, ON_LOW, ON_HIGH)
         * _ramp(fingers_on, FINGERS_LOW, FINGERS_HIGH)
         * _ramp(explained, EXPLAINED_LOW, EXPLAINED_HIGH)
         * _ramp(outline, OUTLINE_LOW, OUTLINE_HIGH)
         * e_factor
+        * s_factor
     )
     fingers *= confidence > 0  # (no finger of a frame that is no hand)
-    return HandDecision(
-        False, confidence, fingers, HandEvidence(on_share, explained, fingers_on, ends, in_view, outline, finger_edges)
-    )
+    evidence = HandEvidence(on_share, explained, fingers_on, ends, in_view, outline, finger_edges, steep)
+    return HandDecision(False, confidence, fingers, evidence)
 
 
-def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """The check's grid, every ``s``-th pixel (mm, 0 no data), shape (ceil(H/s), ceil(W/s)),
+def _front(
+    C: NDArray[np.float64],
+    r: NDArray[np.float64],
+    z: NDArray[np.float64],
+    proj: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    f: tuple[float, float],
+    grid: tuple[NDArray[np.float64], NDArray[np.float64]],
+) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_]]:
+    """The model's front surface on the grid box ``grid`` (the box's u (bw,) and v (bh,)
+    pixel coordinates): its depth (bh, bw) mm (inf: off the model), the Gaussian that makes it
+    (-1: none; the first on a tie) and the cores (discs of ``ON_CORE`` times the radius).
+
+    ``C`` (m, 3) mm the Gaussians' centres, ``r`` (m,) their skin radii, ``z`` (m,) their
+    depths, ``proj`` their projections u, v and projected radii (m,) each, grid px.  Each
+    Gaussian is a sphere drawn on the pixels of its own box; all of them at once, as patches
+    of one size, then the nearest per pixel."""
+    u, v, rp = proj
+    fx, fy = f
+    uu, vv = grid
+    bh, bw = vv.size, uu.size
+    u0, v0 = int(uu[0]), int(vv[0])
+    m = C.shape[0]
+    # Each Gaussian's box (as ints: truncated toward zero, as ``int()``), clipped to the grid box.
+    a0 = np.maximum((u - rp).astype(np.int64) - u0, 0)
+    a1 = np.minimum((u + rp).astype(np.int64) + 2 - u0, bw)
+    b0 = np.maximum((v - rp).astype(np.int64) - v0, 0)
+    b1 = np.minimum((v + rp).astype(np.int64) + 2 - v0, bh)
+    pw, ph = max(int((a1 - a0).max()), 1), max(int((b1 - b0).max()), 1)
+    cols = a0[:, None] + np.arange(pw)  # (m, pw) box columns of each patch
+    rows = b0[:, None] + np.arange(ph)  # (m, ph)
+    in_box = (rows < b1[:, None])[:, :, None] & (cols < a1[:, None])[:, None, :]  # (m, ph, pw)
+    du = (uu.take(np.minimum(cols, bw - 1)) - u[:, None]) * (z / fx)[:, None]
+    dv = (vv.take(np.minimum(rows, bh - 1)) - v[:, None]) * (z / fy)[:, None]
+    d2 = (r * r)[:, None, None] - (du * du)[:, None, :] - (dv * dv)[:, :, None]
+    disc = in_box & (d2 >= 0)
+    idx = (rows[:, :, None] * bw + cols[:, None, :])[disc]  # flat box pixels, Gaussian after Gaussian
+    zf = (C[:, 2][:, None, None] - np.sqrt(np.maximum(d2, 0.0)))[disc]
+    gi = np.broadcast_to(np.arange(m)[:, None, None], d2.shape)[disc]
+    front = np.full(bh * bw, np.inf)
+    np.minimum.at(front, idx, zf)
+    nearest = zf == front[idx]
+    owner = np.full(bh * bw, m, dtype=np.int64)
+    np.minimum.at(owner, idx[nearest], gi[nearest])
+    owner[owner == m] = -1
+    core = np.zeros(bh * bw, dtype=bool)
+    core[idx[(d2 >= ((1.0 - ON_CORE * ON_CORE) * r * r)[:, None, None])[disc]]] = True
+    return front.reshape(bh, bw), owner.reshape(bh, bw), core.reshape(bh, bw)
+
+
+def _grid_depth(depth_mm: NDArray, s: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """The check's grid of ``depth_mm`` (the image or a block of it starting at a multiple of
+    ``s``), every ``s``-th pixel (mm, 0 no data), shape (ceil(H/s), ceil(W/s)),
     and the same grid with each invalid pixel (0, NaN, Inf) replaced by the first valid pixel
     of its ``s`` x ``s`` block.
 
@@ -248,17 +297,19 @@ def _grid_depth(depth_mm: NDArray[np.float32], s: int) -> tuple[NDArray[np.float
     of its pixels has data (a stream with every third row invalid is checked like a clean
     one).  Where no data speaks for a hand (an outline, a finger end) the plain grid is used: a
     block's other pixel there is often the hand's own edge."""
-    full = np.where(np.isfinite(depth_mm) & (depth_mm > 0), depth_mm, 0.0).astype(np.float32)
-    plain = np.ascontiguousarray(full[::s, ::s])
-    grid = plain.copy()
-    for dy in range(s):
-        for dx in range(s):
-            if dy == dx == 0:
-                continue
-            cand = full[dy::s, dx::s]
-            view = grid[: cand.shape[0], : cand.shape[1]]
-            fill = (view <= 0) & (cand > 0)
-            view[fill] = cand[fill]
+    h, w = depth_mm.shape
+    gh, gw = -(-h // s), -(-w // s)
+    # Each cell's s x s block as axes 1 and 3 (the image's edge padded with no data).
+    block = np.zeros((gh * s, gw * s), dtype=np.float32)
+    block[:h, :w] = depth_mm
+    cells = block.reshape(gh, s, gw, s)
+    valid = (cells > 0) & (cells < np.inf)  # (NaN: neither)
+    cells = np.where(valid, cells, np.float32(0.0))
+    plain = cells[:, 0, :, 0]
+    grid = cells[:, s - 1, :, s - 1]
+    for k in range(s * s - 2, -1, -1):  # (the block's pixels from its last: the first valid one stays)
+        dy, dx = divmod(k, s)
+        grid = np.where(valid[:, dy, :, dx], cells[:, dy, :, dx], grid)
     return plain, grid
 
 
@@ -272,13 +323,15 @@ def _outline(
     k: tuple[float, float, float, float],
     theta: NDArray[np.float64],
     axis: NDArray[np.float64],
-) -> tuple[float, float]:
+) -> tuple[float, float, float]:
     """Share of the outline ring (``OUTLINE_RING_PX`` outside the silhouette) that is a depth
     edge: no data, or data more than ``EDGE_MM`` behind the data of the nearest model pixel;
-    and the same share over the ring pixels whose nearest model pixel is a finger's
-    (``own_chain``: the chain of each box pixel's front Gaussian, 0-4 the fingers; NaN: none)."""
+    the same share over the ring pixels whose nearest model pixel is a finger's
+    (``own_chain``: the chain of each box pixel's front Gaussian, 0-4 the fingers; NaN: none);
+    and the share of those edges that are steps, not a surface curving away (see
+    :class:`~hand_sog_tracker.core.types.HandEvidence`; NaN: no edge)."""
     if not on_model.any():
-        return 0.0, math.nan
+        return 0.0, math.nan, math.nan
     dist, labels = cv2.distanceTransformWithLabels(
         (~on_model).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
     )
@@ -292,12 +345,13 @@ def _outline(
     ok = valid.ravel()[near]
     ring_idx, near, inner = ring_idx[ok], near[ok], inner[ok]
     if ring_idx.size == 0:
-        return 0.0, math.nan
+        return 0.0, math.nan, math.nan
     fx, fy, cx, cy = k
     uu, vv = grid
     w = on_model.shape[1]
     pu, pv = uu[ring_idx % w], vv[ring_idx // w]
-    p = np.stack([(pu - cx) / fx * inner, (pv - cy) / fy * inner, inner.astype(np.float64)], 1)
+    p = np.empty((inner.size, 3))
+    p[:, 0], p[:, 1], p[:, 2] = (pu - cx) / fx * inner, (pv - cy) / fy * inner, inner
     hand_side = (p - theta[:3]) @ axis > -WRIST_MARGIN_MM
     d = data.ravel()[ring_idx]
     has = valid.ravel()[ring_idx]
@@ -308,7 +362,17 @@ def _outline(
     finger = count & (own_chain.ravel()[near] >= 0) & (own_chain.ravel()[near] < 5)
     n_f = int(np.count_nonzero(finger))
     finger_edges = float(np.count_nonzero(edge & finger)) / n_f if n_f else math.nan
-    return (float(np.count_nonzero(edge & count)) / n if n else 0.0), finger_edges
+    n_edge = int(np.count_nonzero(edge & count))
+    # A surface curving away: an edge less than STEEP_MM behind that keeps receding (or ends)
+    # one ring width further out; a step onto a wall or a table close behind does not recede.
+    ru, rv = ring_idx % w, ring_idx // w
+    du, dv = ru - near % w, rv - near // w
+    reach = (OUTLINE_RING_PX[1] - OUTLINE_RING_PX[0]) / np.maximum(np.hypot(du, dv), 1e-6)
+    ou = np.clip(np.rint(ru + du * reach).astype(np.int64), 0, w - 1)
+    ov = np.clip(np.rint(rv + dv * reach).astype(np.int64), 0, on_model.shape[0] - 1)
+    receding = has & (d <= inner + STEEP_MM) & (~valid[ov, ou] | (data[ov, ou] > d + EDGE_MM))
+    steep = float(np.count_nonzero(edge & count & ~receding)) / n_edge if n_edge else math.nan
+    return (n_edge / n if n else 0.0), finger_edges, steep
 
 
 def _hand_axis(theta: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -318,7 +382,8 @@ def _hand_axis(theta: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _finger_ends(
-    depth: NDArray[np.float32],
+    full: NDArray,
+    s: int,
     result: TrackResult,
     model: HandModel,
     k: tuple[float, float, float, float],
@@ -326,12 +391,13 @@ def _finger_ends(
     origin: tuple[int, int],
 ) -> float:
     """Share of the extended fingers seen from the side whose data end past the tip (NaN:
-    none checked).  ``on_model``: the model's silhouette on the grid box at ``origin`` (u0, v0)."""
+    none checked).  ``full``: the depth image (mm), read on the grid of every ``s``-th pixel;
+    ``on_model``: the model's silhouette on the grid box at ``origin`` (u0, v0)."""
     fx, fy, cx, cy = k
     assert result.skeleton_mm is not None and result.fingertips_mm is not None
     sk = np.asarray(result.skeleton_mm)
     tips = np.asarray(result.fingertips_mm)
-    gh, gw = depth.shape
+    gh, gw = -(-full.shape[0] // s), -(-full.shape[1] // s)
     bh, bw = on_model.shape
     checked = ended = 0
     for c in range(5):
@@ -355,7 +421,8 @@ def _finger_ends(
             bu, bv = iu - origin[0], iv - origin[1]
             if 0 <= bu < bw and 0 <= bv < bh and on_model[bv, bu]:
                 continue  # another part of the model lies there (a crossing thumb)
-            dz = float(depth[iv, iu])
+            dz = float(np.float32(full[iv * s, iu * s]))  # (the grid's pixel: 0 without data)
+            dz = dz if math.isfinite(dz) and dz > 0 else 0.0
             surface = tip[2] - float(model.tip_radii[c])
             if 0 < dz < surface - DEPTH_TOL_MM:
                 continue  # something in front of the finger: cannot tell

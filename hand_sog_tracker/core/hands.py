@@ -9,9 +9,12 @@ Per frame the depth is preprocessed once and shared:
   point belongs to another hand when it lies within :data:`OWN_MARGIN_MM` of that hand's skin
   (its model posed this frame, or its last pose when not fitted yet, plus a forearm capsule)
   and nearer to that skin than to this hand's (at this hand's start pose).  Fingertip
-  detections are divided the same way, and a fingertip against another hand's skin (within
-  :data:`OWN_MARGIN_MM`) needs no detection of its own for the search (``Tracker.covered_tips``:
-  the detector sees no end there, so its curl proposal does not fire).  The silhouette stays
+  detections are divided the same way (the detector's cap applies after the division), and a
+  fingertip near another hand's skin (within :data:`COVERED_MM`) needs no detection of its own
+  for the search (``Tracker.covered_tips``: the detector sees no end there, so its curl
+  proposal does not fire), nor does a fingertip another hand hides (:func:`hidden_by`), which
+  does not dangle either; a finger whose tip another hand hides keeps its joints in the fit
+  (``Tracker.held``: no data speak for it).  The silhouette stays
   the whole image's: another hand in front is an occluder the hidden parts may project onto,
   and another hand's data more than :data:`OCCLUDER_GAP_MM` in front of this hand's skin on
   its line of sight stay in its data as occluders (:func:`in_front`).
@@ -41,15 +44,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess
-from hand_sog_tracker.core.hand_model import HandModel
+from hand_sog_tracker.core.hand_model import HandModel, chain_slice
 from hand_sog_tracker.core.kinematics import global_rotation, posed_centres
 from hand_sog_tracker.core.region import hand_roi
-from hand_sog_tracker.core.salient import Detections
+from hand_sog_tracker.core.salient import RING_RADIUS_MM, TIP_DEPTH_OFFSET_MM, Detections
+from hand_sog_tracker.core.support import without_support
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
 from hand_sog_tracker.errors import InputError
 
 __all__ = [
+    "COVERED_MM",
     "HANDS",
     "OWN_MARGIN_MM",
     "PIXEL_MARGIN_MM",
@@ -57,6 +62,7 @@ __all__ = [
     "SEARCH_EVERY",
     "TRIAL_FRAMES",
     "TRIAL_LEAD",
+    "hidden_by",
     "HandTrack",
     "HandsResult",
     "MultiHandTracker",
@@ -67,6 +73,10 @@ HANDS: Final[tuple[str, str]] = ("left", "right")
 #: A data point within this of another hand's skin (and nearer to it than to this hand's) is
 #: that hand's (mm: depth noise plus the model's fit error at the skin; chosen here).
 OWN_MARGIN_MM: Final[float] = 12.0
+#: A fingertip (the centre of its sphere) within this of another hand's skin has no end the
+#: detector can see (mm): the detector's ring around the tip's end, one radius beyond the
+#: centre, meets the other hand (:func:`~.salient.detect_fingertips`).
+COVERED_MM: Final[float] = RING_RADIUS_MM + TIP_DEPTH_OFFSET_MM
 #: A pixel within this of a tracked hand's skin or forearm is that hand's for the finder of a
 #: new hand (mm; wider than :data:`OWN_MARGIN_MM`: the finder must not see a fringe of it).
 PIXEL_MARGIN_MM: Final[float] = 20.0
@@ -79,6 +89,8 @@ FOREARM_RADIUS_MM: Final[float] = 35.0
 #: in front), unless ``KEEP_OCCLUDERS`` is off.
 OCCLUDER_GAP_MM: Final[float] = 30.0
 KEEP_OCCLUDERS = True
+#: Whether a finger another hand hides keeps its joints in the fit (see :attr:`Tracker.held`).
+HOLD_HIDDEN = True
 #: Two tracks whose palm centres (the mean of the model's Gaussians) are closer are one hand (mm).
 SAME_HAND_MM: Final[float] = 40.0
 #: With at least one hand tracked, a new hand is searched for every this many frames.
@@ -123,6 +135,40 @@ def in_front(model: HandModel, theta: NDArray[np.float64], points: NDArray[np.fl
     lateral = np.sqrt(du * du + dv * dv) * cz[None, :]
     ahead = points[:, 2:3] < (cz - s - OCCLUDER_GAP_MM)[None, :]
     return np.any((lateral < s[None, :]) & ahead, axis=1)
+
+
+def hidden_by(
+    pre: Preprocessed,
+    hands: Sequence[tuple[HandModel, NDArray[np.float64]]],
+    points: NDArray[np.float64],
+    radii: NDArray[np.float64],
+) -> NDArray[np.bool_]:
+    """Which spheres (centres ``points`` (k, 3) mm, ``radii`` (k,) mm) one of ``hands`` ((model,
+    pose (26,)) each) hides in the frame ``pre``: the depth at the centre's pixel lies more than
+    :data:`OCCLUDER_GAP_MM` in front of the sphere and on that hand (within
+    :data:`OWN_MARGIN_MM` of its skin), so no data can speak for the sphere.  Shape (k,)."""
+    out = np.zeros(points.shape[0], dtype=bool)
+    intr, depth = pre.intrinsics, pre.depth_mm
+    z = points[:, 2]
+    ok = z > 1.0
+    if not hands or not ok.any():
+        return out
+    zs = np.where(ok, z, 1.0)
+    u = np.rint(intr.fx * points[:, 0] / zs + intr.cx)
+    v = np.rint(intr.fy * points[:, 1] / zs + intr.cy)
+    ok &= (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
+    k = np.flatnonzero(ok)
+    d = depth[v[k].astype(np.int64), u[k].astype(np.int64)].astype(np.float64)
+    front = (d > 0) & (d < z[k] - radii[k] - OCCLUDER_GAP_MM)
+    k, d = k[front], d[front]
+    if k.size == 0:
+        return out
+    pts = intr.backproject(np.stack([u[k], v[k]], 1), d)
+    theirs = np.zeros(k.size, dtype=bool)
+    for m, x in hands:
+        theirs |= skin_distance(m, x, pts) < OWN_MARGIN_MM
+    out[k[theirs]] = True
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -239,6 +285,7 @@ class MultiHandTracker:
 
         t0 = time.perf_counter()
         pre = preprocess(depth_mm, intrinsics, self._config)
+        pre = without_support(pre)[0]  # (a table under the hands, core/support.py)
         t1 = time.perf_counter()
         self._track(pre)
         t2 = time.perf_counter()
@@ -277,7 +324,8 @@ class MultiHandTracker:
             for tracker in (slot.tracker, slot.alt):
                 if tracker is not None:
                     tracker.data_filter = self._filter(tracker, others) if others else None
-                    tracker.covered_tips = self._covered(others) if others else None
+                    tracker.covered_tips = self._covered(pre, others, tracker.model) if others else None
+                    tracker.held = self._held(pre, tracker, others) if others and HOLD_HIDDEN else None
             slot.result = slot.tracker.process_preprocessed(pre)
             if slot.alt is not None:
                 slot.alt_result = slot.alt.process_preprocessed(pre)
@@ -370,19 +418,51 @@ class MultiHandTracker:
 
         return filt
 
-    def _covered(self, others: Sequence[_Slot]):
-        """The :attr:`Tracker.covered_tips` of a hand beside ``others``: its fingertips (5, 3)
-        mm within :data:`OWN_MARGIN_MM` of another hand's skin or forearm (5,) bool."""
+    def _hidden(self, pre: Preprocessed, others: Sequence[_Slot]):
+        """``hidden(points, radii)``: :func:`hidden_by` the hands of ``others`` in ``pre``."""
+        poses = [(o.tracker.model, self._pose(o)) for o in others]
+        hands = [(m, x) for m, x in poses if x is not None]
+
+        def hidden(points: NDArray[np.float64], radii: NDArray[np.float64]) -> NDArray[np.bool_]:
+            return hidden_by(pre, hands, points, radii)
+
+        return hidden
+
+    def _covered(self, pre: Preprocessed, others: Sequence[_Slot], model: HandModel):
+        """The :attr:`Tracker.covered_tips` of a hand (``model``) beside ``others``: its
+        fingertips (5, 3) mm within :data:`COVERED_MM` of another hand's skin or forearm, or
+        hidden by another hand (:meth:`_hidden`), (5,) bool."""
         poses = [(o.tracker.model, self._pose(o)) for o in others]
         poses = [(m, x) for m, x in poses if x is not None]
+        hidden = self._hidden(pre, others)
+        radii = model.g_sigmas[model.tip_index]
 
         def covered(tips: NDArray[np.float64]) -> NDArray[np.bool_]:
             out = np.zeros(tips.shape[0], dtype=bool)
             for m, x in poses:
-                out |= skin_distance(m, x, tips) < OWN_MARGIN_MM
+                out |= skin_distance(m, x, tips) < COVERED_MM
+            if HOLD_HIDDEN:
+                out |= hidden(tips, radii)
             return out
 
         return covered
+
+    def _held(self, pre: Preprocessed, tracker: Tracker, others: Sequence[_Slot]):
+        """The :attr:`Tracker.held` of ``tracker`` beside ``others``: the four joints of each
+        finger whose fingertip another hand hides (:meth:`_hidden`) at the fit's start pose,
+        (26,) bool."""
+        hidden = self._hidden(pre, others)
+        model = tracker.model
+        radii = model.g_sigmas[model.tip_index]
+
+        def held(theta: NDArray[np.float64]) -> NDArray[np.bool_]:
+            tips = posed_centres(model, theta)[model.tip_index]
+            out = np.zeros(theta.shape[0], dtype=bool)
+            for c in np.flatnonzero(hidden(tips, radii)):
+                out[chain_slice(int(c))] = True
+            return out
+
+        return held
 
     def _masked(self, pre: Preprocessed) -> Preprocessed:
         """``pre`` without the pixels of the live tracks' hands and forearms (a new copy)."""

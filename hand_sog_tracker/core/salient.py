@@ -27,6 +27,7 @@ from hand_sog_tracker.core.objective import TipTargets
 
 __all__ = [
     "Detections",
+    "MAX_DETECTIONS",
     "RING_RADIUS_MM",
     "detect_fingertips",
     "assign_detections",
@@ -48,6 +49,8 @@ END_ON_MM: Final[float] = 18.0
 TIP_DEPTH_OFFSET_MM: Final[float] = 8.0
 #: Smallest candidate region kept, as a share of the expected tip region's area.
 MIN_REGION_SHARE: Final[float] = 0.15
+#: Most detections kept in a region of interest (most confident first).
+MAX_DETECTIONS: Final[int] = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -120,7 +123,7 @@ def detect_fingertips(
     pre: Preprocessed,
     roi: tuple[int, int, int, int],
     window_mm: tuple[float, float],
-    max_detections: int = 8,
+    max_detections: int | None = MAX_DETECTIONS,
 ) -> Detections:
     """Detect fingertips in the depth inside a region of interest.
 
@@ -139,8 +142,8 @@ def detect_fingertips(
         End-exclusive pixel box to search (clipped to the image).
     window_mm : (near, far)
         Depth window of the hand (mm); depth outside it counts as no data.
-    max_detections : int
-        Keep at most this many, the most confident first.
+    max_detections : int or None
+        Keep at most this many, the most confident first (None: all).
 
     Returns
     -------

@@ -38,10 +38,13 @@ def _skin(model: HandModel, theta: NDArray[np.float64]):
 
 
 #: What :func:`_skin_topology` returns: the capsules' index pairs ``ia``, ``ib`` (k,), per chain
-#: base the Gaussian whose radius it takes (5,), and the draw lists of :func:`draw_skin`: per
+#: base the Gaussian whose radius it takes (5,), the draw lists of :func:`draw_skin`: per
 #: capsule whether its quad is drawn (two different ends) and the points whose discs it draws
-#: (none for a palm quad: the palm's own discs are drawn by its one-Gaussian capsules).
-_Topology = tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], list[bool], list[tuple[int, ...]]]
+#: (none for a palm quad: the palm's own discs are drawn by its one-Gaussian capsules), and per
+#: capsule its chain (k,; -1: the palm).
+_Topology = tuple[
+    NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], list[bool], list[tuple[int, ...]], NDArray[np.int64]
+]
 _TOPOLOGY_CACHE: dict[tuple[int, bool], _Topology] = {}
 
 
@@ -56,7 +59,7 @@ def _skin_topology(model: HandModel) -> _Topology:
     if key in _TOPOLOGY_CACHE:
         return _TOPOLOGY_CACHE[key]
     m = model.n_gaussians
-    a_idx, b_idx = [], []
+    a_idx, b_idx, chain_of = [], [], []
     palm = np.flatnonzero(model.g_chain < 0)
     off = model.g_offsets[palm] / np.array([model.shape.width, model.shape.length, 1.0])
     near = np.linalg.norm(off[:, None, :] - off[None, :, :], axis=-1)
@@ -64,7 +67,7 @@ def _skin_topology(model: HandModel) -> _Topology:
     for i in range(palm.size):
         for j in range(i, palm.size):
             if near[i, j] <= spacing:
-                a_idx.append(palm[i]), b_idx.append(palm[j])
+                a_idx.append(palm[i]), b_idx.append(palm[j]), chain_of.append(-1)
     first = np.zeros(5, np.int64)
     for c in range(5):
         ks = np.flatnonzero(model.g_chain == c)
@@ -72,13 +75,13 @@ def _skin_topology(model: HandModel) -> _Topology:
         first[c] = order[0]
         chain = [m + c, *order]
         for k0, k1 in zip(chain[:-1], chain[1:]):
-            a_idx.append(k0), b_idx.append(k1)
+            a_idx.append(k0), b_idx.append(k1), chain_of.append(c)
     ia, ib = np.array(a_idx), np.array(b_idx)
     quad_only = _palm_pairs(model, ia, ib)
     ia_l, ib_l = ia.tolist(), ib.tolist()
     has_quad = [a != b for a, b in zip(ia_l, ib_l)]
     discs = [() if q else ((a,) if a == b else (a, b)) for a, b, q in zip(ia_l, ib_l, quad_only)]
-    out = (ia, ib, first, has_quad, discs)
+    out = (ia, ib, first, has_quad, discs, np.array(chain_of))
     _TOPOLOGY_CACHE[key] = out
     return out
 
@@ -96,17 +99,28 @@ _SUB = float(1 << _SUBPIXEL_BITS)
 
 
 def draw_skin(
-    model: HandModel, theta: NDArray[np.float64], intr: Intrinsics, roi: tuple[int, int, int, int]
+    model: HandModel,
+    theta: NDArray[np.float64],
+    intr: Intrinsics,
+    roi: tuple[int, int, int, int],
+    chains: tuple[int, ...] | None = None,
 ) -> NDArray[np.float32]:
     """Front depth (mm) of the model's skin over ``roi``; ``inf`` where the skin is absent.
 
-    Each capsule of :func:`_skin` is drawn with OpenCV (two end discs and the
-    quad between them, subpixel precision) at one depth, its front surface at
-    its middle, far capsules first so that near ones cover them.
+    Each capsule of :func:`_skin` is drawn with OpenCV (the quad between its end discs, and
+    each end disc once at the nearest depth of the capsules it ends, subpixel precision) at one
+    depth, its front surface at its middle, far shapes first so that near ones cover them: each
+    pixel gets the smallest depth of the capsules covering it.  With ``chains`` (chain numbers,
+    -1: the palm) only those chains' capsules are drawn; since each pixel keeps the smallest
+    depth, ``np.minimum`` of the drawings of two sets of chains is the drawing of both.
     """
     u0, v0, u1, v1 = roi
     out = np.full((v1 - v0, u1 - u0), np.inf, dtype=np.float32)
     P, radii, ia, ib = _skin(model, theta)
+    has_quad, discs, chain_of = _skin_topology(model)[3:]
+    drawn = list(range(len(ia))) if chains is None else np.flatnonzero(np.isin(chain_of, chains)).tolist()
+    if chains is not None:
+        ia, ib = ia[drawn], ib[drawn]
     z = np.maximum(P[:, 2], 1.0)
     uv = intr.project(P) - np.array([u0, v0])
     # OpenCV fills every pixel a shape's outline touches: half a pixel wider all round.
@@ -123,15 +137,26 @@ def draw_skin(
     radii_i = np.round(r_px * _SUB).astype(np.int64).tolist()
     has_disc = (radii > 0).tolist()
     front_l = front.tolist()
-    has_quad, discs = _skin_topology(model)[3:]
-    fill, circle, line8 = cv2.fillConvexPoly, cv2.circle, cv2.LINE_8
-    for k in np.argsort(-front).tolist():
-        value = front_l[k]
+    # (depth, point, capsule): a quad (point -1) per capsule, a disc (capsule -1) per point at
+    # the nearest depth of the capsules ending there (drawing it once per capsule, far first,
+    # leaves the same pixels).
+    disc_depth: dict[int, float] = {}
+    shapes = []
+    for j, k in enumerate(drawn):
+        value = front_l[j]
         if has_quad[k]:
-            fill(out, quads_i[k], value, line8, _SUBPIXEL_BITS)
+            shapes.append((value, -1, j))
         for e in discs[k]:
-            if has_disc[e]:
-                circle(out, centres_i[e], radii_i[e], value, -1, line8, _SUBPIXEL_BITS)
+            if has_disc[e] and value < disc_depth.get(e, np.inf):
+                disc_depth[e] = value
+    shapes.extend((value, e, -1) for e, value in disc_depth.items())
+    shapes.sort(key=lambda t: -t[0])
+    fill, circle, line8 = cv2.fillConvexPoly, cv2.circle, cv2.LINE_8
+    for value, e, k in shapes:
+        if e < 0:
+            fill(out, quads_i[k], value, line8, _SUBPIXEL_BITS)
+        else:
+            circle(out, centres_i[e], radii_i[e], value, -1, line8, _SUBPIXEL_BITS)
     return out
 
 
@@ -163,11 +188,18 @@ def score_data(
 
 
 def overlap_score(
-    model: HandModel, theta: NDArray[np.float64], data: ScoreData, intr: Intrinsics, tolerance_mm: float
+    model: HandModel,
+    theta: NDArray[np.float64],
+    data: ScoreData,
+    intr: Intrinsics,
+    tolerance_mm: float,
+    skin: NDArray[np.float32] | None = None,
 ) -> float:
+    """:func:`shape_score` on prepared data (:func:`score_data`); ``skin``: the model's
+    :func:`draw_skin` over ``data.roi`` when already drawn (mm, shape of ``data.depth``)."""
     if data.depth.size == 0:
         return 0.0
-    model_depth = draw_skin(model, theta, intr, data.roi)
+    model_depth = draw_skin(model, theta, intr, data.roi) if skin is None else skin
     covered = np.isfinite(model_depth)
     axis = global_rotation(theta)[:, 1]
     key = axis.tobytes()

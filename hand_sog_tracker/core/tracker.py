@@ -3,7 +3,9 @@
 Units: depth images and every position in millimetres, camera optical frame (x right, y down,
 z forward); angles in radians.
 
-Per frame (paper 000, sec. 5): the depth near the hand's extrapolated pose is clustered into
+Per frame (paper 000, sec. 5), after a supporting plane much larger than a hand (a table under
+the hand, a wall behind it: :mod:`.support`) is dropped from the frame, the depth near the
+hand's extrapolated pose is clustered into
 Gaussians, the pose is fitted from there by the adaptive gradient ascent, and the search
 (:mod:`hand_sog_tracker.core.search`) fits the candidates its proposals make from that fit
 (fingers shifted, swapped, curled, pulled onto unexplained detections) as one batch; one
@@ -48,7 +50,7 @@ from hand_sog_tracker.core.kinematics import (
 from hand_sog_tracker.core.objective import Objective, TipTargets, contact_shares
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
 from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
-from hand_sog_tracker.core.salient import Detections, assigned_targets, detect_fingertips
+from hand_sog_tracker.core.salient import MAX_DETECTIONS, Detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.search import (
     ASSIGN_LAMBDA_MM,
     NEW_TRACK_PROPOSALS,
@@ -61,6 +63,7 @@ from hand_sog_tracker.core.search.candidates import pull_target
 from hand_sog_tracker.core.search.fit import fit_batch, with_targets
 from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
+from hand_sog_tracker.core.support import without_support
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
 
 __all__ = ["ALPHA", "ASSIGN_LAMBDA_MM", "Tracker", "before_surface", "coverage", "hand_roi"]
@@ -196,6 +199,10 @@ class Tracker:
         #: ``tips (5, 3) mm -> (5,) bool``: the fingertips against another hand (the search's
         #: :attr:`Frame.covered`, set by the multi-hand tracker); None: none.
         self.covered_tips: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
+        #: ``theta (26,) -> (26,) bool``: the parameters a tracked frame's fit holds at its start
+        #: pose ``theta`` (the joints of fingers another hand hides: no data speak for them; set by
+        #: the multi-hand tracker); None: none.
+        self.held: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
 
     @property
     def config(self) -> TrackerConfig:
@@ -266,6 +273,8 @@ class Tracker:
         """
         t0 = time.perf_counter()  # (timings only: nothing below depends on the clock)
         pre = preprocess(depth_mm, intrinsics, self._config)  # raises before any change of state
+        pre, kept = without_support(pre, depth_mm, intrinsics)  # (a table under the hand)
+        depth_mm = depth_mm if kept is None else kept
         t1 = time.perf_counter()
         checked = None
         if self._prev is not None:
@@ -381,7 +390,9 @@ class Tracker:
         det = Detections.empty()
         axis = global_rotation(theta)[:, 1]  # the hand's long axis (camera frame)
         if detect:
-            det = detect_fingertips(pre, roi, window)
+            # (With a data filter the cap applies to what the filter leaves: another hand's
+            # tips in the region would take this hand's places, and the filter drops them.)
+            det = detect_fingertips(pre, roi, window, None if self.data_filter is not None else MAX_DETECTIONS)
             if det.n:
                 det = det.subset((det.points - theta[:3]) @ axis > 0.0)
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf)
@@ -390,6 +401,8 @@ class Tracker:
             data = data if keep.all() else data.subset(keep)
         if self.data_filter is not None:
             data, det = self.data_filter(data, det, theta)
+            if det.n > MAX_DETECTIONS:  # (most confident first: the detector's order)
+                det = det.subset(np.arange(det.n) < MAX_DETECTIONS)
         return data, det, sil
 
     def _targets(self, theta: NDArray[np.float64], det: Detections) -> TipTargets | None:
@@ -420,9 +433,11 @@ class Tracker:
         )
         base = _INITIAL_STEPS
         start = base if self._steps is None else np.minimum(np.maximum(self._steps * WARM_GROW, base * WARM_MIN), base)
+        held = None if self.held is None else self.held(x0)
         fit = self._maximise(
             obj, x0, iterations=cfg.iterations, initial_steps=start,
             extra_iterations=EXTRA_ITERATIONS, extra_gain=EXTRA_GAIN,
+            active=None if held is None or not held.any() else ~held,
         )
         self._steps = fit.steps
         frame = Frame(
@@ -565,9 +580,12 @@ class Tracker:
                 with_targets(shared, targets), starts, shared.data.n,
                 iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
             )
-            for (k, data_x, obj), fit in zip(group, results):
+            # (The finalists' plain objectives equal ``shared`` without targets: their values
+            # at the fits in one batch, the same bits as one by one.)
+            values = shared.batch(np.array([fit.x for fit in results]), gradient=False)[0]
+            for (k, data_x, obj), fit, value in zip(group, results, values.tolist()):
                 frame = Frame(self._model, fit, obj, plain(obj), data_x, det, self._limits(), new_track=True)
-                fits.append((k, (frame.score(fit.x), frame)))
+                fits.append((k, (frame.score(fit.x, value), frame)))
         fits.sort(key=lambda f: f[0])
         fits.sort(key=lambda f: f[1][0], reverse=True)  # (stable: the earlier first on a tie)
         return fits

@@ -167,6 +167,10 @@ class HandEvidence:
         The same share over the part of the ring next to the model's fingers: a finger has a
         depth edge on both sides, a model finger lying on a head or a torso has none (NaN: no
         finger next to the ring).
+    steep : float
+        Of the outline's depth edges, the share that are steps, not a surface curving away: an
+        edge less than ``STEEP_MM`` behind whose surface keeps receding (or ends) one ring
+        width further out is the side of a head or a ball, not a hand's outline (NaN: no edge).
     """
 
     on: float
@@ -176,6 +180,7 @@ class HandEvidence:
     in_view: float
     outline: float
     finger_edges: float = math.nan
+    steep: float = math.nan
 
 
 @dataclass(frozen=True, eq=False)

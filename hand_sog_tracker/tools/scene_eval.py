@@ -81,7 +81,7 @@ def evaluate_scene_core(bag: str | Path, gate: bool = True) -> list[dict[str, An
                 "tip_mm": tip, "tip_max_mm": tip_max, "palm_mm": palm,
                 "reported_skeleton": answer.pose is not None,
                 "evidence": None if ev is None else [
-                    ev.on, ev.explained, ev.fingers_on, ev.ends, ev.in_view, ev.outline, ev.finger_edges
+                    ev.on, ev.explained, ev.fingers_on, ev.ends, ev.in_view, ev.outline, ev.finger_edges, ev.steep
                 ],
                 "check_ms": answer.timings_ms.get("check", math.nan),
                 "pose": None if res.pose is None else np.round(res.pose, 5).tolist(),

@@ -112,9 +112,10 @@ class Frame:
     lost_pulls : array, shape (k, 3), mm
         Detections whose pulls lost on the frame before (see :func:`pull_target`).
     covered : callable or None
-        ``covered(tips)``: which fingertips (5, 3) mm lie against another hand's skin (5,)
-        bool; the detector sees no end there, so their missing detections call for no curl
-        (the multi-hand tracker's, :mod:`..hands`).  None: none does.
+        ``covered(tips)``: which fingertips (5, 3) mm lie against another hand's skin or
+        behind it (5,) bool; the detector sees no end there, so their missing detections call
+        for no curl, and they do not dangle (the multi-hand tracker's, :mod:`..hands`).  None:
+        none does.
     """
 
     model: HandModel
@@ -204,7 +205,10 @@ def _dangling(f: Frame) -> Iterator[Candidate]:
     if f.data.n == 0:
         return
     x = f.fit.x
-    far = np.sqrt(sq_distances(fingertips(f.model, x), f.data.points).min(axis=1))
+    tips = fingertips(f.model, x)
+    far = np.sqrt(sq_distances(tips, f.data.points).min(axis=1))
+    if f.covered is not None:
+        far[f.covered(tips)] = 0.0  # (a tip another hand hides or touches hangs in no empty space)
     c = int(np.argmax(far))
     if far[c] < DANGLING_TIP_MM:
         return
