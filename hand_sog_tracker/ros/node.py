@@ -27,11 +27,11 @@ Topics (relative names, so a namespace or remapping moves them):
 
 Every output is stamped with the input image's header (stamp and frame_id).
 
-Real time: the subscriptions use sensor-data QoS with depth :data:`INPUT_DEPTH` (overridable
+Real time: the subscriptions use sensor-data QoS with depth :data:`~.frame_input.INPUT_DEPTH` (overridable
 via ``qos_overrides.*`` parameters).  The images are tracked in order, each with the core
 tracker's whole search (the same answers as ``evaluate_bag``'s core mode; an image re-sent with
 the stamp of the last one gets the same answer again): the images that arrive while a frame is
-processed wait in a backlog (:class:`_Backlog`, at most the subscription's depth), which the node
+processed wait in a backlog (:class:`~.frame_input.Backlog`, at most the subscription's depth), which the node
 catches up on one frame per executor turn, and the oldest are dropped whole only when the newest
 image's stamp is more than ``max_lag_ms`` ahead of theirs (0: only the newest is tracked).  A
 new track's search (~100 ms) is so caught up on, without a drop, at 30-60 Hz on a machine that
@@ -40,8 +40,8 @@ whole frames, never part of a frame's search.  Each image is tracked with the Ca
 stamp, else with the newest one received before it.  Frames that are never processed are
 counted: ``dropped`` (received, but left behind by more than ``max_lag_ms`` before they were
 processed) and ``missed`` (replaced inside DDS, so never received; estimated from gaps in the
-image stamps against the camera period, the running median of the last :data:`RATE_WINDOW`
-intervals, learned anew after a pause or a jump back).
+image stamps against the camera period, the running median of recent intervals,
+:class:`~.frame_input.CameraRate`).
 :func:`main` spins a single-threaded executor (see :func:`make_executor`).
 
 Robustness: a bad frame (encoding, size, truncated data, no CameraInfo yet,
@@ -62,7 +62,6 @@ more than :data:`STAMP_SKEW_S` from the node's clock are warned about and left o
 from __future__ import annotations
 
 import argparse
-import collections
 import copy
 import math
 import re
@@ -142,6 +141,7 @@ from hand_sog_tracker.ros.conversions import (
     keypoints_msg,
     pose_msg,
 )
+from hand_sog_tracker.ros.frame_input import INPUT_DEPTH, Backlog, CameraRate
 from hand_sog_tracker.ros.frames import description_transforms
 from hand_sog_tracker.ros.hand_topics import HandTopics
 from hand_sog_tracker.ros.heap import HeapTrim
@@ -160,17 +160,6 @@ IMAGE_TOPIC = DEPTH_TOPIC
 COMPRESSED_TOPIC = COMPRESSED_DEPTH_TOPIC
 #: Minimum seconds between two warnings of the same kind.
 WARN_THROTTLE_S = 2.0
-#: Depth (KEEP_LAST) of the image and CameraInfo subscriptions, and the most images the backlog
-#: holds (a KEEP_LAST override of the depth sets both): 200 ms of a 100 Hz camera, what
-#: ``max_lag_ms`` keeps by default; images of 640x480 16UC1 take 0.6 MB each.
-INPUT_DEPTH = 20
-#: CameraInfo messages kept to pair with the images of the backlog by stamp.
-INFO_HISTORY = 2 * INPUT_DEPTH
-#: A gap between two received images longer than this is a pause, not missed frames.
-MAX_GAP_S = 1.0
-#: Intervals between received images whose running median is the camera period (a burst at
-#: 200 Hz is forgotten after this many intervals at the camera's own rate).
-RATE_WINDOW = 15
 #: Where outputs of an image without ``header.frame_id`` are (the usual optical frame of a
 #: depth camera driver).
 DEFAULT_FRAME_ID = "camera_depth_optical_frame"
@@ -240,45 +229,6 @@ class _Window:
     start: float = field(default_factory=time.monotonic)
 
 
-@dataclass
-class _Backlog:
-    """Images received but not yet processed, oldest first, with the CameraInfo to pair them with.
-
-    ``images`` holds (image, CameraInfo count when it was received); ``infos`` the last
-    :data:`INFO_HISTORY` CameraInfo messages as (count, stamp ns, intrinsics or None, problem).
-    """
-
-    images: collections.deque[tuple[Image | CompressedImage, int]] = field(default_factory=collections.deque)
-    infos: collections.deque[tuple[int, int, Intrinsics | None, str]] = field(
-        default_factory=lambda: collections.deque(maxlen=INFO_HISTORY)
-    )
-    n_infos: int = 0  # CameraInfo messages received
-
-    def intrinsics_for(self, stamp: int, seen: int) -> tuple[Intrinsics | None, str] | None:
-        """The intrinsics (or the problem) for an image of ``stamp`` received after ``seen``
-        CameraInfo messages: those of the newest CameraInfo of the same stamp (it may come just
-        after the image), else of the newest received before the image; None if there is none."""
-        before = None
-        for n, info_stamp, intr, problem in reversed(self.infos):
-            if info_stamp == stamp:
-                return intr, problem
-            if before is None and n <= seen:
-                before = (intr, problem)
-        return before
-
-    def trim(self, newest_ns: int, max_lag_ms: float, size: int) -> int:
-        """Drop the oldest images while more than ``size`` wait or the newest received stamp
-        is more than ``max_lag_ms`` ahead of theirs (never the last); how many were dropped."""
-        dropped = 0
-        while len(self.images) > 1 and (
-            len(self.images) > size
-            or (newest_ns - stamp_to_ns(self.images[0][0].header.stamp)) * 1e-6 > max_lag_ms
-        ):
-            self.images.popleft()
-            dropped += 1
-        return dropped
-
-
 class TrackerNode(CalibrationService, Node):
     """Sum-of-Gaussians hand tracker node (see the module docstring).
 
@@ -316,10 +266,8 @@ class TrackerNode(CalibrationService, Node):
         self._warn_loggers: dict[str, RcutilsLogger] = {}
         self._stats = NodeStats()
         self._window = _Window()
-        self._backlog = _Backlog()
-        self._rx_stamp_ns: int | None = None  # stamp of the last received image
-        self._period_ns: int | None = None  # camera period: median of the recent intervals
-        self._intervals: collections.deque[int] = collections.deque(maxlen=RATE_WINDOW)
+        self._backlog = Backlog()
+        self._rate = CameraRate()  # the camera period, from the received images' stamps
         self._intrinsics: Intrinsics | None = None  # of the newest CameraInfo
         # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).
         user_model = self._initial_model()
@@ -357,23 +305,26 @@ class TrackerNode(CalibrationService, Node):
 
         compressed = self._settings.input_transport == "compressedDepth"
         self._image_sub = self.create_subscription(
-            CompressedImage if compressed else Image, COMPRESSED_TOPIC if compressed else IMAGE_TOPIC,
-            self._on_image_message, sensor_qos, qos_overriding_options=overrides,
+            CompressedImage if compressed else Image,
+            COMPRESSED_TOPIC if compressed else IMAGE_TOPIC,
+            self._on_image_message,
+            sensor_qos,
+            qos_overriding_options=overrides,
         )
         self._info_sub = self.create_subscription(
-            CameraInfo, INFO_TOPIC, self._on_camera_info, sensor_qos, qos_overriding_options=overrides,
+            CameraInfo,
+            INFO_TOPIC,
+            self._on_camera_info,
+            sensor_qos,
+            qos_overriding_options=overrides,
         )
         qos = self._image_sub.qos_profile
         self._backlog_size = max(qos.depth, 1) if qos.history == HistoryPolicy.KEEP_LAST else INPUT_DEPTH
         # Triggered while the backlog holds images: the executor's next turn tracks the next one
         # (other callbacks, ~/calibrate and /diagnostics, get their turns in between).
         self._backlog_wake = self.create_guard_condition(self._on_backlog)
-        self._joint_pub = self.create_publisher(
-            JointState, JOINTS_TOPIC, out_qos, qos_overriding_options=overrides
-        )
-        self._pose_pub = self.create_publisher(
-            PoseStamped, POSE_TOPIC, out_qos, qos_overriding_options=overrides
-        )
+        self._joint_pub = self.create_publisher(JointState, JOINTS_TOPIC, out_qos, qos_overriding_options=overrides)
+        self._pose_pub = self.create_publisher(PoseStamped, POSE_TOPIC, out_qos, qos_overriding_options=overrides)
         self._marker_pub = self.create_publisher(
             MarkerArray, FINGERTIPS_TOPIC, out_qos, qos_overriding_options=overrides
         )
@@ -403,12 +354,21 @@ class TrackerNode(CalibrationService, Node):
         if self._settings.max_hands > 1:
             self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
             self._hand_topics = HandTopics(
-                self, self._settings.frame_prefix, self._settings.publish_tf, self._settings.publish_wrist_joints,
-                out_qos, latched, overrides, self._publish_transforms,
+                self,
+                self._settings.frame_prefix,
+                self._settings.publish_tf,
+                self._settings.publish_wrist_joints,
+                out_qos,
+                latched,
+                overrides,
+                self._publish_transforms,
             )
 
         self._calibrate_srv = self.create_service(
-            Trigger, CALIBRATE_SERVICE, self._on_calibrate, callback_group=self._calib_group,
+            Trigger,
+            CALIBRATE_SERVICE,
+            self._on_calibrate,
+            callback_group=self._calib_group,
             qos_profile=QoSProfile(depth=CALIBRATE_QUEUE, reliability=ReliabilityPolicy.RELIABLE),
         )
         # Triggered by the calibration worker when it is done: wakes the executor, which then
@@ -506,16 +466,17 @@ class TrackerNode(CalibrationService, Node):
     def _on_image(self, msg: Image | CompressedImage) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         s = self._stats
-        self._stats = replace(s, received=s.received + 1, missed=s.missed + self._missed_before(stamp))
+        self._stats = replace(s, received=s.received + 1, missed=s.missed + self._rate.missed_before(stamp))
         self._window.received += 1
         self._backlog.images.append((msg, self._backlog.n_infos))
         self._trim_backlog()
 
     def _trim_backlog(self) -> None:
         """Drop (and count) the images more than ``max_lag_ms`` behind the newest one received."""
-        if self._rx_stamp_ns is None:
+        newest = self._rate.last_stamp_ns
+        if newest is None:
             return
-        n = self._backlog.trim(self._rx_stamp_ns, self._settings.max_lag_ms, self._backlog_size)
+        n = self._backlog.trim(newest, self._settings.max_lag_ms, self._backlog_size)
         if n:
             self._stats = replace(self._stats, dropped=self._stats.dropped + n)
             if self._settings.max_lag_ms > 0:
@@ -523,29 +484,6 @@ class TrackerNode(CalibrationService, Node):
                     f"{n} frames dropped: the node is more than max_lag_ms = {self._settings.max_lag_ms:g} ms "
                     "behind the camera"
                 )
-
-    def _missed_before(self, stamp: int) -> int:
-        """Frames the camera must have sent between the last received image and this one.
-
-        The camera period is the running median of the last :data:`RATE_WINDOW` intervals
-        between received images (robust to a burst, a stall or a missed frame, and forgotten
-        within that many frames when the rate changes); a gap over :data:`MAX_GAP_S` is a pause
-        of the stream, not lost frames, and like a jump back starts the estimate anew.
-        """
-        prev, self._rx_stamp_ns = self._rx_stamp_ns, stamp
-        if prev is None or stamp == prev:
-            return 0
-        gap = stamp - prev
-        if gap < 0 or gap > MAX_GAP_S * 1e9:  # bag loop, clock reset or pause: learn the period anew
-            self._intervals.clear()
-            self._period_ns = None
-            return 0
-        period = self._period_ns
-        self._intervals.append(gap)
-        self._period_ns = int(np.median(self._intervals))
-        if period is None:
-            return 0
-        return max(int(round(gap / period)) - 1, 0)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         """Keep the intrinsics of a usable CameraInfo for the images of its stamp and after; an
@@ -624,8 +562,9 @@ class TrackerNode(CalibrationService, Node):
         if backlog.images:
             self._backlog_wake.trigger()
         stamp = stamp_to_ns(msg.header.stamp)
-        if self._rx_stamp_ns is not None:
-            self._window.backlog_ms = max(self._window.backlog_ms, (self._rx_stamp_ns - stamp) * 1e-6)
+        newest = self._rate.last_stamp_ns
+        if newest is not None:
+            self._window.backlog_ms = max(self._window.backlog_ms, (newest - stamp) * 1e-6)
         paired = backlog.intrinsics_for(stamp, seen)
         intr, intr_problem = paired if paired is not None else (None, "")
         t0 = time.perf_counter()
@@ -680,9 +619,7 @@ class TrackerNode(CalibrationService, Node):
         self._stats = replace(self._stats, rejected=self._stats.rejected + 1, last_problem=problem)
         self._window.rejected += 1
 
-    def _process(
-        self, msg: Image | CompressedImage, intr: Intrinsics | None, intr_problem: str
-    ) -> float | None:
+    def _process(self, msg: Image | CompressedImage, intr: Intrinsics | None, intr_problem: str) -> float | None:
         """Track one frame and publish: when its result was published (``time.perf_counter()``),
         or None when the frame was rejected."""
         header = msg.header
@@ -706,8 +643,7 @@ class TrackerNode(CalibrationService, Node):
             self._reset_track(header)
             self._reject(f"stamp went backwards by {back_s:.3f} s")
             self._warn(
-                f"image stamp went backwards by {back_s:.3f} s (bag loop or clock reset?): "
-                "tracker reset, frame skipped"
+                f"image stamp went backwards by {back_s:.3f} s (bag loop or clock reset?): tracker reset, frame skipped"
             )
             return None
         self._last_stamp_ns = stamp
@@ -948,6 +884,7 @@ class TrackerNode(CalibrationService, Node):
                 TFMessage, TF_TOPIC, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
             )
         self._tf_pub.publish(self._tf_msg_type(transforms=transforms))
+
 
 def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
     """The executor :func:`main` uses: single-threaded.
