@@ -10,7 +10,14 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
 from hand_sog_tracker.core.depth_sog import ImageSoG, preprocess
-from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, HandShape, chain_slice, default_hand_model, rest_pose
+from hand_sog_tracker.core.hand_model import (
+    FINGER_MCP,
+    FINGER_PIP,
+    HandShape,
+    chain_slice,
+    default_hand_model,
+    rest_pose,
+)
 from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres, global_rotation
 from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.optimizer import OptimizeResult
@@ -827,8 +834,9 @@ def test_a_shorter_model_set_while_the_fingers_curl_keeps_tracking() -> None:
     tracker = Tracker(TrackerConfig(right_hand=spec.right))
     fitted = tracker.model.scaled(HandShape(0.855, 0.908, 0.908, 0.908))
     errors = []
-    seq = mesh_sequence(spec.motion, 60, intr, shape=spec.shape, right=spec.right, seed=spec.seed, options=spec.options())
-    for k, frame in enumerate(seq):
+    for k, frame in enumerate(
+        mesh_sequence(spec.motion, 60, intr, shape=spec.shape, right=spec.right, seed=spec.seed, options=spec.options())
+    ):
         if k == 44:
             tracker.set_model(fitted)
         res = tracker.process(frame.depth_mm, intr)
