@@ -96,7 +96,6 @@ from hand_sog_tracker.core.calibration_guard import (
     Validation,
     _find_poses,
     _Frame,
-    _keep_palm_centre,
     _prepare,
     _preprocess_all,
     independent_frames,
@@ -117,6 +116,7 @@ from hand_sog_tracker.core.hand_model import (
     chain_slice,
 )
 from hand_sog_tracker.core.measure import WidthMeasurement, measure_widths, shape_from_widths
+from hand_sog_tracker.core.kinematics import keep_palm_centre
 from hand_sog_tracker.core.optimizer import maximise
 from hand_sog_tracker.core.skin import SCORE_TOLERANCE_MM, draw_skin, overlap_score, shape_score
 from hand_sog_tracker.core.tracker import coverage
@@ -418,7 +418,7 @@ def calibrate(
         whole skin, bit for bit).
         """
         m = mirrored.scaled(shape)
-        ths = [_keep_palm_centre(fr.pose, ref_model, m) for fr in fits]
+        ths = [keep_palm_centre(fr.pose, ref_model, m) for fr in fits]
         total = 0.0
         for k, (th, fr) in enumerate(zip(ths, fits)):
             skin = None

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, preprocess, quadtree_sog
 from hand_sog_tracker.core.hand_model import FIRST_JOINT, N_PARAMS, HandModel, HandShape
-from hand_sog_tracker.core.kinematics import fingertips, global_rotation
+from hand_sog_tracker.core.kinematics import fingertips, keep_palm_centre
 from hand_sog_tracker.core.objective import EnergyTerms, Objective, TipTargets
 from hand_sog_tracker.core.optimizer import maximise_batch
 from hand_sog_tracker.core.salient import Detections, assign_detections, assigned_targets, detect_fingertips
@@ -99,21 +99,6 @@ _SCORE_MARGIN_PX = 12
 _RIGID = np.arange(N_PARAMS) < FIRST_JOINT
 
 
-def _palm_mean(model: HandModel) -> NDArray[np.float64]:
-    """Mean palm-Gaussian offset in the hand frame (mm), mirrored for a left hand."""
-    mean = model.g_offsets[model.g_chain < 0].mean(axis=0)
-    return mean if model.right else mean * np.array([-1.0, 1.0, 1.0])
-
-
-def _keep_palm_centre(theta: NDArray[np.float64], old: HandModel, new: HandModel) -> NDArray[np.float64]:
-    """Move the wrist so that the palm centre stays put when the model is rescaled.
-
-    The palm Gaussians are rigid in the hand frame, so their centre is
-    ``t + R @ mean offset``.
-    """
-    out = theta.copy()
-    out[:3] += global_rotation(theta) @ (_palm_mean(old) - _palm_mean(new))
-    return out
 
 
 
@@ -528,7 +513,7 @@ def validate(
             # The refit from the tracked pose and the re-track (each model follows the held-out
             # frames in order from its own pose on the previous one; on the first frame the
             # refit is its start), as one batch.
-            starts = [_keep_palm_centre(fr.pose, current, m)] + ([carried[j]] if carried[j] is not None else [])
+            starts = [keep_palm_centre(fr.pose, current, m)] + ([carried[j]] if carried[j] is not None else [])
             refits = _guard_refit(m, np.array(starts), fr.data, config, det, sil)
             th, terms = refits[0]
             frame_scores.append(overlap_score(m, th, fr.scoring, pre.intrinsics, SCORE_TOLERANCE_MM))

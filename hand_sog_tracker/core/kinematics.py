@@ -36,6 +36,7 @@ __all__ = [
     "chain_bases",
     "fingertips",
     "skeleton_points",
+    "keep_palm_centre",
     "SKELETON_CHAINS",
 ]
 
@@ -725,3 +726,21 @@ def skeleton_points(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.
     posed = _posed(model, theta)
     p_hand = np.concatenate([np.zeros((1, 3)), posed.org20])
     return p_hand @ posed.G.T + theta[:3]
+
+
+def _palm_mean(model: HandModel) -> NDArray[np.float64]:
+    """Mean palm-Gaussian offset in the hand frame (mm), mirrored for a left hand."""
+    mean = model.g_offsets[model.g_chain < 0].mean(axis=0)
+    return mean if model.right else mean * np.array([-1.0, 1.0, 1.0])
+
+
+def keep_palm_centre(theta: NDArray[np.float64], old: HandModel, new: HandModel) -> NDArray[np.float64]:
+    """``theta`` (26,) with the wrist moved (mm) so that ``new``'s palm centre lies where
+    ``old``'s lies at ``theta`` (a rescaled model, e.g. a calibration's).
+
+    The palm Gaussians are rigid in the hand frame, so their centre is
+    ``t + R @ mean offset``.
+    """
+    out = theta.copy()
+    out[:3] += global_rotation(theta) @ (_palm_mean(old) - _palm_mean(new))
+    return out

@@ -44,6 +44,7 @@ from hand_sog_tracker.core.kinematics import (
     fingertips,
     gaussian_centres,
     global_rotation,
+    keep_palm_centre,
     posed_centres,
     skeleton_points,
 )
@@ -225,8 +226,17 @@ class Tracker:
         return None if self._prev is None else self._prev[0].copy()
 
     def set_model(self, model: HandModel) -> None:
-        """Use another hand model (e.g. after calibration); keeps the track."""
-        self._model = model.mirrored(self._config.right_hand)
+        """Use another hand model (e.g. after calibration); keeps the track.
+
+        The track's poses are moved so that the palm centre stays where it was tracked
+        (:func:`~hand_sog_tracker.core.kinematics.keep_palm_centre`): a rescaled model at the
+        same wrist position would have its palm, and its fingers, off the hand.
+        """
+        new = model.mirrored(self._config.right_hand)
+        if self._prev is not None:
+            old = self._model
+            self._prev = (keep_palm_centre(self._prev[0], old, new), keep_palm_centre(self._prev[1], old, new))
+        self._model = new
         self._sizes = None
 
     def set_config(self, config: TrackerConfig) -> None:
