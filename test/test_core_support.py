@@ -55,9 +55,10 @@ def test_a_plane_as_small_as_a_hand_is_no_support() -> None:
 def test_the_table_goes_and_the_hand_on_it_stays() -> None:
     f = next(iter(scene_frames("table", 1, INTR, seed=11)))
     pre = preprocess(f.depth_mm, INTR, TrackerConfig())
-    kept_pre, kept = without_support(pre, f.depth_mm, INTR)
+    kept_pre = without_support(pre)
     plane = find_support(pre.depth_mm, pre.intrinsics)
     assert plane is not None and kept_pre is not pre
+    kept = drop_support(f.depth_mm, INTR, plane)
     # The hand's joints stand clear of the plane, and the pixels around its MCPs survive.
     joints = f.joints_mm
     assert joints is not None
@@ -72,8 +73,8 @@ def test_the_table_goes_and_the_hand_on_it_stays() -> None:
 def test_a_hand_in_the_air_keeps_every_pixel() -> None:
     f = next(iter(scene_frames("back", 1, INTR, seed=4)))
     pre = preprocess(f.depth_mm, INTR, TrackerConfig())
-    kept_pre, kept = without_support(pre, f.depth_mm, INTR)
-    assert kept_pre is pre and kept is f.depth_mm
+    assert without_support(pre) is pre
+    assert find_support(pre.depth_mm, pre.intrinsics) is None
 
 
 def test_a_hand_on_a_table_is_tracked_on_the_hand() -> None:

@@ -285,7 +285,7 @@ class MultiHandTracker:
 
         t0 = time.perf_counter()
         pre = preprocess(depth_mm, intrinsics, self._config)
-        pre = without_support(pre)[0]  # (a table under the hands, core/support.py)
+        pre = without_support(pre)  # (a table under the hands, core/support.py)
         t1 = time.perf_counter()
         self._track(pre)
         t2 = time.perf_counter()

@@ -141,16 +141,10 @@ def drop_support(
     return depth
 
 
-def without_support(
-    pre: Preprocessed, depth_mm: NDArray | None = None, intr: Intrinsics | None = None
-) -> tuple[Preprocessed, NDArray | None]:
-    """A frame without its support: the preprocessed frame ``pre`` and, when given, the frame's
-    depth ``depth_mm`` (H, W) mm at the intrinsics ``intr`` with the plane :func:`find_support`
-    finds in ``pre`` dropped from both; both unchanged without one."""
+def without_support(pre: Preprocessed) -> Preprocessed:
+    """The preprocessed frame ``pre`` without the plane :func:`find_support` finds in it
+    (``pre`` itself when there is none)."""
     plane = find_support(pre.depth_mm, pre.intrinsics)
     if plane is None:
-        return pre, depth_mm
-    kept = Preprocessed(drop_support(pre.depth_mm, pre.intrinsics, plane), pre.intrinsics, pre.decimation)
-    if depth_mm is None or intr is None:
-        return kept, depth_mm
-    return kept, drop_support(depth_mm, intr, plane)
+        return pre
+    return Preprocessed(drop_support(pre.depth_mm, pre.intrinsics, plane), pre.intrinsics, pre.decimation)

@@ -283,8 +283,7 @@ class Tracker:
         """
         t0 = time.perf_counter()  # (timings only: nothing below depends on the clock)
         pre = preprocess(depth_mm, intrinsics, self._config)  # raises before any change of state
-        pre, kept = without_support(pre, depth_mm, intrinsics)  # (a table under the hand)
-        depth_mm = depth_mm if kept is None else kept
+        pre = without_support(pre)  # (a table under the hand; the hand check reads the frame as it is)
         t1 = time.perf_counter()
         checked = None
         if self._prev is not None:
