@@ -39,7 +39,10 @@ from hand_sog_tracker.core.search.fit import MAX_BATCH, fit_batch
 from hand_sog_tracker.core.search.score import assignment_cost
 from hand_sog_tracker.core.types import TrackerConfig
 
-__all__ = ["BLOB_BEHIND_MM", "NEW_TRACK_CANDIDATES", "NEW_TRACK_DATA", "Finalists", "back_toward", "fit_each", "hand_side", "on_hand_side", "start_search"]
+__all__ = [
+    "BLOB_BEHIND_MM", "NEW_TRACK_CANDIDATES", "NEW_TRACK_DATA", "Finalists", "back_toward", "fit_each",
+    "hand_side", "on_hand_side", "start_search",
+]
 
 #: The search's depth window ends this far behind the blob's farthest surface pixel (mm; depth
 #: noise at the blob's edge): what lies farther was cut off as a body or a wall.
