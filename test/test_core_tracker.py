@@ -844,3 +844,39 @@ def test_a_shorter_model_set_while_the_fingers_curl_keeps_tracking() -> None:
             assert res.fingertips_mm is not None
             errors.append(np.linalg.norm(res.fingertips_mm - frame.fingertips_mm, axis=1).mean())
     assert np.mean(errors) < 7.0, np.round(errors, 1)
+
+
+def test_new_track_runs_on_at_most_its_data_cap(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A new track on a frame whose data exceed ``NEW_TRACK_DATA`` (2 px leaves at 640x480,
+    a wall behind the hand) builds every data set of its search and finish thinned to that cap
+    (issue 50: its work is bounded by the count, not the clock); tracking keeps the full cap."""
+    import hand_sog_tracker.core.search.start as start_mod
+    import hand_sog_tracker.core.tracker as tracker_mod
+    from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS, quadtree_sog
+    from hand_sog_tracker.core.search.start import NEW_TRACK_DATA
+
+    assert NEW_TRACK_DATA < MAX_DATA_GAUSSIANS
+    built: list[tuple[int, int, int]] = []  # (cap asked, data built, data without the cap)
+
+    def spy(pre, threshold_mm, roi=None, depth_window_mm=None, min_quad_px=4, max_gaussians=MAX_DATA_GAUSSIANS):
+        data = quadtree_sog(pre, threshold_mm, roi, depth_window_mm, min_quad_px, max_gaussians)
+        whole = quadtree_sog(pre, threshold_mm, roi, depth_window_mm, min_quad_px)
+        built.append((max_gaussians, data.n, whole.n))
+        return data
+
+    monkeypatch.setattr(start_mod, "quadtree_sog", spy)
+    monkeypatch.setattr(tracker_mod, "quadtree_sog", spy)
+    model = default_hand_model()
+    intr = Intrinsics(fx=574.5, fy=574.5, cx=319.5, cy=239.5, width=640, height=480)
+    theta = rest_pose((5.0, 10.0, 420.0))
+    depth = render_depth(model, theta, intr, RenderOptions(noise_mm=1.0), rng=np.random.default_rng(0))
+    depth = np.where(depth > 0, np.round(depth), 900.0).astype(np.float32)
+    tracker = Tracker(TrackerConfig(max_width_px=4096, min_quad_px=2), withhold=False)
+    tracker.process(depth, intr)
+    assert built and all(cap == NEW_TRACK_DATA and n <= NEW_TRACK_DATA for cap, n, _ in built)
+    assert max(whole for _, _, whole in built) > NEW_TRACK_DATA  # (the cap was needed)
+    assert tracker.status is TrackerStatus.TRACKING
+    built.clear()
+    tracker.process(depth, intr)  # (a tracked frame: the full cap)
+    assert built and all(cap == MAX_DATA_GAUSSIANS for cap, _, _ in built)
+    assert max(n for _, n, _ in built) > NEW_TRACK_DATA

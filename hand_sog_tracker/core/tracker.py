@@ -62,7 +62,7 @@ from hand_sog_tracker.core.search import (
 )
 from hand_sog_tracker.core.search.candidates import pull_target
 from hand_sog_tracker.core.search.fit import fit_batch, with_targets
-from hand_sog_tracker.core.search.start import Finalists, hand_side, start_search
+from hand_sog_tracker.core.search.start import NEW_TRACK_DATA, Finalists, hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.support import without_support
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
@@ -379,6 +379,7 @@ class Tracker:
         outline: bool = True,
         end_mm: float | None = None,
         roi_window: tuple[tuple[int, int, int, int], tuple[float, float]] | None = None,
+        max_gaussians: int = MAX_DATA_GAUSSIANS,
     ) -> tuple[ImageSoG, Detections, Silhouette | None]:
         """Data Gaussians around the hand at ``theta``, without the forearm.
 
@@ -386,7 +387,8 @@ class Tracker:
         are dropped (the model has no forearm); with ``outline`` also the silhouette of the
         depth window (None without it or when ``w_sil`` is 0).  ``end_mm``: the window ends
         there at the latest (a wall behind the hand is no data).  ``roi_window``:
-        :func:`hand_roi` at ``theta`` when already computed.
+        :func:`hand_roi` at ``theta`` when already computed.  ``max_gaussians``: the quadtree's
+        cap (a new track's is ``NEW_TRACK_DATA``).
         """
         if roi_window is None:
             roi_window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
@@ -404,7 +406,7 @@ class Tracker:
             det = detect_fingertips(pre, roi, window, None if self.data_filter is not None else MAX_DETECTIONS)
             if det.n:
                 det = det.subset((det.points - theta[:3]) @ axis > 0.0)
-        data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf)
+        data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf, max_gaussians)
         if data.n:
             keep = (data.points - theta[:3]) @ axis > 0.0
             data = data if keep.all() else data.subset(keep)
@@ -534,7 +536,9 @@ class Tracker:
         if found is None:
             return self._no_hand({})
         tq = time.perf_counter()
-        data, det, sil = self._data_near(pre, found.poses[0], detect=True, end_mm=found.end_mm)
+        data, det, sil = self._data_near(
+            pre, found.poses[0], detect=True, end_mm=found.end_mm, max_gaussians=NEW_TRACK_DATA
+        )
         timings = {"quadtree": (time.perf_counter() - tq) * 1e3}
         if data.n == 0:
             return self._no_hand(timings)

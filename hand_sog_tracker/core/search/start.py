@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, leaf_px, quadtree_sog
+from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS, ImageSoG, Preprocessed, leaf_px, quadtree_sog
 from hand_sog_tracker.core.hand_model import HandModel
 from hand_sog_tracker.core.initialise import (
     INIT_SEARCH,
@@ -35,17 +35,29 @@ from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import detect_fingertips
-from hand_sog_tracker.core.search.fit import fit_batch
+from hand_sog_tracker.core.search.fit import MAX_BATCH, fit_batch
 from hand_sog_tracker.core.search.score import assignment_cost
 from hand_sog_tracker.core.types import TrackerConfig
 
-__all__ = ["BLOB_BEHIND_MM", "Finalists", "back_toward", "fit_each", "hand_side", "on_hand_side", "start_search"]
+__all__ = [
+    "BLOB_BEHIND_MM", "NEW_TRACK_CANDIDATES", "NEW_TRACK_DATA", "Finalists", "back_toward", "fit_each",
+    "hand_side", "on_hand_side", "start_search",
+]
 
 #: The search's depth window ends this far behind the blob's farthest surface pixel (mm; depth
 #: noise at the blob's edge): what lies farther was cut off as a body or a wall.
 BLOB_BEHIND_MM = 20.0
 #: Data farther than this beyond the wrist plane are forearm (mm: the model has no forearm).
 WRIST_MARGIN_MM = 0.0
+#: Most candidates of one stage of a new track's search: the rigid alignment of the ``screened``
+#: start poses per palm side and the two open hands of each of the two extra directions.
+NEW_TRACK_CANDIDATES = 2 * INIT_SEARCH.screened + 4
+#: Most data Gaussians a new track's search and finish run on (evenly thinned beyond, as
+#: :func:`quadtree_sog` thins at ``MAX_DATA_GAUSSIANS``): a new track fits many candidates on
+#: one frame, so its work is bounded by its largest stage fitting within the model x data pairs
+#: of one batch at the data cap (``MAX_BATCH`` candidates on ``MAX_DATA_GAUSSIANS``), whatever
+#: the input (issue 50: a wrong K or ``min_quad_px`` 2 gave data near the cap).
+NEW_TRACK_DATA = MAX_BATCH * MAX_DATA_GAUSSIANS // NEW_TRACK_CANDIDATES
 Bounds = tuple[NDArray[np.float64], NDArray[np.float64]]
 
 
@@ -170,8 +182,9 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
     fine_px = leaf_px(cfg.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
     end_mm = blob.far_mm + BLOB_BEHIND_MM
     window = (window[0], min(window[1], end_mm))
-    coarse = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, max(eff.coarse_quad_px, cfg.min_quad_px))
-    fine = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, fine_px)
+    coarse_px = max(eff.coarse_quad_px, cfg.min_quad_px)
+    coarse = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, coarse_px, NEW_TRACK_DATA)
+    fine = quadtree_sog(pre, cfg.quadtree_threshold_mm, roi, window, fine_px, NEW_TRACK_DATA)
     det = detect_fingertips(pre, roi, window)
     if det.n:
         det = det.subset(on_hand_side(det.points, starts[0]))
