@@ -289,7 +289,6 @@ class _ModelKinematics:
     # groups[4 c + j, i] = 1 when joint j of chain c moves Gaussian i (joint columns of J).
     groups: NDArray[np.float64]  # (20, m)
     pivot: NDArray[np.int64]  # (20,) index into origins (20, 3) of each joint's pivot
-    pivot_cross: NDArray[np.int64]  # (20, 6) flat index into origins (60,): each joint's pivot, rows _CROSS_ROWS
     axis_row: NDArray[np.int64]  # (20,) row of each joint's axis in concatenate((bx, bz))
     M: NDArray[np.float64]  # (3,) diagonal of the mirror (see _MIRROR)
     right: bool
@@ -365,7 +364,6 @@ def _layout_kinematics(model: HandModel) -> dict[str, NDArray]:
         "g_finger": finger[:, None],
         "groups": groups,
         "pivot": (4 * np.arange(5)[:, None] + first_seg[None, :]).ravel(),
-        "pivot_cross": 3 * (4 * np.arange(5)[:, None] + first_seg[None, :]).reshape(20, 1) + _CROSS_ROWS[None, :],
         "axis_row": (np.arange(5)[:, None] + np.array([0, 5, 0, 0])[None, :]).ravel(),
     }
     for arr in layout.values():
@@ -587,24 +585,18 @@ class CentresPullback:
         Q = np.empty(lead + (m, 12))
         h = np.matmul(g3, self.G, out=Q[..., 9:])  # (..., m, 3), h_i = G^T g3_i (hand frame)
         np.multiply(p[..., None], h[..., None, :], out=Q[..., :9].reshape(lead + (m, 3, 3)))
-        T = (mk.groups @ Q).take(_CROSS_T, axis=-1)  # (..., 20, 12): sum p h^T and sum h per joint
-        # The six entries of sum (p - o) h^T that the cross product reads, (..., 20, 6):
-        # O[a b] = sum p_a h_b - o_a sum h_b.
-        pivots = self.org20.reshape(lead + (60,)).take(mk.pivot_cross, axis=-1)
-        outer = T[..., :6] - pivots * T[..., 6:]
-        X = outer[..., :3] - outer[..., 3:]  # sum (p - o) x h per joint
+        T = mk.groups @ Q  # (..., 20, 12): sum p h^T (9) and sum h (3) per joint
+        pivots = self.org20.take(mk.pivot, axis=-2)[..., None]
+        outer = T[..., :9].reshape(lead + (20, 3, 3)) - pivots * T[..., None, 9:]
+        outer = outer.reshape(lead + (20, 9))  # sum (p - o) h^T per joint
+        X = outer.take(_CROSS_A, axis=-1) - outer.take(_CROSS_B, axis=-1)  # sum (p - o) x h per joint
         grad[..., FIRST_JOINT:] = np.einsum("...ij,...ij->...i", self.axes, X)
         return grad
 
 
-#: ``(p x h)_k = O[a_k] - O[b_k]`` for ``O = p h^T`` flattened (9,): the entries a (3) and b
-#: (3) of ``T = groups @ Q`` (``p h^T`` in columns 0-8), then the columns of ``sum h`` (9-11) they
-#: need (``h_b`` of each ``O[a b]``); the rows ``a`` of the pivots are ``_CROSS_ROWS``.
+#: ``(p x h)_k = O[a_k] - O[b_k]`` for ``O = p h^T`` flattened (9,).
 _CROSS_A = np.array([5, 6, 1])
 _CROSS_B = np.array([7, 2, 3])
-_CROSS_AB = np.concatenate([_CROSS_A, _CROSS_B])
-_CROSS_T = np.concatenate([_CROSS_AB, 9 + _CROSS_AB % 3])
-_CROSS_ROWS = _CROSS_AB // 3
 
 
 def centres_batch(
