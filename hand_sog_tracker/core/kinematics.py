@@ -97,8 +97,8 @@ def global_rotation(theta: NDArray[np.float64], derivatives: bool = False):
     cy, sy = math.cos(theta[4]), math.sin(theta[4])
     cz, sz = math.cos(theta[5]), math.sin(theta[5])
     one, zero = 1.0, 0.0
-    # (One pose: scalar math and one array build.  Building small arrays dominates the cost; a flat tuple converts several times faster
-    # than a nested one.)
+    # (One pose: scalar math and one array build.  Building small arrays dominates the cost; a
+    # flat tuple converts several times faster than a nested one.)
     Rxyz = _entries(
         (one, zero, zero, zero, cx, -sx, zero, sx, cx,
          cy, zero, sy, zero, one, zero, -sy, zero, cy,
@@ -292,7 +292,7 @@ class _ModelKinematics:
     axis_row: NDArray[np.int64]  # (20,) row of each joint's axis in concatenate((bx, bz))
     M: NDArray[np.float64]  # (3,) diagonal of the mirror (see _MIRROR)
     right: bool
-    one: _OnePose  # the flat tables of _centres_flat
+    one: _FlatTables  # the index tables of _centres_flat
 
 
 _KIN_CACHE: dict[int, tuple[HandModel, _ModelKinematics]] = {}
@@ -313,7 +313,7 @@ def _model_kinematics(model: HandModel) -> _ModelKinematics:
         g_offsets=np.array(model.g_offsets, dtype=np.float64),
         M=_mirror(model),
         right=bool(model.right),
-        one=_one_pose_tables(model, layout),
+        one=_flat_tables(model, layout),
     )
     for arr in list(vars(mk).values()) + list(vars(mk.one).values()):
         if isinstance(arr, np.ndarray):
@@ -720,7 +720,7 @@ def _hand_frame(
 
 
 @dataclass(frozen=True, eq=False)
-class _OnePose:
+class _FlatTables:
     """Flat tables of :func:`_centres_flat` for one model (see there).
 
     ``trig`` is ``(cos, sin)`` of the 20 angles of :func:`_frames` (chain-major, abduction
@@ -742,13 +742,12 @@ class _OnePose:
     org_idx: NDArray[np.int64]  # (m 3,) flat index into the origins (20 3,) of each Gaussian's origin
 
 
-def _one_pose_tables(model: HandModel, layout: dict[str, NDArray]) -> _OnePose:
-    """The :class:`_OnePose` of ``model`` (``layout``: its :func:`_layout_kinematics`)."""
-    chains, coords = np.arange(5)[:, None], np.arange(3)[None, :]
+def _flat_tables(model: HandModel, layout: dict[str, NDArray]) -> _FlatTables:
+    """The :class:`_FlatTables` of ``model`` (``layout``: its :func:`_layout_kinematics`)."""
     r0_mix = layout["r0_mix"]  # (2, 4, 5, 3): a (ca / sa), k (bx, -by, 0, by), chain, coordinate
-    rows = np.array([0, 1, 3])
-    base_trig = (20 * np.arange(2)[:, None, None, None] + 4 * chains[None, None] + 0 * coords[None, None]
-                 + 0 * rows[None, :, None, None])
+    rows = np.array([0, 1, 3])  # (k = 2 is bz, set as r0z)
+    # base entries (a, k, c, i): trig[a, c, 0] (the abduction's cos / sin) times r0_mix[a, k, c, i]
+    base_trig = np.broadcast_to(20 * np.arange(2)[:, None, None, None] + 4 * np.arange(5)[:, None], (2, 3, 5, 3))
     base_mix = r0_mix[:, rows]
     # axis entries (a, c, s, b, i): trig[a, c, 1 + s] times W's pairs[a, c, b]: (by, bz), (bz, -by)
     a, c, sg, b, i = np.meshgrid(np.arange(2), np.arange(5), np.arange(3), np.arange(2), np.arange(3), indexing="ij")
@@ -770,7 +769,7 @@ def _one_pose_tables(model: HandModel, layout: dict[str, NDArray]) -> _OnePose:
     off = np.asarray(model.g_offsets, dtype=np.float64)
     local_off = np.repeat(off.T[:, :, None], 3, axis=2)  # (3, m, 3): off[k, j] per coordinate
     bases = np.repeat(np.asarray(model.bases, dtype=np.float64)[:, None, :], 3, axis=1)
-    return _OnePose(
+    return _FlatTables(
         ang=layout["angle_idx"].reshape(-1),
         base_trig=base_trig.reshape(-1),
         base_mix=np.ascontiguousarray(base_mix).reshape(-1),
@@ -791,7 +790,7 @@ def _centres_flat(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """:func:`_centres_hand` of a pose (26,) or poses (B, 26), the same bits: the same products
     and sums as :func:`_frames` and the centres there, on flat arrays gathered by the model's
-    tables (:class:`_OnePose`) instead of broadcasts over four or five axes (a NumPy call on a
+    tables (:class:`_FlatTables`) instead of broadcasts over four or five axes (a NumPy call on a
     1-D array of 20-180 entries costs a fraction of one that broadcasts such shapes).  The
     per-evaluation path of the objective."""
     t = mk.one
