@@ -16,6 +16,7 @@ from hand_sog_tracker.core.hand_model import (
 from hand_sog_tracker.core.initialise import euler_from_matrix
 from hand_sog_tracker.core.kinematics import (
     attached_points,
+    centres_batch,
     centres_with_pullback,
     chain_frames,
     fingertips,
@@ -253,3 +254,25 @@ def test_repeated_poses_give_fresh_equal_results() -> None:
     p_hand = np.concatenate([np.zeros((1, 3)), fr.origins.reshape(20, 3)])
     expected = p_hand @ (global_rotation(theta) * np.array([-1.0, 1.0, 1.0])).T + theta[:3]
     np.testing.assert_array_equal(skeleton_points(model, theta), expected)
+
+
+def test_batch_centres_and_rotations_equal_one_pose_at_a_time() -> None:
+    # centres_batch and global_rotation of poses (B, 26) give each pose the bits of the one-pose
+    # calls (and of attached_points, the general path), whatever B, for both hands, a scaled
+    # model and a joint model; zero and negative-zero angles included (signs of zeros in dR).
+    rng = np.random.default_rng(41)
+    right = default_hand_model(True)
+    models = [right, default_hand_model(False), right.scaled(HandShape(length=1.1)), right.with_joint_gaussians()]
+    for model in models:
+        for B in (1, 2, 7):
+            thetas = np.array([random_pose(rng) for _ in range(B)])
+            thetas[0, 3:6] = (0.0, -0.0, 0.0)
+            thetas[-1, 6:] = 0.0
+            P, _ = centres_batch(model, thetas)
+            R, dR = global_rotation(thetas, derivatives=True)
+            np.testing.assert_array_equal(global_rotation(thetas), R)
+            for b in range(B):
+                fresh = attached_points(model, thetas[b], model.g_chain, model.g_segment, model.g_offsets)
+                assert P[b].tobytes() == fresh.tobytes() == centres_with_pullback(model, thetas[b])[0].tobytes()
+                R1, dR1 = global_rotation(thetas[b], derivatives=True)
+                assert R[b].tobytes() == R1.tobytes() and dR[b].tobytes() == dR1.tobytes()

@@ -91,25 +91,20 @@ def global_rotation(theta: NDArray[np.float64], derivatives: bool = False):
         is the derivative with respect to ``theta[..., 3 + k]``.
     """
     lead = theta.shape[:-1]
-    if lead:  # (the constant entries as arrays too: one array build of equal shapes)
-        c, s = np.cos(theta[..., 3:6]), np.sin(theta[..., 3:6])
-        cx, cy, cz = c[..., 0], c[..., 1], c[..., 2]
-        sx, sy, sz = s[..., 0], s[..., 1], s[..., 2]
-        one, zero = np.ones(lead), np.zeros(lead)
-    else:
-        cx, sx = math.cos(theta[3]), math.sin(theta[3])
-        cy, sy = math.cos(theta[4]), math.sin(theta[4])
-        cz, sz = math.cos(theta[5]), math.sin(theta[5])
-        one, zero = 1.0, 0.0
-    # (Building small arrays dominates the cost; a flat tuple converts several times faster
-    # than a nested one.)
+    if lead:
+        return _global_rotations(theta, derivatives)
+    cx, sx = math.cos(theta[3]), math.sin(theta[3])
+    cy, sy = math.cos(theta[4]), math.sin(theta[4])
+    cz, sz = math.cos(theta[5]), math.sin(theta[5])
+    one, zero = 1.0, 0.0
+    # (One pose: scalar math and one array build.  Building small arrays dominates the cost; a
+    # flat tuple converts several times faster than a nested one.)
     Rxyz = _entries(
         (one, zero, zero, zero, cx, -sx, zero, sx, cx,
          cy, zero, sy, zero, one, zero, -sy, zero, cy,
          cz, -sz, zero, sz, cz, zero, zero, zero, one),
-        lead,
     )
-    R = (Rxyz[..., 2, :, :] @ Rxyz[..., 0, :, :]) @ Rxyz[..., 1, :, :]  # Rz Rx Ry
+    R = (Rxyz[2] @ Rxyz[0]) @ Rxyz[1]  # Rz Rx Ry
     if not derivatives:
         return R
     # dR in closed form, one array build.
@@ -129,18 +124,72 @@ def global_rotation(theta: NDArray[np.float64], derivatives: bool = False):
             cz * cy - sz * sxsy, -sz * cx, cz * sy + sz * sxcy,
             zero, zero, zero,
         ),
-        lead,
     )
     return R, dR
 
 
-def _entries(values: tuple, lead: tuple[int, ...]) -> NDArray[np.float64]:
-    """27 entries (floats, or arrays of shape ``lead``) as matrices (*lead, 3, 3, 3)."""
-    if not lead:
-        return np.array(values).reshape(3, 3, 3)
+# The rotations of poses (..., 26) as gathers from one array of the values they are made of,
+# per pose: 0 one, 1 zero, 2-4 cx cy cz, 5-7 sx sy sz, 8-13 their negatives, 14 sx sy,
+# 15 sx cy, 16 -0.0 (see _global_rotations).
+_ONE, _ZERO, _CX, _CY, _CZ, _SX, _SY, _SZ = range(8)
+_NCX, _NCY, _NCZ, _NSX, _NSY, _NSZ = range(8, 14)
+_SXSY, _SXCY, _NZERO = 14, 15, 16
+#: The entries of Rx, Ry, Rz (as in global_rotation).
+_R_ENTRIES = np.array([
+    _ONE, _ZERO, _ZERO, _ZERO, _CX, _NSX, _ZERO, _SX, _CX,
+    _CY, _ZERO, _SY, _ZERO, _ONE, _ZERO, _NSY, _ZERO, _CY,
+    _CZ, _NSZ, _ZERO, _SZ, _CZ, _ZERO, _ZERO, _ZERO, _ONE,
+])
+#: Each entry of dR (as in global_rotation) as ``(f1 f2) f3 + g1 g2``: the same operations
+#: (``a - b c`` is ``a + (-b) c``, ``-(a b)`` is ``(-a) b``, a missing factor is 1 and a missing
+#: product -0.0, all exact), rows f1, f2, f3, g1, g2.
+_DR_ENTRIES = np.array([
+    # d/drx
+    (_NSZ, _CX, _SY, _NZERO, _ONE), (_SZ, _SX, _ONE, _NZERO, _ONE), (_SZ, _CX, _CY, _NZERO, _ONE),
+    (_CZ, _CX, _SY, _NZERO, _ONE), (_NCZ, _SX, _ONE, _NZERO, _ONE), (_NCZ, _CX, _CY, _NZERO, _ONE),
+    (_SXSY, _ONE, _ONE, _NZERO, _ONE), (_CX, _ONE, _ONE, _NZERO, _ONE), (_NSX, _CY, _ONE, _NZERO, _ONE),
+    # d/dry
+    (_NCZ, _SY, _ONE, _NSZ, _SXCY), (_ZERO, _ONE, _ONE, _NZERO, _ONE), (_CZ, _CY, _ONE, _NSZ, _SXSY),
+    (_NSZ, _SY, _ONE, _CZ, _SXCY), (_ZERO, _ONE, _ONE, _NZERO, _ONE), (_SZ, _CY, _ONE, _CZ, _SXSY),
+    (_NCX, _CY, _ONE, _NZERO, _ONE), (_ZERO, _ONE, _ONE, _NZERO, _ONE), (_NCX, _SY, _ONE, _NZERO, _ONE),
+    # d/drz
+    (_NSZ, _CY, _ONE, _NCZ, _SXSY), (_NCZ, _CX, _ONE, _NZERO, _ONE), (_NSZ, _SY, _ONE, _CZ, _SXCY),
+    (_CZ, _CY, _ONE, _NSZ, _SXSY), (_NSZ, _CX, _ONE, _NZERO, _ONE), (_CZ, _SY, _ONE, _SZ, _SXCY),
+    (_ZERO, _ONE, _ONE, _NZERO, _ONE), (_ZERO, _ONE, _ONE, _NZERO, _ONE), (_ZERO, _ONE, _ONE, _NZERO, _ONE),
+]).T.reshape(-1)
+for _arr in (_R_ENTRIES, _DR_ENTRIES):
+    _arr.setflags(write=False)
+
+
+def _global_rotations(theta: NDArray[np.float64], derivatives: bool):
+    """:func:`global_rotation` of poses (..., 26): the one-pose expressions on arrays (the same
+    bits pose by pose), every entry of ``Rx, Ry, Rz`` and of ``dR`` gathered from one array of
+    their factors per pose (a few calls instead of one per product)."""
+    lead = theta.shape[:-1]
+    V = np.empty(lead + (17,))
+    V[..., :2] = (1.0, 0.0)
+    V[..., _NZERO] = -0.0
+    np.cos(theta[..., 3:6], out=V[..., _CX : _CZ + 1])
+    np.sin(theta[..., 3:6], out=V[..., _SX : _SZ + 1])
+    np.negative(V[..., _CX : _SZ + 1], out=V[..., _NCX : _NSZ + 1])
+    np.multiply(V[..., _SX : _SX + 1], V[..., _SY : _SY + 1], out=V[..., _SXSY : _SXSY + 1])
+    np.multiply(V[..., _SX : _SX + 1], V[..., _CY : _CY + 1], out=V[..., _SXCY : _SXCY + 1])
     # (C-contiguous whatever the batch's size: a matrix product's rounding may depend on the
     # memory layout of its operands, and a pose's result must not depend on its batch)
-    return np.ascontiguousarray(np.moveaxis(np.array(values), 0, -1)).reshape(lead + (3, 3, 3))
+    Rxyz = V.take(_R_ENTRIES, axis=-1).reshape(lead + (3, 3, 3))
+    R = (Rxyz[..., 2, :, :] @ Rxyz[..., 0, :, :]) @ Rxyz[..., 1, :, :]  # Rz Rx Ry
+    if not derivatives:
+        return R
+    T = V.take(_DR_ENTRIES, axis=-1).reshape(lead + (5, 27))
+    dR = T[..., 0, :] * T[..., 1, :]
+    dR *= T[..., 2, :]
+    dR += T[..., 3, :] * T[..., 4, :]
+    return R, dR.reshape(lead + (3, 3, 3))
+
+
+def _entries(values: tuple) -> NDArray[np.float64]:
+    """27 entries (floats) as three matrices (3, 3, 3)."""
+    return np.array(values).reshape(3, 3, 3)
 
 
 @dataclass(frozen=True)
@@ -243,6 +292,7 @@ class _ModelKinematics:
     axis_row: NDArray[np.int64]  # (20,) row of each joint's axis in concatenate((bx, bz))
     M: NDArray[np.float64]  # (3,) diagonal of the mirror (see _MIRROR)
     right: bool
+    one: _FlatTables  # the index tables of _centres_flat
 
 
 _KIN_CACHE: dict[int, tuple[HandModel, _ModelKinematics]] = {}
@@ -254,16 +304,18 @@ def _model_kinematics(model: HandModel) -> _ModelKinematics:
     hit = _KIN_CACHE.get(id(model))
     if hit is not None and hit[0] is model:
         return hit[1]
+    layout = _layout_kinematics(model)
     mk = _ModelKinematics(
-        **_layout_kinematics(model),
+        **layout,
         bases=np.array(model.bases, dtype=np.float64),
         bases3=np.array(model.bases, dtype=np.float64)[:, None, :],
         lengths3=np.array(model.lengths, dtype=np.float64)[:, :, None],
         g_offsets=np.array(model.g_offsets, dtype=np.float64),
         M=_mirror(model),
         right=bool(model.right),
+        one=_flat_tables(model, layout),
     )
-    for arr in vars(mk).values():
+    for arr in list(vars(mk).values()) + list(vars(mk.one).values()):
         if isinstance(arr, np.ndarray):
             arr.setflags(write=False)
     if len(_KIN_CACHE) > 32:
@@ -558,7 +610,7 @@ def centres_batch(
     values up to rounding; nothing cached: a batch's poses are new poses).
     """
     mk = _model_kinematics(model)
-    p_hand, org20, bx = _centres_hand(mk, thetas)
+    p_hand, org20, bx = _centres_flat(mk, thetas)
     R, dR = global_rotation(thetas, derivatives=True)
     G = R if mk.right else R * mk.M
     P = np.matmul(p_hand, np.swapaxes(G, -1, -2))
@@ -658,13 +710,123 @@ def _hand_frame(
     hit = _HAND.get(hkey)
     if hit is not None:
         return hit[1]
-    hand = _centres_hand(mk, theta)
+    hand = _centres_flat(mk, theta)
     for arr in hand:
         arr.setflags(write=False)
     if len(_HAND) >= _HAND_SIZE:
         del _HAND[next(iter(_HAND))]
     _HAND[hkey] = (mk, hand)
     return hand
+
+
+@dataclass(frozen=True, eq=False)
+class _FlatTables:
+    """Flat tables of :func:`_centres_flat` for one model (see there).
+
+    ``trig`` is ``(cos, sin)`` of the 20 angles of :func:`_frames` (chain-major, abduction
+    first), flat (40,); ``W`` (150,) holds, flat: ``bx``, ``-by``, ``by`` (45: 3 x 5 chains x
+    3), ``bz`` (15) and the segments' ``y_s, z_s`` (90: chain, segment, y / z, coordinate).
+    """
+
+    ang: NDArray[np.int64]  # (20,) pose index of each angle
+    base_trig: NDArray[np.int64]  # (90,) index into trig: ca (45) then sa (45) per bx, -by, by entry
+    base_mix: NDArray[np.float64]  # (90,) the rest rotations' columns they multiply (r0_mix)
+    bz: NDArray[np.float64]  # (15,) r0z, flat
+    axis_trig: NDArray[np.int64]  # (180,) index into trig: cos (90) then sin (90) of phi_s per y / z entry
+    axis_base: NDArray[np.int64]  # (180,) index into W: (by, bz) then (bz, -by)
+    y_idx: NDArray[np.int64]  # (45,) index into W of y_s (chain, segment, coordinate)
+    lengths: NDArray[np.float64]  # (45,) the segment lengths per y_s entry
+    bases: NDArray[np.float64]  # (5, 3, 3) each chain's base, per segment end
+    local_idx: NDArray[np.int64]  # (3 m 3,) index into W of bx, y_s, z_s of each Gaussian's segment
+    local_off: NDArray[np.float64]  # (3 m 3,) the offsets they multiply (axis, Gaussian, coordinate)
+    org_idx: NDArray[np.int64]  # (m 3,) flat index into the origins (20 3,) of each Gaussian's origin
+
+
+def _flat_tables(model: HandModel, layout: dict[str, NDArray]) -> _FlatTables:
+    """The :class:`_FlatTables` of ``model`` (``layout``: its :func:`_layout_kinematics`)."""
+    r0_mix = layout["r0_mix"]  # (2, 4, 5, 3): a (ca / sa), k (bx, -by, 0, by), chain, coordinate
+    rows = np.array([0, 1, 3])  # (k = 2 is bz, set as r0z)
+    # base entries (a, k, c, i): trig[a, c, 0] (the abduction's cos / sin) times r0_mix[a, k, c, i]
+    base_trig = np.broadcast_to(20 * np.arange(2)[:, None, None, None] + 4 * np.arange(5)[:, None], (2, 3, 5, 3))
+    base_mix = r0_mix[:, rows]
+    # axis entries (a, c, s, b, i): trig[a, c, 1 + s] times W's pairs[a, c, b]: (by, bz), (bz, -by)
+    a, c, sg, b, i = np.meshgrid(np.arange(2), np.arange(5), np.arange(3), np.arange(2), np.arange(3), indexing="ij")
+    axis_trig = 20 * a + 4 * c + 1 + sg
+    row_of = np.array([[30, 45], [45, 15]])  # W's offsets of by, bz / bz, -by
+    axis_base = row_of[a, b] + 3 * c + i
+    c2, s2, i2 = np.meshgrid(np.arange(5), np.arange(3), np.arange(3), indexing="ij")
+    y_idx = 60 + ((3 * c2 + s2) * 2 + 0) * 3 + i2
+    lengths = np.repeat(np.asarray(model.lengths, dtype=np.float64)[:, :, None], 3, axis=2)
+    g_rot = layout["g_rot"]
+    gc, gs = g_rot // 3, g_rot % 3
+    m = g_rot.size
+    gi = np.arange(3)[None, :]
+    local_idx = np.stack([
+        3 * gc[:, None] + gi,
+        60 + ((3 * gc[:, None] + gs[:, None]) * 2 + 0) * 3 + gi,
+        60 + ((3 * gc[:, None] + gs[:, None]) * 2 + 1) * 3 + gi,
+    ])  # (3, m, 3)
+    off = np.asarray(model.g_offsets, dtype=np.float64)
+    local_off = np.repeat(off.T[:, :, None], 3, axis=2)  # (3, m, 3): off[k, j] per coordinate
+    bases = np.repeat(np.asarray(model.bases, dtype=np.float64)[:, None, :], 3, axis=1)
+    return _FlatTables(
+        ang=layout["angle_idx"].reshape(-1),
+        base_trig=base_trig.reshape(-1),
+        base_mix=np.ascontiguousarray(base_mix).reshape(-1),
+        bz=np.ascontiguousarray(layout["r0z"]).reshape(-1),
+        axis_trig=axis_trig.reshape(-1),
+        axis_base=axis_base.reshape(-1),
+        y_idx=y_idx.reshape(-1),
+        lengths=lengths.reshape(-1),
+        bases=bases,
+        local_idx=local_idx.reshape(-1),
+        local_off=local_off.reshape(-1),
+        org_idx=(3 * layout["g_org"][:, None] + gi).reshape(-1) if m else np.zeros(0, np.int64),
+    )
+
+
+def _centres_flat(
+    mk: _ModelKinematics, theta: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`_centres_hand` of a pose (26,) or poses (B, 26), the same bits: the same products
+    and sums as :func:`_frames` and the centres there, on flat arrays gathered by the model's
+    tables (:class:`_FlatTables`) instead of broadcasts over four or five axes (a NumPy call on a
+    1-D array of 20-180 entries costs a fraction of one that broadcasts such shapes).  The
+    per-evaluation path of the objective."""
+    t = mk.one
+    lead = theta.shape[:-1]
+    ang = theta.take(t.ang, axis=-1)  # (..., 20): per chain abduction, f1, f2, f3
+    ang4 = ang.reshape(lead + (5, 4))
+    ang4[..., 2] += ang4[..., 1]  # phi: the flexions summed along the chain (as np.add.accumulate)
+    ang4[..., 3] += ang4[..., 2]
+    trig = np.empty(lead + (40,))
+    np.cos(ang, out=trig[..., :20])
+    np.sin(ang, out=trig[..., 20:])
+    W = np.empty(lead + (150,))
+    F = trig.take(t.base_trig, axis=-1)
+    F *= t.base_mix
+    np.add(F[..., :45], F[..., 45:], out=W[..., :45])  # bx, -by, by = ca r0_mix[0] + sa r0_mix[1]
+    W[..., 45:60] = t.bz
+    G = trig.take(t.axis_trig, axis=-1)
+    G *= W.take(t.axis_base, axis=-1)
+    np.add(G[..., :90], G[..., 90:], out=W[..., 60:])  # y_s = c by + s bz, z_s = c bz + s (-by)
+    Y = W.take(t.y_idx, axis=-1)
+    Y *= t.lengths
+    Y3 = Y.reshape(lead + (5, 3, 3))
+    Y3[..., 1, :] += Y3[..., 0, :]  # the segment ends along the chain (as np.add.accumulate)
+    Y3[..., 2, :] += Y3[..., 1, :]
+    o = np.empty(lead + (5, 4, 3))
+    o[..., 0, :] = mk.bases
+    np.add(Y3, t.bases, out=o[..., 1:, :])
+    org20 = o.reshape(lead + (20, 3))
+    L = W.take(t.local_idx, axis=-1)
+    L *= t.local_off
+    L3 = L.reshape(lead + (3, -1))
+    local = L3[..., 0, :] + L3[..., 1, :]
+    local += L3[..., 2, :]  # the sum over the axes in the einsum's order (_centres_hand)
+    local += o.reshape(lead + (60,)).take(t.org_idx, axis=-1)
+    local = local.reshape(lead + (-1, 3))
+    return np.where(mk.g_finger, local, mk.g_offsets), org20, W[..., :15].reshape(lead + (5, 3))
 
 
 def _centres_hand(

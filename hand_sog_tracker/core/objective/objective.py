@@ -92,6 +92,7 @@ Choices the paper leaves open (documented here, used everywhere):
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -138,6 +139,40 @@ class EnergyTerms:
     curl: float = 0.0
 
 
+
+
+class _BatchState:
+    """The batch layouts of one model, data and visibility weights (see
+    :meth:`Objective._layout`): ``layouts`` by batch size, the capacity ``cap`` (poses) of the
+    ``buffers`` they are views of (a plain class with slots)."""
+
+    __slots__ = ("model", "data", "visibility", "layouts", "cap", "buffers")
+
+    def __init__(self, model: HandModel, data: ImageSoG, visibility: NDArray[np.float64] | None) -> None:
+        self.model, self.data, self.visibility = model, data, visibility
+        self.layouts: dict[int, _Rows] = {}
+        self.cap, self.buffers = 0, ()
+
+
+#: The last few :class:`_BatchState` of this thread (oldest first): a frame's objectives share
+#: one, and a thread of its own gets its own (their buffers are scratch of an evaluation).
+_BATCH_STATES = threading.local()
+_BATCH_STATES_SIZE = 3
+
+
+def _batch_state(model: HandModel, data: ImageSoG, visibility: NDArray[np.float64] | None) -> _BatchState:
+    """The :class:`_BatchState` of ``model``, ``data`` and ``visibility`` (by identity)."""
+    states: list[_BatchState] | None = getattr(_BATCH_STATES, "states", None)
+    if states is None:
+        states = _BATCH_STATES.states = []
+    for st in states:
+        if st.model is model and st.data is data and st.visibility is visibility:
+            return st
+    st = _BatchState(model, data, visibility)
+    if len(states) >= _BATCH_STATES_SIZE:
+        del states[0]
+    states.append(st)
+    return st
 
 class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
     """The objective ``E(theta)`` for one frame, at one pose (:meth:`__call__`) or at a batch
@@ -229,9 +264,9 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
             1, False, rows, tests, neg, self._row_starts, self._col_of, self._per_q, self._sat,
             model.g_sigmas, self._shf, self._two_sh, self._four_sh2, self._visibility, self._const.scatter,
         )
-        # The batches' layouts by their number of poses, and the buffers they share (see _layout).
-        self._batches: dict[int, _Rows] = {}
-        self._batch_buffers: tuple[int, tuple[NDArray, ...]] = (0, ())
+        # The batches' layouts (see _layout), shared by the objectives of this model, data and
+        # visibility weights (found at the first batch).
+        self._batch_state: _BatchState | None = None
         # (targets, their constants or None) of the last targets seen by _salient.
         self._sal: tuple[object, tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None] = (
             _UNSET, None
@@ -368,15 +403,21 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         Made once for the largest batch so far; a smaller batch's layout is the first B m rows
         (B m n pairs, B n image Gaussians) of it, as views: a batch that shrinks from call to
         call (:func:`~hand_sog_tracker.core.optimizer.maximise_batch` leaves settled
-        candidates out) makes no new arrays.
+        candidates out) makes no new arrays.  The layouts are shared by every objective of
+        the same model, data and visibility weights (a frame's objective, its variants and
+        its pulls; a new track's stages): their buffers are scratch that each batch
+        evaluation writes before it reads them, and the rest is the model's and the data's.
         """
-        hit = self._batches.get(B)
+        state = self._batch_state
+        if state is None or state.visibility is not self._visibility:
+            state = self._batch_state = _batch_state(self.model, self.data, self._visibility)
+        hit = state.layouts.get(B)
         if hit is not None:
             return hit
         m, n = self.model.n_gaussians, self.data.n
-        cap, full = self._batch_buffers
+        cap, full = state.cap, state.buffers
         if B > cap:
-            self._batches.clear()
+            state.layouts.clear()
             cap = B
             col_of = np.empty((cap, m, n), dtype=np.int64)
             col_of[:] = (n * np.arange(cap))[:, None, None] + np.arange(n)
@@ -394,10 +435,10 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
                 np.tile(self.model.g_sigmas, cap), np.tile(self._shf, cap), np.tile(self._two_sh, cap),
                 np.tile(self._four_sh2, cap), vis, scatter,
             )
-            self._batch_buffers = (cap, full)
+            state.cap, state.buffers = cap, full
         rows, tests, neg, row_starts, col_of, per_q, sat_k, sigmas, shf, two_sh, four_sh2, vis, scatter = full
         k = B * m
-        lay = self._batches[B] = _Rows(
+        lay = state.layouts[B] = _Rows(
             B, True, rows[:, :k], tests[: 2 * k * n].reshape(2, k, n), neg[: k * n].reshape(k, n),
             row_starts[: k + 1], col_of[: k * n], per_q[:, : B * n], sat_k[: B * n], sigmas[:k], shf[:k],
             two_sh[:k], four_sh2[:k], None if vis is None else vis[:k], scatter[: scatter.size // cap * B],
