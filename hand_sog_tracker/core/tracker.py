@@ -290,9 +290,10 @@ class Tracker:
             result = self._track(pre)
             if self._withhold:
                 checked = handcheck.check_hand(depth_mm, intrinsics, self._model, result)
-                # (A lost track's check is 0.  A frame whose data reach the cap already costs
-                # several initialisations, issue 50: the gate's reset searches on the next one.)
-                if checked.confidence < FRESH_BELOW and result.n_image_gaussians < MAX_DATA_GAUSSIANS:
+                # (A lost track's check is 0.  The fresh start's data are capped at
+                # ``NEW_TRACK_DATA`` whatever the track's: a frame costs at most a tracked frame
+                # at the data cap and one new track, issue 50.)
+                if checked.confidence < FRESH_BELOW:
                     result, checked = self._fresh_start(pre, depth_mm, intrinsics, result, checked)
             self._track_frame = None  # (the frame's data are not kept)
         else:

@@ -50,7 +50,8 @@ skipped with a throttled warning naming the problem and counted as rejected;
 the tracker state is reset only where the track cannot continue.  Every frame is bounded:
 images above ``max_image_pixels`` are refused before anything of their size is allocated,
 implausible CameraInfo is refused (:func:`~hand_sog_tracker.interface.camera_info_to_intrinsics`),
-the core clips its search to the image and caps its data, and a frame over ``frame_budget_ms``
+the core clips its search to the image and caps its data, BLAS runs on one thread
+(:func:`~hand_sog_tracker.ros.blas.limit_blas_threads`), and a frame over ``frame_budget_ms``
 is warned about and counted (``frames_cut``, ``worst_frame_ms`` in /diagnostics; its search is
 never cut, issue 45).  After a frame that grew the process the free heap is given back
 (:class:`~hand_sog_tracker.ros.heap.HeapTrim`).
@@ -130,6 +131,7 @@ from hand_sog_tracker.interface import (
     image_to_depth_mm,
     stamp_to_ns,
 )
+from hand_sog_tracker.ros.blas import limit_blas_threads
 from hand_sog_tracker.ros.calibration_service import CalibrationService, FitWorker
 from hand_sog_tracker.ros.conversions import (
     bgr_to_image_msg,
@@ -263,6 +265,8 @@ class TrackerNode(CalibrationService, Node):
         # under the single-threaded executor, so it costs nothing).
         self._tracker_lock = threading.Lock()
         self._heap = HeapTrim()  # free heap back to the system after a frame that grew the process
+        # One BLAS thread: a product split over busy cores waits for the slowest (ros/blas.py).
+        self._blas_threads = limit_blas_threads(1)
         self._warn_loggers: dict[str, RcutilsLogger] = {}
         self._stats = NodeStats()
         self._window = _Window()
