@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess
 from hand_sog_tracker.core.hand_model import HandModel, chain_slice
 from hand_sog_tracker.core.kinematics import global_rotation, posed_centres
+from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import RING_RADIUS_MM, TIP_DEPTH_OFFSET_MM, Detections
 from hand_sog_tracker.core.support import without_support
@@ -91,6 +92,19 @@ OCCLUDER_GAP_MM: Final[float] = 30.0
 KEEP_OCCLUDERS = True
 #: Whether a finger another hand hides keeps its joints in the fit (see :attr:`Tracker.held`).
 HOLD_HIDDEN = True
+#: The weight of the inter-hand collision term (``- w E_int``, :mod:`.objective.interhand`,
+#: seed 001); 0: none.  Off: the scenes' true hands interpenetrate where they come close
+#: (doc/design/two_hands.md, "Inter-hand collision term"), and on dev ``approach`` the term
+#: then costs 0.4-1.2 mm; it changes nothing on ``occlude``, ``cross`` and ``touch``.
+W_INTERHAND = 0.0
+#: Another hand's spheres enter a hand's term when they come this near (mm) to touching one of
+#: its spheres at the fit's start (a frame's motion and the fit's reach).
+INTERHAND_REACH_MM: Final[float] = 30.0
+#: Whether two hands in their trials at once are reported with the labels the pair's preference
+#: gives them so far (:meth:`MultiHandTracker._provisional`).
+REPORT_TRIAL = True
+#: ... once the pair's preference exceeds this (half of :data:`TRIAL_LEAD`).
+REPORT_LEAD: Final[float] = 0.015
 #: Two tracks whose palm centres (the mean of the model's Gaussians) are closer are one hand (mm).
 SAME_HAND_MM: Final[float] = 40.0
 #: With at least one hand tracked, a new hand is searched for every this many frames.
@@ -301,12 +315,30 @@ class MultiHandTracker:
             HandTrack(s.side, s.track_id, s.result, s.tracker.model)
             for s in self._slots
             if s.alt is None and s.result is not None and s.result.status is TrackerStatus.TRACKING
-        )
+        ) + (self._provisional() if REPORT_TRIAL else ())
         ms = {"preprocess": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3}
         ms["total"] = (t3 - t0) * 1e3
         return HandsResult(hands, ms)
 
     # -- internals -----------------------------------------------------------
+    def _provisional(self) -> tuple[HandTrack, ...]:
+        """Two hands in their trials at once, each with the label the pair's summed preference
+        gives it so far (as :meth:`_decide` would decide now) and that label's model's result."""
+        trials = [s for s in self._slots if s.alt is not None]
+        if len(trials) != 2 or len(self._slots) != 2:
+            return ()
+        a, b = trials
+        pref = (a.lead if a.side == "right" else -a.lead) - (b.lead if b.side == "right" else -b.lead)
+        if abs(pref) <= REPORT_LEAD:
+            return ()
+        out = []
+        for slot, side in ((a, "right" if pref >= 0.0 else "left"), (b, "left" if pref >= 0.0 else "right")):
+            res, tracker = (slot.result, slot.tracker) if slot.side == side else (slot.alt_result, slot.alt)
+            if res is None or tracker is None or res.status is not TrackerStatus.TRACKING:
+                continue
+            out.append(HandTrack(side, slot.track_id, res, tracker.model))
+        return tuple(out)
+
     def _pose(self, slot: _Slot) -> NDArray[np.float64] | None:
         """The slot's pose of this frame when fitted, else its last one (26,), or None."""
         if slot.result is not None and slot.result.pose is not None:
@@ -326,6 +358,7 @@ class MultiHandTracker:
                     tracker.data_filter = self._filter(tracker, others) if others else None
                     tracker.covered_tips = self._covered(pre, others, tracker.model) if others else None
                     tracker.held = self._held(pre, tracker, others) if others and HOLD_HIDDEN else None
+                    tracker.interhand = self._interhand(others) if others and W_INTERHAND > 0 else None
             slot.result = slot.tracker.process_preprocessed(pre)
             if slot.alt is not None:
                 slot.alt_result = slot.alt.process_preprocessed(pre)
@@ -463,6 +496,21 @@ class MultiHandTracker:
             return out
 
         return held
+
+    def _interhand(self, others: Sequence[_Slot]):
+        """The :attr:`Tracker.interhand` of a hand beside ``others``: their spheres (posed this
+        frame, or at their last pose) near this hand's at the fit's start."""
+        poses = [(o.tracker.model, self._pose(o)) for o in others]
+        spheres = [(posed_centres(m, x), m.g_sigmas) for m, x in poses if x is not None]
+        if not spheres:
+            return None
+        centres = np.concatenate([c for c, _ in spheres])
+        radii = np.concatenate([r for _, r in spheres])
+
+        def interhand(own: NDArray[np.float64], own_radii: NDArray[np.float64]) -> InterHand | None:
+            return InterHand.near(centres, radii, own, own_radii, W_INTERHAND, INTERHAND_REACH_MM)
+
+        return interhand
 
     def _masked(self, pre: Preprocessed) -> Preprocessed:
         """``pre`` without the pixels of the live tracks' hands and forearms (a new copy)."""
