@@ -159,12 +159,10 @@ def test_invalid_arguments_are_refused() -> None:
         MultiHandTracker(handedness="both")
 
 
-def test_two_trials_are_reported_with_the_pairs_provisional_labels() -> None:
-    """Two hands in their trials at once are reported, before the trial decides them, with the
-    labels the pair's summed preference gives them (each with that label's model's result),
-    once that preference exceeds ``REPORT_LEAD``; not before."""
-    from hand_sog_tracker.core import hands as hands_module
-    from hand_sog_tracker.core.hands import REPORT_LEAD, _Slot
+def test_two_trials_are_decided_together_once_the_pairs_preference_leads_by_pair_lead() -> None:
+    """Two hands in their trials at once are decided together, with different labels, once the
+    pair's summed preference exceeds ``PAIR_LEAD`` (below ``TRIAL_LEAD``); not before."""
+    from hand_sog_tracker.core.hands import PAIR_LEAD, TRIAL_LEAD, _Slot
     from hand_sog_tracker.core.types import TrackResult
 
     def result() -> TrackResult:
@@ -172,22 +170,19 @@ def test_two_trials_are_reported_with_the_pairs_provisional_labels() -> None:
 
     def trials(lead_a: float, lead_b: float) -> MultiHandTracker:
         mt = MultiHandTracker(TrackerConfig(), max_hands=2)
-        slots = []
         for k, lead in enumerate((lead_a, lead_b)):
             # (both tracks led so far by their left model: the track's tracker is the left one)
             main, alt = Tracker(TrackerConfig(right_hand=False)), Tracker(TrackerConfig(right_hand=True))
-            slots.append(_Slot(main, "left", k, result(), alt, result(), lead, 3))
-        mt._slots = slots
+            mt._slots.append(_Slot(main, "left", k, result(), alt, result(), lead, 3))
         return mt
 
-    assert hands_module.REPORT_TRIAL
+    assert PAIR_LEAD < TRIAL_LEAD
     # Track 1 prefers left more than track 0 does: the pair says track 0 right, track 1 left.
-    mt = trials(0.01, 0.01 + 2.0 * REPORT_LEAD)
-    got = mt._provisional()
-    assert [(h.track_id, h.handedness) for h in got] == [(0, "right"), (1, "left")]
-    s0, s1 = mt._slots
-    assert got[0].result is s0.alt_result and got[0].model is s0.alt.model  # (the right model's)
-    assert got[1].result is s1.result and got[1].model is s1.tracker.model
-    assert got[0].model.right and not got[1].model.right
-    # A preference within REPORT_LEAD reports neither.
-    assert trials(0.01, 0.01 + 0.5 * REPORT_LEAD)._provisional() == ()
+    mt = trials(0.01, 0.01 + 0.5 * (PAIR_LEAD + TRIAL_LEAD))
+    mt._decide()
+    assert [(s.track_id, s.side, s.alt is None) for s in mt._slots] == [(0, "right", True), (1, "left", True)]
+    assert mt._slots[0].tracker.model.right and not mt._slots[1].tracker.model.right
+    # A preference within PAIR_LEAD leaves both on trial.
+    mt = trials(0.01, 0.01 + 0.5 * PAIR_LEAD)
+    mt._decide()
+    assert all(s.alt is not None for s in mt._slots)

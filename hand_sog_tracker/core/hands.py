@@ -58,6 +58,7 @@ __all__ = [
     "COVERED_MM",
     "HANDS",
     "OWN_MARGIN_MM",
+    "PAIR_LEAD",
     "PIXEL_MARGIN_MM",
     "SAME_HAND_MM",
     "SEARCH_EVERY",
@@ -100,11 +101,6 @@ W_INTERHAND = 0.0
 #: Another hand's spheres enter a hand's term when they come this near (mm) to touching one of
 #: its spheres at the fit's start (a frame's motion and the fit's reach).
 INTERHAND_REACH_MM: Final[float] = 30.0
-#: Whether two hands in their trials at once are reported with the labels the pair's preference
-#: gives them so far (:meth:`MultiHandTracker._provisional`).
-REPORT_TRIAL = True
-#: ... once the pair's preference exceeds this (half of :data:`TRIAL_LEAD`).
-REPORT_LEAD: Final[float] = 0.015
 #: Two tracks whose palm centres (the mean of the model's Gaussians) are closer are one hand (mm).
 SAME_HAND_MM: Final[float] = 40.0
 #: With at least one hand tracked, a new hand is searched for every this many frames.
@@ -114,6 +110,12 @@ SEARCH_EVERY: Final[int] = 5
 #: reported from then on with the label whose model explained it better.
 TRIAL_FRAMES: Final[int] = 10
 TRIAL_LEAD: Final[float] = 0.03
+#: Two trials at once (two hands that appear together) are decided when the pair's summed
+#: preference leads by this: half of ``TRIAL_LEAD``.  The pair's preference is the difference of
+#: the two hands' leads, in which a bias of both toward one label cancels (dev ``cross``: both
+#: hands' models lean left, the pair's preference is right from the second frame on but
+#: reached ``TRIAL_LEAD`` only with the trial's last frame; doc/design/two_hands.md).
+PAIR_LEAD: Final[float] = 0.5 * TRIAL_LEAD
 
 
 def skin_distance(model: HandModel, theta: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -315,30 +317,12 @@ class MultiHandTracker:
             HandTrack(s.side, s.track_id, s.result, s.tracker.model)
             for s in self._slots
             if s.alt is None and s.result is not None and s.result.status is TrackerStatus.TRACKING
-        ) + (self._provisional() if REPORT_TRIAL else ())
+        )
         ms = {"preprocess": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3}
         ms["total"] = (t3 - t0) * 1e3
         return HandsResult(hands, ms)
 
     # -- internals -----------------------------------------------------------
-    def _provisional(self) -> tuple[HandTrack, ...]:
-        """Two hands in their trials at once, each with the label the pair's summed preference
-        gives it so far (as :meth:`_decide` would decide now) and that label's model's result."""
-        trials = [s for s in self._slots if s.alt is not None]
-        if len(trials) != 2 or len(self._slots) != 2:
-            return ()
-        a, b = trials
-        pref = (a.lead if a.side == "right" else -a.lead) - (b.lead if b.side == "right" else -b.lead)
-        if abs(pref) <= REPORT_LEAD:
-            return ()
-        out = []
-        for slot, side in ((a, "right" if pref >= 0.0 else "left"), (b, "left" if pref >= 0.0 else "right")):
-            res, tracker = (slot.result, slot.tracker) if slot.side == side else (slot.alt_result, slot.alt)
-            if res is None or tracker is None or res.status is not TrackerStatus.TRACKING:
-                continue
-            out.append(HandTrack(side, slot.track_id, res, tracker.model))
-        return tuple(out)
-
     def _pose(self, slot: _Slot) -> NDArray[np.float64] | None:
         """The slot's pose of this frame when fitted, else its last one (26,), or None."""
         if slot.result is not None and slot.result.pose is not None:
@@ -388,7 +372,8 @@ class MultiHandTracker:
         """End the trials that are decided.  A trial beside a decided track takes the free
         label; two trials are decided together (the labels differ: the pair's summed preference
         for right on the first, left on the second, or the other way); a trial is decided when
-        its (the pair's) lead exceeds :data:`TRIAL_LEAD` or after :data:`TRIAL_FRAMES`."""
+        its lead exceeds :data:`TRIAL_LEAD` (the pair's :data:`PAIR_LEAD`) or after
+        :data:`TRIAL_FRAMES`."""
         trials = [s for s in self._slots if s.alt is not None]
         if not trials:
             return
@@ -407,7 +392,7 @@ class MultiHandTracker:
             return
         a, b = trials
         pref = (a.lead if a.side == "right" else -a.lead) - (b.lead if b.side == "right" else -b.lead)
-        if abs(pref) > TRIAL_LEAD or min(a.age, b.age) >= TRIAL_FRAMES:
+        if abs(pref) > PAIR_LEAD or min(a.age, b.age) >= TRIAL_FRAMES:
             if (a.side == "right") != (pref >= 0.0):
                 a.swap()
             if (b.side == "right") == (pref >= 0.0):
