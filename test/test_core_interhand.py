@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_core_energy import data_near, numeric_gradient
 
 from hand_sog_tracker.core.hand_model import N_PARAMS, default_hand_model, rest_pose
 from hand_sog_tracker.core.kinematics import gaussian_centres
 from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.objective.interhand import INTERHAND_SCALE_MM, InterHand
 from hand_sog_tracker.core.types import TrackerConfig
-from test_core_energy import data_near, numeric_gradient
 
 
 def _two_hands(seed: int):

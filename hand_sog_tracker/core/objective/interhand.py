@@ -78,7 +78,8 @@ class InterHand:
         later: list[Backward] | None = None,
     ) -> float | NDArray[np.float64]:
         """``w E_int`` at this hand's sphere centres ``P`` (m, 3) or (B, m, 3) mm, radii
-        ``radii_own`` (m,) mm (a float, or (B,)); adds ``-w dE_int/dP`` into ``g3`` (same shape as ``P``), or appends the function that
+        ``radii_own`` (m,) mm (a float, or (B,)); adds ``-w dE_int/dP`` into ``g3`` (same
+        shape as ``P``), or appends the function that
         does to ``later``, unless both are None."""
         diff = P[..., :, None, :] - self.centres  # (..., m, k, 3) mm
         dist = np.sqrt((diff * diff).sum(-1))  # (..., m, k)
