@@ -157,3 +157,32 @@ def test_invalid_arguments_are_refused() -> None:
         MultiHandTracker(max_hands=3)
     with pytest.raises(InputError):
         MultiHandTracker(handedness="both")
+
+
+def test_two_trials_are_decided_together_once_the_pairs_preference_leads_by_pair_lead() -> None:
+    """Two hands in their trials at once are decided together, with different labels, once the
+    pair's summed preference exceeds ``PAIR_LEAD`` (below ``TRIAL_LEAD``); not before."""
+    from hand_sog_tracker.core.hands import PAIR_LEAD, TRIAL_LEAD, _Slot
+    from hand_sog_tracker.core.types import TrackResult
+
+    def result() -> TrackResult:
+        return TrackResult(TrackerStatus.TRACKING, rest_pose(), np.zeros((5, 3)), np.zeros((21, 3)), 0.6, 0.0, 10, {})
+
+    def trials(lead_a: float, lead_b: float) -> MultiHandTracker:
+        mt = MultiHandTracker(TrackerConfig(), max_hands=2)
+        for k, lead in enumerate((lead_a, lead_b)):
+            # (both tracks led so far by their left model: the track's tracker is the left one)
+            main, alt = Tracker(TrackerConfig(right_hand=False)), Tracker(TrackerConfig(right_hand=True))
+            mt._slots.append(_Slot(main, "left", k, result(), alt, result(), lead, 3))
+        return mt
+
+    assert PAIR_LEAD < TRIAL_LEAD
+    # Track 1 prefers left more than track 0 does: the pair says track 0 right, track 1 left.
+    mt = trials(0.01, 0.01 + 0.5 * (PAIR_LEAD + TRIAL_LEAD))
+    mt._decide()
+    assert [(s.track_id, s.side, s.alt is None) for s in mt._slots] == [(0, "right", True), (1, "left", True)]
+    assert mt._slots[0].tracker.model.right and not mt._slots[1].tracker.model.right
+    # A preference within PAIR_LEAD leaves both on trial.
+    mt = trials(0.01, 0.01 + 0.5 * PAIR_LEAD)
+    mt._decide()
+    assert all(s.alt is not None for s in mt._slots)

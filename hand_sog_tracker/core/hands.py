@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess
 from hand_sog_tracker.core.hand_model import HandModel, chain_slice
 from hand_sog_tracker.core.kinematics import global_rotation, posed_centres
+from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import RING_RADIUS_MM, TIP_DEPTH_OFFSET_MM, Detections
 from hand_sog_tracker.core.support import without_support
@@ -57,6 +58,7 @@ __all__ = [
     "COVERED_MM",
     "HANDS",
     "OWN_MARGIN_MM",
+    "PAIR_LEAD",
     "PIXEL_MARGIN_MM",
     "SAME_HAND_MM",
     "SEARCH_EVERY",
@@ -91,6 +93,14 @@ OCCLUDER_GAP_MM: Final[float] = 30.0
 KEEP_OCCLUDERS = True
 #: Whether a finger another hand hides keeps its joints in the fit (see :attr:`Tracker.held`).
 HOLD_HIDDEN = True
+#: The weight of the inter-hand collision term (``- w E_int``, :mod:`.objective.interhand`,
+#: seed 001); 0: none.  Off: the scenes' true hands interpenetrate where they come close
+#: (doc/design/two_hands.md, "Inter-hand collision term"), and on dev ``approach`` the term
+#: then costs 0.4-1.2 mm; it changes nothing on ``occlude``, ``cross`` and ``touch``.
+W_INTERHAND = 0.0
+#: Another hand's spheres enter a hand's term when they come this near (mm) to touching one of
+#: its spheres at the fit's start (a frame's motion and the fit's reach).
+INTERHAND_REACH_MM: Final[float] = 30.0
 #: Two tracks whose palm centres (the mean of the model's Gaussians) are closer are one hand (mm).
 SAME_HAND_MM: Final[float] = 40.0
 #: With at least one hand tracked, a new hand is searched for every this many frames.
@@ -100,6 +110,12 @@ SEARCH_EVERY: Final[int] = 5
 #: reported from then on with the label whose model explained it better.
 TRIAL_FRAMES: Final[int] = 10
 TRIAL_LEAD: Final[float] = 0.03
+#: Two trials at once (two hands that appear together) are decided when the pair's summed
+#: preference leads by this: half of ``TRIAL_LEAD``.  The pair's preference is the difference of
+#: the two hands' leads, in which a bias of both toward one label cancels (dev ``cross``: both
+#: hands' models lean left, the pair's preference is right from the second frame on but
+#: reached ``TRIAL_LEAD`` only with the trial's last frame; doc/design/two_hands.md).
+PAIR_LEAD: Final[float] = 0.5 * TRIAL_LEAD
 
 
 def skin_distance(model: HandModel, theta: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -326,6 +342,7 @@ class MultiHandTracker:
                     tracker.data_filter = self._filter(tracker, others) if others else None
                     tracker.covered_tips = self._covered(pre, others, tracker.model) if others else None
                     tracker.held = self._held(pre, tracker, others) if others and HOLD_HIDDEN else None
+                    tracker.interhand = self._interhand(others) if others and W_INTERHAND > 0 else None
             slot.result = slot.tracker.process_preprocessed(pre)
             if slot.alt is not None:
                 slot.alt_result = slot.alt.process_preprocessed(pre)
@@ -355,7 +372,8 @@ class MultiHandTracker:
         """End the trials that are decided.  A trial beside a decided track takes the free
         label; two trials are decided together (the labels differ: the pair's summed preference
         for right on the first, left on the second, or the other way); a trial is decided when
-        its (the pair's) lead exceeds :data:`TRIAL_LEAD` or after :data:`TRIAL_FRAMES`."""
+        its lead exceeds :data:`TRIAL_LEAD` (the pair's :data:`PAIR_LEAD`) or after
+        :data:`TRIAL_FRAMES`."""
         trials = [s for s in self._slots if s.alt is not None]
         if not trials:
             return
@@ -374,7 +392,7 @@ class MultiHandTracker:
             return
         a, b = trials
         pref = (a.lead if a.side == "right" else -a.lead) - (b.lead if b.side == "right" else -b.lead)
-        if abs(pref) > TRIAL_LEAD or min(a.age, b.age) >= TRIAL_FRAMES:
+        if abs(pref) > PAIR_LEAD or min(a.age, b.age) >= TRIAL_FRAMES:
             if (a.side == "right") != (pref >= 0.0):
                 a.swap()
             if (b.side == "right") == (pref >= 0.0):
@@ -463,6 +481,21 @@ class MultiHandTracker:
             return out
 
         return held
+
+    def _interhand(self, others: Sequence[_Slot]):
+        """The :attr:`Tracker.interhand` of a hand beside ``others``: their spheres (posed this
+        frame, or at their last pose) near this hand's at the fit's start."""
+        poses = [(o.tracker.model, self._pose(o)) for o in others]
+        spheres = [(posed_centres(m, x), m.g_sigmas) for m, x in poses if x is not None]
+        if not spheres:
+            return None
+        centres = np.concatenate([c for c, _ in spheres])
+        radii = np.concatenate([r for _, r in spheres])
+
+        def interhand(own: NDArray[np.float64], own_radii: NDArray[np.float64]) -> InterHand | None:
+            return InterHand.near(centres, radii, own, own_radii, W_INTERHAND, INTERHAND_REACH_MM)
+
+        return interhand
 
     def _masked(self, pre: Preprocessed) -> Preprocessed:
         """``pre`` without the pixels of the live tracks' hands and forearms (a new copy)."""

@@ -49,6 +49,7 @@ from hand_sog_tracker.core.kinematics import (
     skeleton_points,
 )
 from hand_sog_tracker.core.objective import Objective, TipTargets, contact_shares
+from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
 from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
 from hand_sog_tracker.core.salient import MAX_DETECTIONS, Detections, assigned_targets, detect_fingertips
@@ -204,6 +205,10 @@ class Tracker:
         #: pose ``theta`` (the joints of fingers another hand hides: no data speak for them; set by
         #: the multi-hand tracker); None: none.
         self.held: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
+        #: ``(centres (m, 3) mm, radii (m,) mm) -> InterHand or None``: the other hands' spheres
+        #: that this hand's, posed at a tracked frame's start, may not penetrate in its fit
+        #: (:mod:`.objective.interhand`; set by the multi-hand tracker); None: none.
+        self.interhand: Callable[[NDArray[np.float64], NDArray[np.float64]], InterHand | None] | None = None
 
     @property
     def config(self) -> TrackerConfig:
@@ -443,6 +448,8 @@ class Tracker:
             self._model, data, cfg, previous=(p1, p2), targets=self._targets(x0, det), silhouette=sil,
             contact=contact_shares(p1),
         )
+        if self.interhand is not None:
+            obj.interhand = self.interhand(start_centres, self._model.g_sigmas)
         base = _INITIAL_STEPS
         start = base if self._steps is None else np.minimum(np.maximum(self._steps * WARM_GROW, base * WARM_MIN), base)
         held = None if self.held is None else self.held(x0)
@@ -497,6 +504,7 @@ class Tracker:
             joint[1], obj.data, obj.config, obj.previous, obj.targets, obj.silhouette, obj.contact,
             visible_from=x if REFINE_VISIBILITY else None,
         )
+        refine.interhand = obj.interhand
         steps = np.minimum(np.maximum(res.steps * WARM_GROW, _INITIAL_STEPS * WARM_MIN), _INITIAL_STEPS)
         x0 = x
         if last is not None and last[0] is p1:  # (the frame before's refinement, from this frame's start)

@@ -113,6 +113,7 @@ from hand_sog_tracker.core.objective.arrays import _UNSET, Backward, _accumulate
 from hand_sog_tracker.core.objective.collision import CollisionTerm, model_constants
 from hand_sog_tracker.core.objective.constants import SIM_SATURATION
 from hand_sog_tracker.core.objective.data import DataTerms, _data_constants, _Rows, visibility_weights
+from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.objective.pose import PoseTerms
 from hand_sog_tracker.core.objective.tips import SalientTerm, TipTargets, _stacked_targets
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette_term
@@ -222,6 +223,9 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         self.silhouette = silhouette
         self.contact = contact
         self.visible_from = visible_from
+        #: Another hand's spheres this hand's may not penetrate (``- w E_int``,
+        #: :mod:`.interhand`; set by the multi-hand tracker); None: no such term.
+        self.interhand: InterHand | None = None
         self._visibility = (
             None if visible_from is None else visibility_weights(model, visible_from, data.intrinsics)
         )
@@ -371,6 +375,7 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         other = Objective(self.model, self.data, config, self.previous, targets, self.silhouette)
         other.contact, other._col_free = self.contact, self._col_free
         other.visible_from, other._visibility = self.visible_from, self._visibility
+        other.interhand = self.interhand
         other._one.visibility = self._visibility
         return other
 
@@ -531,6 +536,8 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
             - cfg.w_sal * sal
             - cfg.w_sil * sil
         )
+        if self.interhand is not None:  # (two hands only: one hand's total is unchanged)
+            total = total - self.interhand.term(P, self.model.g_sigmas, g3, later)
         if batch:  # (every term 0: a scalar total)
             total = np.broadcast_to(total, theta.shape[:1]).copy()
         values = (total, sim, col, dan, lim, smo, ordv, sal, sil, cpl, curl)
