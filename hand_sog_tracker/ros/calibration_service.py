@@ -288,7 +288,11 @@ class CalibrationService:
         if generation == self._model_generation and self._auto_calib.enabled:
             self._tracker.set_model(model)
             self._model_generation += 1
-            self.get_logger().info(f"automatic calibration in use (not saved; ~/calibrate saves): {fitted}")
+            start = auto.started_ns or 0
+            self.get_logger().info(
+                f"automatic calibration in use from the frame after the one stamped {stamp * 1e-9:.3f} s "
+                f"(fit started on {start * 1e-9:.3f} s; not saved, ~/calibrate saves): {fitted}"
+            )
         else:
             self.get_logger().info("automatic calibration: dropped (the model was changed meanwhile)")
 
