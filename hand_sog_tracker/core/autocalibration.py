@@ -77,8 +77,9 @@ AUTO_MIN_LENGTH = 0.85
 #: An accepted automatic fit's model takes effect on the first frame stamped at least this
 #: long (s) after the frame the fit started on: the switch goes by image stamps, not by when
 #: the fit (in a child process, while tracking goes on) happens to end, so every run of a bag
-#: switches on the same frame (the fit takes 0.3-0.6 s; a fit that ends later switches on
-#: the first frame after it ends).
+#: switches on the same frame (the fit takes 0.3-0.6 s; the node waits for a fit still running
+#: then, up to :data:`AUTO_WAIT_S`; one that ends later still switches on the first frame after
+#: it ends).
 AUTO_APPLY_S = 1.0
 #: When the switch is due and the fit is still running, the node waits for it this long at
 #: most (s; tracking waits meanwhile, the images that arrive wait in the backlog): the switch
