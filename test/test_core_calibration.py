@@ -194,7 +194,7 @@ def test_a_gain_within_the_best_pose_noise_is_accepted_when_the_re_track_corrobo
     backed = Validation(**_rows(gains, [0.0] * 4, [0.01, 0.012, 0.011], [0.0] * 3), **still)
     best = backed.evidence()[0]
     assert GUARD_MARGIN <= best.change < best.noise and not best.better
-    assert backed.corroborated() and backed.accepted
+    assert backed.corroborated() and backed.accepted and backed.accepted_by_corroboration
     flat_retrack = Validation(**_rows(gains, [0.0] * 4, [-0.01, 0.03, 0.04], [0.0] * 3), **still)
     assert not flat_retrack.corroborated() and flat_retrack.already_fits
     small = Validation(**_rows([0.004, 0.0, 0.003, 0.001], [0.0] * 4, [0.002, 0.0025, 0.0022], [0.0] * 3), **still)

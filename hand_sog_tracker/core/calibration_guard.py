@@ -376,6 +376,12 @@ class Validation:
         return len(f) == 1 and f[0].startswith("the current model already fits")
 
     @property
+    def accepted_by_corroboration(self) -> bool:
+        """Accepted only through :meth:`corroborated` (the best-pose score within its noise)."""
+        ev = self.evidence()
+        return self.accepted and bool(self.per_frame) and not any(e.better for e in ev if e.decides)
+
+    @property
     def accepted(self) -> bool:
         """Whether the fitted model passes every rule of the guard (:meth:`failures`)."""
         return not self.failures()
