@@ -266,7 +266,7 @@ def test_an_automatic_fit_still_running_on_its_due_frame_is_waited_for(
             rig.send(image_msg(frames[k], T0_NS + k * PERIOD_NS))
             # (each frame tracked before the next is sent: none dropped from the backlog, whatever
             # the machine's load)
-            assert rig.spin_until(lambda: rig.node.stats.processed > k, 60.0), f"frame {k} not answered"
+            assert rig.spin_until(lambda n=k: rig.node.stats.processed > n, 60.0), f"frame {k} not answered"
             k += 1
         start = auto.started_ns
         assert start is not None and auto.taken_ns is not None, f"no switch after {k} frames"

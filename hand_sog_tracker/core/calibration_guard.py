@@ -19,7 +19,8 @@ losing more than :data:`GUARD_FRAME_DROP`, refuses the fit; the best-pose score 
 better score of its two pose fits on a frame: the refit from the tracked pose favours the
 current model) must rise beyond its noise, or the re-track corroborate the gain (the
 re-tracked score up beyond its own noise, the best-pose and held-out scores up by the margin:
-:meth:`Validation.corroborated`), else "the current model already fits" (nothing to do).  Either way :class:`CalibrationRejected` is raised
+:meth:`Validation.corroborated`), else "the current model already fits" (nothing to do).
+Either way :class:`CalibrationRejected` is raised
 (with the numbers) and the caller keeps (and does not save) the current model.  None of this
 has fingertip truth: the measurements that chose the rules, the predictors tried and the hands
 whose true shape tracks worse than the default model are in ``doc/design/calibration_guard.md``.

@@ -275,7 +275,9 @@ class CalibrationService:
             waited = time.perf_counter() - t0
             self.auto_fit_waits.append((waited, bool(ended)))
             if ended:
-                self.get_logger().info(f"automatic calibration: waited {waited * 1e3:.0f} ms for the fit on its due frame")
+                self.get_logger().info(
+                    f"automatic calibration: waited {waited * 1e3:.0f} ms for the fit on its due frame"
+                )
             else:
                 self.get_logger().warning(
                     f"automatic calibration: the fit has not ended {waited:.2f} s after its model was due "
