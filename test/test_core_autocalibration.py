@@ -139,12 +139,17 @@ def test_an_accepted_fit_is_handed_out_by_image_stamps() -> None:
     whenever the fit (in another process) happens to end before it."""
     auto = AutoCalibration(apply_s=AUTO_APPLY_S)
     start = 5 * 10**9
-    auto.started(start)
-    assert auto.take(start + 10**9) is None  # nothing finished yet
-    auto.finished(True, "fitted model")
     apply_ns = int(AUTO_APPLY_S * 1e9)
+    assert not auto.overdue(start)  # no fit running
+    auto.started(start)
+    assert not auto.overdue(start + apply_ns - 1)  # running, its frame not due yet
+    assert auto.overdue(start + apply_ns)  # due and still running: the node waits for it
+    assert auto.take(start + apply_ns) is None  # nothing finished yet
+    auto.finished(True, "fitted model")
+    assert not auto.overdue(start + apply_ns)  # ended: nothing to wait for
     assert auto.take(start + apply_ns - 1) is None
     assert auto.take(start + apply_ns) == "fitted model"
+    assert auto.started_ns == start and auto.taken_ns == start + apply_ns
     assert auto.take(start + 2 * apply_ns) is None  # once
     late = AutoCalibration(apply_s=AUTO_APPLY_S)
     late.started(start)

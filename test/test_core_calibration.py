@@ -185,6 +185,24 @@ def _rows(score_gain: list[float], tip_change: list[float], re_gain: list[float]
     )
 
 
+def test_a_gain_within_the_best_pose_noise_is_accepted_when_the_re_track_corroborates_it() -> None:
+    """The best-pose score up by more than the margin but within its noise (a hand held still:
+    few independent frames) is accepted when the re-tracked score rises beyond its own noise and
+    the held-out score by the margin; without that it already fits."""
+    still = dict(independent_frames=1.8)
+    gains = [0.06, 0.0, 0.05, 0.0]  # the refit's gains spread; the re-track gains a little on each
+    backed = Validation(**_rows(gains, [0.0] * 4, [0.01, 0.012, 0.011], [0.0] * 3), **still)
+    best = backed.evidence()[0]
+    assert GUARD_MARGIN <= best.change < best.noise and not best.better
+    assert backed.corroborated() and backed.accepted and backed.accepted_by_corroboration
+    flat_retrack = Validation(**_rows(gains, [0.0] * 4, [-0.01, 0.03, 0.04], [0.0] * 3), **still)
+    assert not flat_retrack.corroborated() and flat_retrack.already_fits
+    small = Validation(**_rows([0.004, 0.0, 0.003, 0.001], [0.0] * 4, [0.002, 0.0025, 0.0022], [0.0] * 3), **still)
+    assert not small.corroborated() and small.already_fits  # every gain under the margin
+    worse_tips = Validation(**_rows(gains, [3.0, 2.5, 3.5, 3.0], [0.01, 0.012, 0.011], [0.0] * 3), **still)
+    assert not worse_tips.accepted and not worse_tips.already_fits  # anything worse still refuses
+
+
 def test_each_guard_rule_alone_refuses_and_small_changes_already_fit() -> None:
     """The best-pose score must rise beyond its noise (GUARD_NOISE_SE standard errors, at least
     the margin); any evidence worse beyond its noise refuses; nothing beyond the noise either way

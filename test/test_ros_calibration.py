@@ -13,6 +13,7 @@ import pytest
 from std_srvs.srv import Trigger
 from test_core_calibration import _rows
 
+from hand_sog_tracker.core.autocalibration import AUTO_APPLY_S
 from hand_sog_tracker.core.calibration import CalibrationRejected, Validation
 from hand_sog_tracker.core.hand_model import HandShape, default_hand_model, rest_pose
 from hand_sog_tracker.core.model_io import load_hand_shape, read_calibration_info
@@ -218,11 +219,61 @@ def test_the_node_fits_a_large_hand_by_itself_keeps_tracking_and_saves_nothing(r
         assert first_fit >= 14  # not before the history holds half a second
         if shape != HandShape():  # accepted: in use from AUTO_APPLY_S after the fit's start
             assert k >= first_fit + 30
+            # On the first frame stamped AUTO_APPLY_S after the fit's start, by the stamps alone
+            # (a fit still running then is waited for), unless the wait ran out (a busy machine).
+            start = auto.started_ns
+            assert start is not None and auto.taken_ns is not None
+            due = T0_NS + -(-(start + int(AUTO_APPLY_S * 1e9) - T0_NS) // PERIOD_NS) * PERIOD_NS
+            if all(ended for _, ended in rig.node.auto_fit_waits):
+                assert auto.taken_ns == due, (auto.taken_ns, due, rig.node.auto_fit_waits)
+            else:
+                assert auto.taken_ns > due
             assert 1.05 <= shape.length <= 1.19 and 1.03 <= shape.width <= 1.17, shape
         else:  # the guard found no clear gain (a static hand: held-out frames much like the fit's)
             assert auto.accepted or auto.attempts == auto.max_attempts
         assert rig.node.stats.processed == k  # every frame was answered during the fit
         assert not (tmp_path / "hand_model.yaml").exists()
+    finally:
+        rig.close()
+
+
+def test_an_automatic_fit_still_running_on_its_due_frame_is_waited_for(
+    ros_context, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The switch lands on the first frame stamped AUTO_APPLY_S after the fit's start however
+    late the fit ends (within AUTO_WAIT_S): a stand-in fit that ends only once the node waits
+    for it on that frame."""
+    from hand_sog_tracker.core.calibration import CalibrationResult
+
+    shape = HandShape(1.1, 1.05, 1.0, 1.0)
+    monkeypatch.setattr(calibration_service, "AUTO_WAIT_S", 60.0)  # (no machine load decides)
+    frames = open_hand_frames(60, default_hand_model().scaled(shape))
+    rig = Rig(ros_context, tmp_path, auto_calibrate=True)
+    auto = rig.node._auto_calib
+
+    def late_fit(args, kwargs):  # type: ignore[no-untyped-def]
+        end = time.monotonic() + 60.0
+        while rig.node._auto_waited_for != auto.started_ns and time.monotonic() < end:
+            time.sleep(0.005)  # (ends only while the node waits on the due frame)
+        poses = np.array(kwargs["poses"])
+        return CalibrationResult(shape, args[3].scaled(shape), poses[0], 0.8, 0.83, 0.3, poses, (0, 1, 2))
+
+    monkeypatch.setattr(rig.node, "_run_fit", late_fit)
+    try:
+        rig.send_info()
+        k = 0
+        while k < len(frames) and auto.taken_ns is None:
+            rig.send(image_msg(frames[k], T0_NS + k * PERIOD_NS))
+            # (each frame tracked before the next is sent: none dropped from the backlog, whatever
+            # the machine's load)
+            assert rig.spin_until(lambda n=k: rig.node.stats.processed > n, 60.0), f"frame {k} not answered"
+            k += 1
+        start = auto.started_ns
+        assert start is not None and auto.taken_ns is not None, f"no switch after {k} frames"
+        due = T0_NS + -(-(start + int(AUTO_APPLY_S * 1e9) - T0_NS) // PERIOD_NS) * PERIOD_NS
+        assert auto.taken_ns == due
+        assert len(rig.node.auto_fit_waits) == 1 and rig.node.auto_fit_waits[0][1]  # waited once, ended
+        assert rig.node.hand_model.shape == shape
     finally:
         rig.close()
 

@@ -42,6 +42,7 @@ __all__ = [
     "AUTO_MIN_FRAMES",
     "AUTO_MIN_LENGTH",
     "AUTO_RETRY_S",
+    "AUTO_WAIT_S",
     "HISTORY_FRAMES",
     "HISTORY_SPACING_S",
     "AutoCalibration",
@@ -76,9 +77,18 @@ AUTO_MIN_LENGTH = 0.85
 #: An accepted automatic fit's model takes effect on the first frame stamped at least this
 #: long (s) after the frame the fit started on: the switch goes by image stamps, not by when
 #: the fit (in a child process, while tracking goes on) happens to end, so every run of a bag
-#: switches on the same frame (the fit takes 0.3-0.6 s; a fit that ends later switches on
-#: the first frame after it ends).
+#: switches on the same frame (the fit takes 0.3-0.6 s; the node waits for a fit still running
+#: then, up to :data:`AUTO_WAIT_S`; one that ends later still switches on the first frame after
+#: it ends).
 AUTO_APPLY_S = 1.0
+#: When the switch is due and the fit is still running, the node waits for it this long at
+#: most (s; tracking waits meanwhile, the images that arrive wait in the backlog): the switch
+#: then lands on the due frame on every run whenever the fit ends within ``AUTO_APPLY_S +
+#: AUTO_WAIT_S`` of its start (0.5-0.6 s CPU; on a quiet machine the node never waits).  A
+#: longer wait would stop tracking for longer than the backlog's ``max_lag_ms`` keeps frames;
+#: a fit later than that (a machine too busy for the fit's idle-class child) switches on the
+#: first frame after it ends, as before.
+AUTO_WAIT_S = 0.5
 #: Open-hand frames an automatic fit needs (count): a fit on a single frame of a half-curled hand
 #: returned length 0.80-0.88 and width 0.80 for hands 1.08-1.13x on dev renders (refused, but it
 #: spent an attempt; no dev or validation render scored differently with this rule).
@@ -272,6 +282,10 @@ class AutoCalibration:
         self.accepted = False
         self._last_ns: int | None = None
         self._pending: object | None = None
+        #: Stamp (ns) of the frame that took the last result (:meth:`take`), None before.
+        self.taken_ns: int | None = None
+        #: Stamp (ns) of the frame the last fit started on (:meth:`started`), None before.
+        self.started_ns: int | None = None
 
     def due(self, history: FrameHistory, stamp_ns: int) -> FitFrames | None:
         """The frames to fit on now, or None (off, done, running, too soon, or no usable frames)."""
@@ -290,7 +304,7 @@ class AutoCalibration:
         """A fit starts (on the frame stamped ``stamp_ns``)."""
         self.running = True
         self.attempts += 1
-        self._last_ns = stamp_ns
+        self._last_ns = self.started_ns = stamp_ns
 
     def finished(self, accepted: bool, result: object | None = None) -> None:
         """The fit ended; ``accepted``: by the guard (no further attempts).  ``result`` (e.g. the
@@ -300,12 +314,20 @@ class AutoCalibration:
         if result is not None:
             self._pending = result
 
+    def overdue(self, stamp_ns: int) -> bool:
+        """Whether a fit is still running when the frame stamped ``stamp_ns`` is due to take its
+        result (at least :data:`AUTO_APPLY_S` after the fit's start): a caller that wants the
+        switch on that frame on every run waits for the fit (the node: up to
+        :data:`AUTO_WAIT_S`), then calls :meth:`take`."""
+        return self.running and self._last_ns is not None and stamp_ns - self._last_ns >= self.apply_ns
+
     def take(self, stamp_ns: int) -> object | None:
         """The finished fit's ``result`` when the frame stamped ``stamp_ns`` is at least
         :data:`AUTO_APPLY_S` after the fit's start (once), else None."""
         if self._pending is None or self._last_ns is None or stamp_ns - self._last_ns < self.apply_ns:
             return None
         out, self._pending = self._pending, None
+        self.taken_ns = stamp_ns
         return out
 
     def stop(self) -> None:

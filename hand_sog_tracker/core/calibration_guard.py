@@ -17,8 +17,10 @@ model also re-tracks the held-out frames in order from its own pose on the previ
 same batch as the refit) and is scored again.  Any evidence worse beyond its noise, or one frame
 losing more than :data:`GUARD_FRAME_DROP`, refuses the fit; the best-pose score (each model's
 better score of its two pose fits on a frame: the refit from the tracked pose favours the
-current model) must rise beyond its noise, else "the current model already fits" (nothing to
-do).  Either way :class:`CalibrationRejected` is raised
+current model) must rise beyond its noise, or the re-track corroborate the gain (the
+re-tracked score up beyond its own noise, the best-pose and held-out scores up by the margin:
+:meth:`Validation.corroborated`), else "the current model already fits" (nothing to do).
+Either way :class:`CalibrationRejected` is raised
 (with the numbers) and the caller keeps (and does not save) the current model.  None of this
 has fingertip truth: the measurements that chose the rules, the predictors tried and the hands
 whose true shape tracks worse than the default model are in ``doc/design/calibration_guard.md``.
@@ -328,12 +330,30 @@ class Validation:
             out.append(_evidence("re-tracked score", rt[both, 1] - rt[both, 0], self.margin, True, independent=n))
         return out
 
+    def corroborated(self) -> bool:
+        """Whether the re-track corroborates a gain the best-pose score alone does not carry
+        beyond its noise: the re-tracked score (each model following the held-out frames from its
+        own pose) rises beyond its own noise, and the best-pose and the held-out score (the
+        refit from the tracked pose) each rise by at least :attr:`margin`.
+
+        Two kinds of pose fit agreeing is evidence the best-pose score's noise does not see: on
+        a hand held still its frames are one pose (few :attr:`independent_frames`), and a
+        re-track that gains on every frame is the fitted model following that pose better
+        (doc/design/calibration_guard.md, "Corroborated gains").
+        """
+        ev = {e.name: e for e in self.evidence()}
+        rt, best, held = ev.get("re-tracked score"), ev.get("best-pose score"), ev.get("held-out score")
+        if rt is None or best is None or held is None or not self.per_frame:
+            return False
+        return bool(rt.better and best.change >= self.margin and held.change >= self.margin)
+
     def failures(self) -> list[str]:
         """Why the guard does not accept the fitted model (empty: accepted).
 
         Refused when any evidence is worse beyond its noise or one held-out frame loses more
         than :attr:`frame_drop`; "the current model already fits" when nothing is worse but the
-        deciding score (the best-pose score) does not rise beyond its noise.
+        deciding score (the best-pose score) does not rise beyond its noise, unless the re-track
+        corroborates the gain (:meth:`corroborated`).
         """
         ev = self.evidence()
         out = [f"{e.name} worse: {e.describe()}" for e in ev if e.worse]
@@ -341,6 +361,8 @@ class Validation:
             out.append(f"one held-out frame loses {-self.worst_frame_gain:.4f} > {self.frame_drop:.4f}")
         if not out:
             flat = [e for e in ev if e.decides and not e.better]
+            if flat and self.corroborated():
+                flat = []
             if flat:
                 out.append(
                     "the current model already fits: "
@@ -353,6 +375,12 @@ class Validation:
         """Nothing worse beyond the noise, and no score that rises beyond it either."""
         f = self.failures()
         return len(f) == 1 and f[0].startswith("the current model already fits")
+
+    @property
+    def accepted_by_corroboration(self) -> bool:
+        """Accepted only through :meth:`corroborated` (the best-pose score within its noise)."""
+        ev = self.evidence()
+        return self.accepted and bool(self.per_frame) and not any(e.better for e in ev if e.decides)
 
     @property
     def accepted(self) -> bool:
@@ -371,8 +399,9 @@ class Validation:
         """
         out: dict[str, float | int | str] = {
             "guard_rules": (
-                "no evidence worse beyond its noise; best-pose score higher by its noise; "
-                "every held-out frame's gain >= -guard_frame_drop"
+                "no evidence worse beyond its noise; best-pose score higher by its noise, or "
+                "re-tracked score higher by its noise with best-pose and held-out scores higher by "
+                "the margin; every held-out frame's gain >= -guard_frame_drop"
             ),
             "guard_frame_drop": float(self.frame_drop),
         }

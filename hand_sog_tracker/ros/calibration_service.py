@@ -17,6 +17,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 from typing import IO, TYPE_CHECKING
 
 import numpy as np
@@ -25,6 +26,7 @@ from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from hand_sog_tracker.core.autocalibration import (
+    AUTO_WAIT_S,
     HISTORY_FRAMES,
     HISTORY_SPACING_S,
     AutoCalibration,
@@ -213,6 +215,7 @@ class CalibrationService:
 
     _tracker: Tracker
     _tracker_lock: threading.Lock
+    _auto_done: threading.Condition  # on _tracker_lock: an automatic fit ended
     _settings: NodeSettings
     _calib_history: FrameHistory
     _auto_calib: AutoCalibration
@@ -220,6 +223,10 @@ class CalibrationService:
     _fit_worker: FitWorker
     _model_generation: int = 0
     _calibrating: bool = False  # a ~/calibrate call is being served (set on the instance)
+    #: Each time a frame due to switch to an automatic fit's model waited for the fit: (seconds
+    #: waited, whether the fit had ended by then).  For measurements and tests (set by the node).
+    auto_fit_waits: list[tuple[float, bool]]
+    _auto_waited_for: int | None = None  # started_ns of the fit last waited for (set on the instance)
 
     def _run_fit(self, args: tuple, kwargs: dict) -> CalibrationResult:
         """:func:`~hand_sog_tracker.core.calibration.calibrate` in the child process
@@ -253,15 +260,41 @@ class CalibrationService:
     def _apply_auto_fit(self, stamp: int) -> None:
         """Switch to an accepted automatic fit's model once the frame stamped ``stamp`` is due
         (:meth:`~hand_sog_tracker.core.autocalibration.AutoCalibration.take`: by image stamps,
-        so every run of a bag switches on the same frame).  Called with ``_tracker_lock`` held."""
-        pending = self._auto_calib.take(stamp)
+        so every run of a bag switches on the same frame).  Called with ``_tracker_lock`` held.
+
+        A fit still running when its frame is due is waited for on that frame (once), up to
+        :data:`~hand_sog_tracker.core.autocalibration.AUTO_WAIT_S` (the wait releases the lock,
+        so the fit's thread can hand its result over; tracking waits meanwhile): the switch then
+        lands on the same frame on every run whenever the fit ends within that time.
+        """
+        auto = self._auto_calib
+        if auto.overdue(stamp) and self._auto_waited_for != auto.started_ns:
+            self._auto_waited_for = auto.started_ns  # (once per fit: its due frame)
+            t0 = time.perf_counter()
+            ended = self._auto_done.wait_for(lambda: not auto.running, timeout=AUTO_WAIT_S)
+            waited = time.perf_counter() - t0
+            self.auto_fit_waits.append((waited, bool(ended)))
+            if ended:
+                self.get_logger().info(
+                    f"automatic calibration: waited {waited * 1e3:.0f} ms for the fit on its due frame"
+                )
+            else:
+                self.get_logger().warning(
+                    f"automatic calibration: the fit has not ended {waited:.2f} s after its model was due "
+                    "(a busy machine); it switches on the first frame after it ends"
+                )
+        pending = auto.take(stamp)
         if pending is None:
             return
         model, generation, fitted = pending  # type: ignore[misc]
         if generation == self._model_generation and self._auto_calib.enabled:
             self._tracker.set_model(model)
             self._model_generation += 1
-            self.get_logger().info(f"automatic calibration in use (not saved; ~/calibrate saves): {fitted}")
+            start = auto.started_ns or 0
+            self.get_logger().info(
+                f"automatic calibration in use from the frame after the one stamped {stamp * 1e-9:.3f} s "
+                f"(fit started on {start * 1e-9:.3f} s; not saved, ~/calibrate saves): {fitted}"
+            )
         else:
             self.get_logger().info("automatic calibration: dropped (the model was changed meanwhile)")
 
@@ -304,6 +337,7 @@ class CalibrationService:
             finally:
                 with self._tracker_lock:
                     self._auto_calib.finished(accepted, pending)
+                    self._auto_done.notify_all()
 
         threading.Thread(target=work, name="hand_sog_auto_calibration", daemon=True).start()
 

@@ -264,6 +264,10 @@ class TrackerNode(CalibrationService, Node):
         # model and for the model switch, hand_model for reads from other threads (uncontended
         # under the single-threaded executor, so it costs nothing).
         self._tracker_lock = threading.Lock()
+        # Signalled (with _tracker_lock held) when an automatic fit ends: a frame due to switch
+        # to its model waits on it (calibration_service.py, _apply_auto_fit).
+        self._auto_done = threading.Condition(self._tracker_lock)
+        self.auto_fit_waits: list[tuple[float, bool]] = []
         self._heap = HeapTrim()  # free heap back to the system after a frame that grew the process
         # One BLAS thread: a product split over busy cores waits for the slowest (ros/blas.py).
         self._blas_threads = limit_blas_threads(1)

@@ -112,6 +112,8 @@ def auto_fit(tracker: TrackerLike, frames: Any, config: TrackerConfig) -> tuple[
         used = usable_automatically(res.shape)
         model = res.model if used else None
         info.update(accepted=True, used=used, shape=res.shape.as_dict())
+        if res.validation is not None:
+            info["by_corroboration"] = res.validation.accepted_by_corroboration
     info["seconds"] = time.perf_counter() - t0
     return info, model
 
