@@ -276,3 +276,31 @@ def test_batch_centres_and_rotations_equal_one_pose_at_a_time() -> None:
                 assert P[b].tobytes() == fresh.tobytes() == centres_with_pullback(model, thetas[b])[0].tobytes()
                 R1, dR1 = global_rotation(thetas[b], derivatives=True)
                 assert R[b].tobytes() == R1.tobytes() and dR[b].tobytes() == dR1.tobytes()
+
+
+def test_keypoint_skeleton_moves_only_the_palm_rows_by_the_fitted_offsets() -> None:
+    from hand_sog_tracker.core.hand_model import KEYPOINT_FACING_MM, KEYPOINT_OFFSETS_MM
+    from hand_sog_tracker.core.kinematics import PALM_KEYPOINT_ROWS, keypoint_skeleton
+
+    rng = np.random.default_rng(12)
+    shape = HandShape(length=1.1, width=0.9, depth=1.2)
+    for right in (True, False):
+        model = default_hand_model(right).scaled(shape)
+        for _ in range(4):
+            th = random_pose(rng)
+            kp, sk = keypoint_skeleton(model, th), skeleton_points(model, th)
+            other = [r for r in range(21) if r not in PALM_KEYPOINT_ROWS]
+            np.testing.assert_array_equal(kp[other], sk[other])  # the fingers' joints are the skeleton's
+            G = global_rotation(th) * np.array([1.0 if right else -1.0, 1.0, 1.0])
+            facing = G[:, 2] @ th[:3] / np.linalg.norm(th[:3])
+            off = KEYPOINT_OFFSETS_MM * [0.9, 1.1, 1.2]
+            off[:, 2] += KEYPOINT_FACING_MM * 1.2 * facing
+            rows = list(PALM_KEYPOINT_ROWS)
+            np.testing.assert_allclose(kp[rows], sk[rows] + off @ G.T, atol=1e-9)
+    # The wrist's joint centre lies deeper than the model's origin: by 16 mm palm to the camera
+    # (the model fits the palmar skin), by 3 mm back to it (the dorsal skin).
+    model = default_hand_model(True)
+    th = rest_pose((0.0, 0.0, 400.0))  # palm to the camera
+    assert keypoint_skeleton(model, th)[0, 2] - th[2] > 10.0
+    th[3] = 0.0  # back to the camera
+    assert 0.0 < keypoint_skeleton(model, th)[0, 2] - th[2] < 6.0

@@ -17,11 +17,12 @@ from std_msgs.msg import String
 
 from hand_sog_tracker.compressed_depth import encode_compressed_depth
 from hand_sog_tracker.core.hand_model import JOINT_NAMES
+from hand_sog_tracker.core.kinematics import fingertips, keypoint_skeleton
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.core.urdf import WRIST_JOINT_NAMES, hand_urdf
 from hand_sog_tracker.errors import InputError
-from hand_sog_tracker.ros.conversions import stamp_to_ns
+from hand_sog_tracker.ros.conversions import keypoints_mm, stamp_to_ns
 from hand_sog_tracker.ros.node import TrackerNode
 from test_ros_node import FRAME, INTR, T0_NS, Rig, hand_depth, hand_poses, image_msg
 
@@ -58,8 +59,14 @@ def test_keypoints_description_and_wrist_joints(ros_context, tmp_path: Path) -> 
         assert stamp_to_ns(kp.header.stamp) == T0_NS and kp.header.frame_id == FRAME and len(kp.poses) == 21
         pts = np.array([[p.position.x, p.position.y, p.position.z] for p in kp.poses])
         pos = rig.poses[0].pose.position
-        np.testing.assert_allclose(pts[0], [pos.x, pos.y, pos.z], atol=1e-12)  # 0 = wrist = pose translation
         np.testing.assert_allclose(js.position[20:23], [pos.x, pos.y, pos.z], atol=1e-12)  # hand_tx/ty/tz in m
+        # The keypoints are the published pose's (rebuilt from the joint states): the wrist, the
+        # thumb CMC and the MCPs at the joint centres, the others the kinematic chain's.
+        jp = np.asarray(js.position)
+        theta = np.concatenate([jp[20:23] * 1000.0, [jp[24], jp[25], jp[23]], jp[:20]])
+        np.testing.assert_allclose(pts * 1000.0, keypoints_mm(keypoint_skeleton(rig.node.hand_model, theta),
+                                                              fingertips(rig.node.hand_model, theta)), atol=1e-6)
+        assert 0.003 < np.linalg.norm(pts[0] - [pos.x, pos.y, pos.z]) < 0.025  # not the pose's origin
         tips = [m for m in rig.markers[0].markers if m.ns == "fingertips"]
         marker_tips = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in tips])
         np.testing.assert_allclose(pts[[4, 8, 12, 16, 20]], marker_tips, atol=1e-12)  # TIPs = fingertips

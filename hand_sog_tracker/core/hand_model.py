@@ -47,6 +47,8 @@ __all__ = [
     "chain_joint_slice",
     "FINGER_RANGE",
     "UNIFORM_FINGERS",
+    "KEYPOINT_OFFSETS_MM",
+    "KEYPOINT_FACING_MM",
     "HandShape",
     "HandModel",
     "default_hand_model",
@@ -90,6 +92,35 @@ _CHAIN_SLICES: Final = tuple(
 )
 _CHAIN_JOINT_SLICES: Final = tuple(slice(CHAIN_JOINTS * c, CHAIN_JOINTS * (c + 1)) for c in range(5))
 
+
+#: Where the anatomical joint centres of the wrist, the thumb CMC and the four finger MCPs
+#: (the 21-keypoint convention's rows 0, 1, 5, 9, 13, 17) lie against this model's skeleton
+#: (the hand frame's origin and the five chain bases), shape (6, 3), mm, hand frame, right-hand
+#: semantics, at shape 1 (scaled by ``width``, ``length`` and ``depth`` per axis).  The model's
+#: skeleton is its kinematic chain, not an anatomical one: where its surface lies on a hand's,
+#: its origin and bases are 2-19 mm from the hand's joint centres.  Fitted once (median per
+#: axis, robust line in the facing, see :data:`KEYPOINT_FACING_MM`) on tracked mesh renders:
+#: the WebXR mesh hand's joints (``synth.mesh``) expressed in the fitted model's hand frame,
+#: 1278 dev frames with the fingertips within 10 mm (render seeds 3000-3039, 30 frames each;
+#: the ``scenes_dev`` leave, slide-out and back scenes, repeats 0-1); see
+#: ``doc/design/objects_in_hand.md``, "The palm keypoints".
+KEYPOINT_OFFSETS_MM: Final = np.array(
+    [
+        [0.4, -4.4, -6.5],  # wrist
+        [8.7, 6.8, 5.8],  # thumb CMC
+        [-1.3, -2.9, -2.0],  # index MCP
+        [-1.7, -3.8, -8.1],  # middle MCP
+        [-1.7, -5.7, -5.2],  # ring MCP
+        [-1.5, -7.3, 1.1],  # little MCP
+    ]
+)
+#: ... plus this (6,) mm along hand z times the facing ``f`` (the palm normal's cosine with
+#: the viewing ray to the wrist: -1 palm to the camera, +1 back to it).  The model's wrist is
+#: thinner than a wrist (its palm is 25 mm thick there), so the joint centre lies 16 mm dorsal
+#: of the model's origin when the fit lies on the palmar skin (palm to the camera) and 3 mm
+#: palmar of it when on the dorsal skin (back to the camera): deeper than the origin as seen
+#: from the camera by 16 and 3 mm; at the MCP row the thicknesses agree (0.2-2.8 mm).
+KEYPOINT_FACING_MM: Final = np.array([9.6, 8.0, 2.8, 1.2, 0.4, 0.2])
 
 #: Allowed range of each per-finger length factor (:attr:`HandShape.fingers`, unitless).
 FINGER_RANGE: Final[tuple[float, float]] = (0.5, 2.0)

@@ -77,6 +77,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.hand_model import HandModel
+from hand_sog_tracker.core.kinematics import skeleton_points
 from hand_sog_tracker.core.types import HandDecision, HandEvidence, Intrinsics, TrackerStatus, TrackResult
 
 __all__ = [
@@ -394,8 +395,8 @@ def _finger_ends(
     none checked).  ``full``: the depth image (mm), read on the grid of every ``s``-th pixel;
     ``on_model``: the model's silhouette on the grid box at ``origin`` (u0, v0)."""
     fx, fy, cx, cy = k
-    assert result.skeleton_mm is not None and result.fingertips_mm is not None
-    sk = np.asarray(result.skeleton_mm)
+    assert result.pose is not None and result.fingertips_mm is not None
+    sk = skeleton_points(model, result.pose)  # (the kinematic joints: the fingers' bones)
     tips = np.asarray(result.fingertips_mm)
     gh, gw = -(-full.shape[0] // s), -(-full.shape[1] // s)
     bh, bw = on_model.shape

@@ -18,7 +18,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.hand_model import CHAIN_JOINTS, FIRST_JOINT, N_PARAMS, HandModel
+from hand_sog_tracker.core.hand_model import (
+    CHAIN_JOINTS,
+    FIRST_JOINT,
+    KEYPOINT_FACING_MM,
+    KEYPOINT_OFFSETS_MM,
+    N_PARAMS,
+    HandModel,
+)
 from hand_sog_tracker.errors import InputError
 
 __all__ = [
@@ -36,6 +43,8 @@ __all__ = [
     "chain_bases",
     "fingertips",
     "skeleton_points",
+    "keypoint_skeleton",
+    "PALM_KEYPOINT_ROWS",
     "keep_palm_centre",
     "SKELETON_CHAINS",
 ]
@@ -888,6 +897,33 @@ def skeleton_points(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.
     posed = _posed(model, theta)
     p_hand = np.concatenate([np.zeros((1, 3)), posed.org20])
     return p_hand @ posed.G.T + theta[:3]
+
+
+#: Rows of :func:`skeleton_points` (and of the 21 keypoints) that are rigid in the palm: the
+#: wrist, the thumb CMC and the four finger MCPs (:data:`~hand_sog_tracker.core.hand_model.KEYPOINT_OFFSETS_MM`).
+PALM_KEYPOINT_ROWS: tuple[int, ...] = (0,) + tuple(1 + CHAIN_JOINTS * c for c in range(5))
+
+
+def keypoint_skeleton(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The published keypoints' skeleton (``hand/keypoints`` but for the fingertip rows), shape
+    (21, 3), mm, camera frame: :func:`skeleton_points` with its wrist, thumb CMC and finger MCP
+    rows (:data:`PALM_KEYPOINT_ROWS`) moved to the anatomical joint centres
+    (:data:`~hand_sog_tracker.core.hand_model.KEYPOINT_OFFSETS_MM` and ``KEYPOINT_FACING_MM``,
+    scaled by the model's shape).  The other rows are the skeleton's (the fingers' joints
+    and segment ends).  The tracker's own geometry (the hand check, the objective) uses
+    :func:`skeleton_points`: this changes what is reported, not what is fitted.
+    """
+    theta = check_pose(theta)
+    posed = _posed(model, theta)
+    p_hand = np.concatenate([np.zeros((1, 3)), posed.org20])
+    shape = model.shape
+    offsets = KEYPOINT_OFFSETS_MM * np.array([shape.width, shape.length, shape.depth])
+    t = theta[:3]
+    ray = t / max(float(np.linalg.norm(t)), 1e-9)
+    facing = float(posed.G[:, 2] @ ray)  # (hand z, the palm's normal: the mirror negates x only)
+    offsets[:, 2] += KEYPOINT_FACING_MM * shape.depth * facing
+    p_hand[list(PALM_KEYPOINT_ROWS)] += offsets
+    return p_hand @ posed.G.T + t
 
 
 def _palm_mean(model: HandModel) -> NDArray[np.float64]:

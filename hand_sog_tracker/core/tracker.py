@@ -45,6 +45,7 @@ from hand_sog_tracker.core.kinematics import (
     gaussian_centres,
     global_rotation,
     keep_palm_centre,
+    keypoint_skeleton,
     posed_centres,
     skeleton_points,
 )
@@ -125,13 +126,16 @@ _KEEP = _Keep()
 _NO_POINTS = np.zeros((0, 3))
 
 
-def _apart(track: TrackResult, fresh: TrackResult) -> bool:
-    """Whether the palms (wrist and finger MCPs, mean) of two results lie ``FRESH_APART_MM``
-    apart (a track without a pose: always): the fresh start found a hand elsewhere."""
-    if track.skeleton_mm is None or fresh.skeleton_mm is None:
+def _apart(track: TrackResult, track_model: HandModel, fresh: TrackResult, fresh_model: HandModel) -> bool:
+    """Whether the palms (the skeleton's wrist and finger MCPs, mean) of two results, each
+    with its model, lie ``FRESH_APART_MM`` apart (a track without a pose: always): the fresh
+    start found a hand elsewhere."""
+    if track.pose is None or fresh.pose is None:
         return True
     palm = list(_PALM_ROWS)
-    return float(np.linalg.norm(track.skeleton_mm[palm].mean(0) - fresh.skeleton_mm[palm].mean(0))) > FRESH_APART_MM
+    a = skeleton_points(track_model, track.pose)[palm].mean(0)
+    b = skeleton_points(fresh_model, fresh.pose)[palm].mean(0)
+    return float(np.linalg.norm(a - b)) > FRESH_APART_MM
 
 
 def _open(theta: NDArray[np.float64]) -> bool:
@@ -362,7 +366,7 @@ class Tracker:
         if fresh.pose is not None:
             fresh_check = handcheck.check_hand(depth_mm, intrinsics, self._model, fresh)
             better = fresh_check.confidence >= checked.confidence + FRESH_MARGIN
-            if better and on_track is not None and not _apart(track, fresh):
+            if better and on_track is not None and not _apart(track, kept[4], fresh, self._model):
                 # (the same hand: the track's own score judges the articulation)
                 frame, x = on_track
                 better = frame.score(fresh.pose) > frame.score(x)
@@ -629,7 +633,7 @@ class Tracker:
             status=self._status,
             pose=theta.copy(),
             fingertips_mm=centres[self._model.tip_index],
-            skeleton_mm=skeleton_points(self._model, theta),
+            skeleton_mm=keypoint_skeleton(self._model, theta),
             confidence=float(conf),
             energy=float(energy),
             n_image_gaussians=n,

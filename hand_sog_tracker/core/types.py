@@ -218,7 +218,8 @@ class TrackResult:
     fingertips_mm : array, shape (5, 3) or None
         Fingertip centres, camera optical frame, mm (thumb .. little).
     skeleton_mm : array, shape (21, 3) or None
-        Skeleton joints (see :func:`kinematics.skeleton_points`), mm.
+        The published keypoints' skeleton (:func:`kinematics.keypoint_skeleton`: the
+        kinematic skeleton with the wrist, thumb CMC and MCPs at the joint centres), mm.
     confidence : float
         In [0, 1]: how well the model explains the data near the hand.
     energy : float
