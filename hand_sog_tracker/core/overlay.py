@@ -7,7 +7,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.hand_model import HandModel
-from hand_sog_tracker.core.kinematics import SKELETON_CHAINS, gaussian_centres, skeleton_points
+from hand_sog_tracker.core.kinematics import SKELETON_CHAINS, gaussian_centres, keypoint_skeleton
 from hand_sog_tracker.core.types import Intrinsics, TrackResult
 
 __all__ = ["draw_overlay", "draw_hand", "TIP_COLOURS_BGR"]
@@ -47,7 +47,7 @@ def draw_hand(
     chains : int array, shape (m,)
         Chain of each Gaussian (0 thumb .. 4 little, -1 palm: grey), as ``HandModel.g_chain``.
     skeleton_mm : array, shape (21, 3), mm
-        :func:`~hand_sog_tracker.core.kinematics.skeleton_points` (white lines).
+        :func:`~hand_sog_tracker.core.kinematics.keypoint_skeleton` (white lines).
     fingertips_mm : array, shape (5, 3), mm
         Fingertips thumb .. little (filled dots in :data:`TIP_COLOURS_BGR`).
     """
@@ -118,7 +118,7 @@ def draw_overlay(
         centres = gaussian_centres(model, pose)
         draw_hand(
             img, intrinsics, centres, model.g_sigmas, model.g_chain,
-            skeleton_points(model, pose), centres[model.tip_index],
+            keypoint_skeleton(model, pose), centres[model.tip_index],
         )
     if label:
         cv2.putText(
