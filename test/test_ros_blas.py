@@ -48,9 +48,10 @@ def test_an_explicit_thread_count_in_the_environment_is_left_alone(
     assert all(n == 2 for n in blas.limit_blas_threads(1).values())
 
 
-def test_one_thread_gives_the_same_bits() -> None:
+def test_one_thread_gives_the_same_values() -> None:
     """The data terms' candidate product (B m x 6 by 6 x n) on one thread and on several: the
-    same values (the split does not change what each output element sums)."""
+    same values up to rounding (a split may change the kernel and the order of a sum: OpenBLAS
+    0.3.31 on Haswell differs in the last bit of 20 of 422 096 elements)."""
     found = blas._openblas()
     if not found:
         pytest.skip("no OpenBLAS loaded")
@@ -66,4 +67,4 @@ def test_one_thread_gives_the_same_bits() -> None:
     finally:
         for path, lib, set_name, _ in found:
             getattr(lib, set_name)(before.get(path, 1))
-    assert np.array_equal(results[0], results[1])
+    np.testing.assert_allclose(results[0], results[1], rtol=1e-12, atol=0.0)

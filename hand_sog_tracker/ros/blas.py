@@ -9,8 +9,8 @@ camera driver, other processes) the product took 20-40x as long as on one thread
 Gaussians and 4 candidates, 29 ms against 0.8 ms on one thread, load 10-14 on 2 cores), and so
 the frames of dear inputs (``min_quad_px`` 2 at 640x480, a plausible but wrong K) took 3-4x the
 CPU time of one thread.  With one thread every product is what its arithmetic costs, whatever
-the load.  The results are the same bits (the product's split does not change what each output
-element sums).
+the load.  The results are the same up to rounding (a split may change the kernel and the order
+of a sum: the last bit of a few elements).
 
 :func:`limit_blas_threads` sets the thread count of every OpenBLAS the process has loaded
 (NumPy's wheel, ``scipy_openblas``, or the system's ``libopenblas``), at run time: NumPy is
