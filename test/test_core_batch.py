@@ -254,3 +254,22 @@ def test_a_batch_with_parts_gives_each_pose_its_parts_objective(options: tuple[s
         obj.batch(thetas, parts=parts[:2])
     with pytest.raises(InputError):
         obj.batch(thetas[:1], parts=np.zeros((1, obj.data.n), dtype=bool))
+
+
+def test_a_candidate_that_cannot_reach_its_floor_stops_and_the_others_run_as_without() -> None:
+    rng = np.random.default_rng(6)
+    peak = rng.normal(0, 1, N_PARAMS)
+    bowl = BatchBowl(peak, rng.uniform(0.5, 2.0, N_PARAMS))
+    x0 = peak + rng.normal(0, 5, (5, N_PARAMS))
+    free = maximise_batch(bowl, x0, iterations=12)
+    # Candidates 1 and 3 must beat the peak's value (0): they cannot, and stop after a quarter
+    # of the iterations; the others' floors are below anything they reach.
+    floor = np.array([-np.inf, 1.0, -1e9, 1.0, -np.inf])
+    poses = bowl.poses
+    raced = maximise_batch(bowl, x0, iterations=12, floor=floor)
+    assert bowl.poses - poses < 5 * 13 - 2 * 8
+    for b in (1, 3):
+        assert raced[b].status == 2 and raced[b].nit == 3 and raced[b].fun < floor[b]
+        assert np.array_equal(raced[b].history, free[b].history[:4])
+    for b in (0, 2, 4):
+        _same(raced[b], free[b])

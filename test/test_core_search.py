@@ -201,3 +201,33 @@ def test_a_fingertip_another_hand_hides_does_not_dangle() -> None:
     assert dangling(None) == 3  # (the index finger extended, curled, like the others)
     assert dangling(lambda t: np.arange(5) == 1) == 0
     assert dangling(lambda t: np.arange(5) == 3) == 3
+
+
+def test_the_race_stops_candidates_and_changes_no_answer(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A candidate stopped below its floor (the fit's score plus its margin) could not have won:
+    the search with the race gives the poses and proposals of the search without it."""
+    intr = default_intrinsics()
+    frames = list(synthetic_sequence("fistopen", 24, intrinsics=intr, seed=3))
+    fit_batch = fit_module.fit_batch
+    stopped = []
+
+    def counted(fun, starts, n_data, **kwargs):
+        out = fit_batch(fun, starts, n_data, **kwargs)
+        stopped.extend(r.status == 2 for r in out)
+        return out
+
+    def unraced(fun, starts, n_data, **kwargs):
+        kwargs.pop("floor", None)
+        return fit_batch(fun, starts, n_data, **kwargs)
+
+    runs = []
+    for patch in (counted, unraced):
+        monkeypatch.setattr(fit_module, "fit_batch", patch)
+        tracker = Tracker(TrackerConfig())
+        out = []
+        for f in frames:
+            res = tracker.process(f.depth_mm, intr)
+            out.append((None if res.pose is None else res.pose.tobytes(), tracker.last_proposal))
+        runs.append(out)
+    assert any(stopped)
+    assert runs[0] == runs[1]

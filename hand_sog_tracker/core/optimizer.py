@@ -78,7 +78,8 @@ class OptimizeResult:
     success : bool
         ``True`` when the objective did not decrease from the start.
     status : int
-        0 iterations exhausted, 1 steps became negligible.
+        0 iterations exhausted, 1 steps became negligible, 2 stopped below its floor
+        (:func:`maximise_batch`'s ``floor``).
     message : str
     history : array, shape (nit + 1,)
         Objective at the start and after each iteration.
@@ -96,6 +97,9 @@ class OptimizeResult:
     history: NDArray[np.float64]
     steps: NDArray[np.float64] | None = None
 
+
+#: :attr:`OptimizeResult.message` by ``status``.
+_MESSAGES = ("iterations exhausted", "step lengths became negligible", "cannot reach its floor")
 
 #: ``a.all()`` of a boolean array without the method's Python layer.
 _all = np.logical_and.reduce
@@ -162,13 +166,14 @@ def maximise(
     initial_steps: NDArray[np.float64] | None = None,
     extra_iterations: int = 0,
     extra_gain: float = 0.0,
+    fewer_iterations: int = 0,
 ) -> OptimizeResult:
     """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps (:func:`maximise_steps`
     run to its end; the same arguments)."""
     return run(
         maximise_steps(
             fun, x0, iterations, steps, active, initial_scale, bounds, initial_steps,
-            extra_iterations, extra_gain,
+            extra_iterations, extra_gain, fewer_iterations,
         )
     )
 
@@ -184,6 +189,7 @@ def maximise_steps(
     initial_steps: NDArray[np.float64] | None = None,
     extra_iterations: int = 0,
     extra_gain: float = 0.0,
+    fewer_iterations: int = 0,
 ) -> Steps[OptimizeResult]:
     """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps; pauses (yields) after
     every iteration (see :data:`Steps`), returns the :class:`OptimizeResult`.
@@ -216,6 +222,10 @@ def maximise_steps(
         motion, continues; a converged one stops at ``iterations``).
     extra_gain : float
         See ``extra_iterations`` (unitless).
+    fewer_iterations : int
+        The same rule from ``iterations - fewer_iterations`` on: a fit whose last iteration
+        raised the objective by no more than ``extra_gain * |fun(x0)|`` there stops before
+        ``iterations`` (a converged fit spends no more evaluations).
     """
     x = np.array(x0, dtype=np.float64)
     if initial_steps is not None:
@@ -235,26 +245,27 @@ def maximise_steps(
     assert grad is not None
     # An objective that can give the value first and the gradient on demand
     # (:meth:`~hand_sog_tracker.core.objective.Objective.value_then_gradient`).
-    deferred = getattr(fun, "value_then_gradient", None) if extra_iterations > 0 else None
+    most = iterations + extra_iterations
+    status, nit, limit = 0, 0, max(iterations - fewer_iterations, 1)
+    deferred = getattr(fun, "value_then_gradient", None) if limit < most else None
     best_x, best_val = x.copy(), val
     history = [val]
     prev_sign = np.zeros(N_PARAMS)
     grow, shrink = steps.grow, steps.shrink
-    status, nit, limit = 0, 0, iterations
     while nit < limit:
         nit += 1
         x, prev_sign = _step(x, grad, prev_sign, step, mask, grow, shrink, lo, hi, low, high)
         finish = None
-        if nit == limit < iterations + extra_iterations and deferred is not None:
+        if nit == limit < most and deferred is not None:
             # The last iterate unless the fit is still climbing: its gradient only then.
             val, finish = deferred(x)
-        elif nit < iterations + extra_iterations:
+        elif nit < most:
             val, grad = fun(x)
             assert grad is not None
         else:  # the last possible iterate: only its value is used
             val = fun(x, gradient=False)[0]
         history.append(val)
-        if nit == limit < iterations + extra_iterations and val - history[-2] > extra_gain * abs(history[0]):
+        if nit == limit < most and val - history[-2] > extra_gain * abs(history[0]):
             limit += 1
             if finish is not None:
                 grad = finish()
@@ -287,6 +298,7 @@ def maximise_batch(
     bounds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     initial_steps: NDArray[np.float64] | None = None,
     with_index: bool = False,
+    floor: NDArray[np.float64] | None = None,
 ) -> list[OptimizeResult]:
     """Maximise from every start pose of ``x0`` (B, 26) in lockstep: one call of ``fun_batch``
     per iteration evaluates all candidates still running.
@@ -316,6 +328,12 @@ def maximise_batch(
         Call ``fun_batch(thetas, gradient, index=index)`` with the candidates' positions in
         ``x0`` (k,) (for an objective with something of its own per candidate, e.g.
         ``Objective.batch``'s ``targets``).
+    floor : array, shape (B,), optional
+        The value each candidate must exceed to matter (a race: the search's fit score plus
+        the candidate's margin).  From iteration ``iterations // 4`` on (its step lengths
+        adapted), a candidate whose best value plus the iterations left times its last gain
+        stays below its floor stops (status 2): it cannot reach the floor unless its gains
+        grow again.  Without ``floor`` nothing stops early but by negligible steps.
 
     Returns
     -------
@@ -356,6 +374,7 @@ def maximise_batch(
     nit = np.zeros(B, dtype=np.int64)
     status = np.zeros(B, dtype=np.int64)
     run_ = np.arange(B)  # the candidates still running
+    race_from = max(iterations // 4, 1)
     for it in range(1, iterations + 1):
         if not run_.size:
             break
@@ -387,9 +406,16 @@ def maximise_batch(
         if settled.any():
             status[run_[settled]] = 1
             run_ = run_[~settled]
+        if floor is not None and it >= race_from and it < iterations and run_.size:
+            # (The best-so-far history: its last gain is >= 0.)
+            gain = best_val[run_] - np.fmax.reduce(history[: it, run_], axis=0)
+            out = best_val[run_] + (iterations - it) * gain < floor[run_]
+            if out.any():
+                status[run_[out]] = 2
+                run_ = run_[~out]
     results = []
     for b in range(B):
-        done = int(status[b]) == 1
+        done = int(status[b])
         results.append(
             OptimizeResult(
                 x=best_x[b].copy(),
@@ -397,7 +423,7 @@ def maximise_batch(
                 nit=int(nit[b]),
                 success=bool(best_val[b] >= history[0, b]),
                 status=int(status[b]),
-                message="step lengths became negligible" if done else "iterations exhausted",
+                message=_MESSAGES[done],
                 history=history[: nit[b] + 1, b].copy(),
                 steps=step[b].copy(),
             )

@@ -45,9 +45,11 @@ def fit_batch(
             def fun(thetas: NDArray[np.float64], gradient: bool = True, index: Any = None, _k: int = k) -> Any:
                 return fun_batch(thetas, gradient, index=index + _k)
 
-        # (Per-candidate ``active`` or ``initial_steps`` (B, 26): this chunk's rows.)
+        # (Per-candidate ``active`` or ``initial_steps`` (B, 26), ``floor`` (B,): this chunk's rows.)
         chunk = {
-            key: value[k : k + size] if key in ("active", "initial_steps") and np.ndim(value) == 2 else value
+            key: value[k : k + size]
+            if (key in ("active", "initial_steps") and np.ndim(value) == 2) or key == "floor"
+            else value
             for key, value in kwargs.items()
         }
         out += maximise_batch(fun, starts[k : k + size], **chunk)
@@ -72,15 +74,21 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
 
     Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain``, all as one batch (a
     pull first on its own objective); one wins when its :meth:`Frame.score` beats the fit's by
-    the candidate's margin, and of the winners the highest score is the answer.  Returns the
+    the candidate's margin, and of the winners the highest score is the answer.  The fit is a
+    race: a score is the plain value minus an assignment cost (>= 0), so a candidate whose
+    value cannot reach the fit's score plus its margin cannot win and stops early
+    (:func:`maximise_batch`'s ``floor``).  Returns the
     answer's fit and the name of the proposal it came from (None: the frame's fit).
     """
     candidates = [c for p in proposals for c in p.generate(frame)]
     if not candidates:
         return frame.fit, None
     starts = _pulled(candidates, frame.limits)
-    fits = fit_batch(frame.plain.batch, starts, frame.plain.data.n, iterations=SEARCH_ITERATIONS, bounds=frame.limits)
     base = frame.score(frame.fit.x, _plain_value(frame))
+    floor = base + np.array([c.margin for c in candidates])
+    fits = fit_batch(
+        frame.plain.batch, starts, frame.plain.data.n, iterations=SEARCH_ITERATIONS, bounds=frame.limits, floor=floor
+    )
     best, best_val, name = frame.fit, -np.inf, None
     for c, res in zip(candidates, fits):
         val = frame.score(res.x, res.fun)
