@@ -112,15 +112,3 @@ def test_the_iterate_that_may_be_last_gets_its_gradient_only_when_the_fit_goes_o
         assert (a.nit > 4) == more
         # Stopped at 4: the 4th iterate's gradient is never computed.
         assert lazy.gradients == eager.gradients - (0 if more else 1)
-
-
-def test_fewer_iterations_stop_a_converged_fit_before_iterations_by_the_extra_rule() -> None:
-    peak = np.linspace(-1.0, 1.0, N_PARAMS)
-    flat = maximise(lambda theta, gradient=True: (1.0, np.zeros(N_PARAMS) if gradient else None),
-                    peak, iterations=7, extra_iterations=3, extra_gain=1e-3, fewer_iterations=3)
-    assert flat.nit == 4  # nothing to gain: stops 3 before 7
-    kwargs = dict(iterations=7, extra_iterations=3, extra_gain=1e-3)
-    far = maximise(Bowl(peak), peak + 20.0, fewer_iterations=3, **kwargs)
-    assert far.nit == 10  # still climbing: the same iterates as without, 3 more
-    same = maximise(Bowl(peak), peak + 20.0, **kwargs)
-    assert np.array_equal(far.history, same.history) and np.array_equal(far.x, same.x)

@@ -166,14 +166,13 @@ def maximise(
     initial_steps: NDArray[np.float64] | None = None,
     extra_iterations: int = 0,
     extra_gain: float = 0.0,
-    fewer_iterations: int = 0,
 ) -> OptimizeResult:
     """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps (:func:`maximise_steps`
     run to its end; the same arguments)."""
     return run(
         maximise_steps(
             fun, x0, iterations, steps, active, initial_scale, bounds, initial_steps,
-            extra_iterations, extra_gain, fewer_iterations,
+            extra_iterations, extra_gain,
         )
     )
 
@@ -189,7 +188,6 @@ def maximise_steps(
     initial_steps: NDArray[np.float64] | None = None,
     extra_iterations: int = 0,
     extra_gain: float = 0.0,
-    fewer_iterations: int = 0,
 ) -> Steps[OptimizeResult]:
     """Maximise ``fun`` from ``x0`` with adaptive per-parameter steps; pauses (yields) after
     every iteration (see :data:`Steps`), returns the :class:`OptimizeResult`.
@@ -222,10 +220,6 @@ def maximise_steps(
         motion, continues; a converged one stops at ``iterations``).
     extra_gain : float
         See ``extra_iterations`` (unitless).
-    fewer_iterations : int
-        The same rule from ``iterations - fewer_iterations`` on: a fit whose last iteration
-        raised the objective by no more than ``extra_gain * |fun(x0)|`` there stops before
-        ``iterations`` (a converged fit spends no more evaluations).
     """
     x = np.array(x0, dtype=np.float64)
     if initial_steps is not None:
@@ -245,27 +239,26 @@ def maximise_steps(
     assert grad is not None
     # An objective that can give the value first and the gradient on demand
     # (:meth:`~hand_sog_tracker.core.objective.Objective.value_then_gradient`).
-    most = iterations + extra_iterations
-    status, nit, limit = 0, 0, max(iterations - fewer_iterations, 1)
-    deferred = getattr(fun, "value_then_gradient", None) if limit < most else None
+    deferred = getattr(fun, "value_then_gradient", None) if extra_iterations > 0 else None
     best_x, best_val = x.copy(), val
     history = [val]
     prev_sign = np.zeros(N_PARAMS)
     grow, shrink = steps.grow, steps.shrink
+    status, nit, limit = 0, 0, iterations
     while nit < limit:
         nit += 1
         x, prev_sign = _step(x, grad, prev_sign, step, mask, grow, shrink, lo, hi, low, high)
         finish = None
-        if nit == limit < most and deferred is not None:
+        if nit == limit < iterations + extra_iterations and deferred is not None:
             # The last iterate unless the fit is still climbing: its gradient only then.
             val, finish = deferred(x)
-        elif nit < most:
+        elif nit < iterations + extra_iterations:
             val, grad = fun(x)
             assert grad is not None
         else:  # the last possible iterate: only its value is used
             val = fun(x, gradient=False)[0]
         history.append(val)
-        if nit == limit < most and val - history[-2] > extra_gain * abs(history[0]):
+        if nit == limit < iterations + extra_iterations and val - history[-2] > extra_gain * abs(history[0]):
             limit += 1
             if finish is not None:
                 grad = finish()
