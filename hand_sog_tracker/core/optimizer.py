@@ -408,15 +408,15 @@ def maximise_batch(
                 run_ = run_[~out]
     results = []
     for b in range(B):
-        done = int(status[b])
+        code = int(status[b])
         results.append(
             OptimizeResult(
                 x=best_x[b].copy(),
                 fun=float(best_val[b]),
                 nit=int(nit[b]),
                 success=bool(best_val[b] >= history[0, b]),
-                status=int(status[b]),
-                message=_MESSAGES[done],
+                status=code,
+                message=_MESSAGES[code],
                 history=history[: nit[b] + 1, b].copy(),
                 steps=step[b].copy(),
             )
