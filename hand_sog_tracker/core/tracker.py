@@ -63,7 +63,7 @@ from hand_sog_tracker.core.search import (
     search,
 )
 from hand_sog_tracker.core.search.candidates import pull_target
-from hand_sog_tracker.core.search.fit import fit_batch, with_targets
+from hand_sog_tracker.core.search.fit import fit_batch
 from hand_sog_tracker.core.search.start import NEW_TRACK_DATA, Finalists, on_hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.support import without_support
