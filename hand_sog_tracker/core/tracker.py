@@ -63,8 +63,8 @@ from hand_sog_tracker.core.search import (
     search,
 )
 from hand_sog_tracker.core.search.candidates import pull_target
-from hand_sog_tracker.core.search.fit import fit_batch, with_targets
-from hand_sog_tracker.core.search.start import NEW_TRACK_DATA, Finalists, hand_side, start_search
+from hand_sog_tracker.core.search.fit import fit_batch
+from hand_sog_tracker.core.search.start import NEW_TRACK_DATA, Finalists, on_hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.support import without_support
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
@@ -589,29 +589,41 @@ class Tracker:
         """Each finalist of ``found`` refined ``final_iterations`` on the tracker's model with
         the full objective of its hand side of ``data``: (index, (score, its :class:`Frame`)),
         best first by score (the earlier on a tie); finalists without data left out."""
-        # The finalists keeping the same data share one objective and are fitted as one batch,
-        # each with its own targets (the same iterates as one by one).
-        groups: dict[int, list[tuple[int, ImageSoG, Objective]]] = {}
+        # All finalists are fitted as one batch on one objective of ``data``, each on its hand
+        # side (``parts``) with its own targets (what its own objective gives it, up to rounding).
+        items = []
         for k, x in enumerate(found.poses):
-            data_x = hand_side(data, x)
-            if data_x.n:
+            keep = on_hand_side(data.points, x)
+            if keep.any():
+                data_x = data if keep.all() else data.subset(keep)
                 obj = Objective(self._model, data_x, self._config, targets=self._targets(x, det), silhouette=sil)
-                groups.setdefault(id(data_x), []).append((k, data_x, obj))
+                items.append((k, keep, data_x, obj))
         fits = []
-        for group in groups.values():
-            shared = Objective(self._model, group[0][1], self._config, silhouette=sil)
-            targets = [obj.targets for _, _, obj in group]
-            starts = np.array([found.poses[k] for k, _, _ in group])
-            results = fit_batch(
-                with_targets(shared, targets), starts, shared.data.n,
-                iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
+        if not items:
+            return fits
+        shared = Objective(self._model, data, self._config, silhouette=sil)
+        parts = np.array([keep for _, keep, _, _ in items])
+        whole = bool(parts.all())
+        targets = [obj.targets for _, _, _, obj in items]
+
+        def fun(
+            thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
+        ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+            assert index is not None
+            return shared.batch(
+                thetas, gradient, targets=[targets[i] for i in index.tolist()],
+                parts=None if whole else parts[index],
             )
-            # (The finalists' plain objectives equal ``shared`` without targets: their values
-            # at the fits in one batch, the same bits as one by one.)
-            values = shared.batch(np.array([fit.x for fit in results]), gradient=False)[0]
-            for (k, data_x, obj), fit, value in zip(group, results, values.tolist()):
-                frame = Frame(self._model, fit, obj, plain(obj), data_x, det, self._limits(), new_track=True)
-                fits.append((k, (frame.score(fit.x, value), frame)))
+
+        starts = np.array([found.poses[k] for k, _, _, _ in items])
+        results = fit_batch(
+            fun, starts, data.n, iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
+        )
+        # (The finalists' plain objectives: ``shared`` on their parts without targets, one batch.)
+        values = shared.batch(np.array([fit.x for fit in results]), gradient=False, parts=None if whole else parts)[0]
+        for (k, _, data_x, obj), fit, value in zip(items, results, values.tolist()):
+            frame = Frame(self._model, fit, obj, plain(obj), data_x, det, self._limits(), new_track=True)
+            fits.append((k, (frame.score(fit.x, value), frame)))
         fits.sort(key=lambda f: f[0])
         fits.sort(key=lambda f: f[1][0], reverse=True)  # (stable: the earlier first on a tie)
         return fits
