@@ -12,6 +12,7 @@ from hand_sog_tracker.core.calibration import (
     DEFAULT_HOLDOUT_FRAMES,
     GUARD_FRAME_DROP,
     GUARD_MARGIN,
+    GUARD_THICKNESS_NOISE,
     MAX_THICKNESS_PER_WIDTH,
     CalibrationRejected,
     Validation,
@@ -63,17 +64,26 @@ def test_width_and_thickness_drawn_independently_are_fitted_within_five_percent(
     width: float, thickness: float, seed: int, tmp_path: Path
 ) -> None:
     """A wide hand with thin fingers and the reverse (the search alone trades the two off):
-    width and thickness come from the depth data (core/measure.py); the YAML keeps the numbers."""
+    width and thickness come from the depth data (core/measure.py); the YAML keeps the numbers.
+    The narrow palm's thick fingers are fitted at the thickness bound, thinner than the default
+    model's against their measurement: the guard refuses that fit."""
     from hand_sog_tracker.core.model_io import load_hand_shape, read_calibration_info, save_hand_shape
 
     truth = HandShape(1.05, width, thickness, thickness)
     seq = list(synthetic_sequence("abdadd", 7, INTR, shape=truth, seed=seed))
     fit_i, hold_i = select_frames([f.pose for f in seq], 3, 4)
-    res = calibrate(
-        [seq[i].depth_mm for i in fit_i], INTR, TrackerConfig(), default_hand_model(True),
-        poses=[seq[i].pose for i in fit_i], holdout=[seq[i].depth_mm for i in hold_i],
-        holdout_poses=[seq[i].pose for i in hold_i],
-    )
+    try:
+        res = calibrate(
+            [seq[i].depth_mm for i in fit_i], INTR, TrackerConfig(), default_hand_model(True),
+            poses=[seq[i].pose for i in fit_i], holdout=[seq[i].depth_mm for i in hold_i],
+            holdout_poses=[seq[i].pose for i in hold_i],
+        )
+    except CalibrationRejected as err:
+        # Fingers measured thicker than the model's but fitted thinner (the bound): refused.
+        assert thickness > 1.0 > width and err.validation.thickness_contradicted()
+        res = err
+    else:
+        assert not thickness > 1.0 > width
     v = res.validation
     print(f"truth {truth}: fitted {res.shape}; {v.describe() if v else ''}")
     assert res.shape.length == pytest.approx(truth.length, rel=0.05)
@@ -249,6 +259,21 @@ def test_each_guard_rule_alone_refuses_and_small_changes_already_fit() -> None:
     assert "one held-out frame loses" in str(err) and "held-out score" in str(err)
     back = pickle.loads(pickle.dumps(err))  # the node's fit runs in a child process
     assert isinstance(back, CalibrationRejected) and str(back) == str(err) and back.validation.gain == one_frame.gain
+
+
+def test_a_fit_whose_thickness_bound_contradicts_its_measurement_is_refused() -> None:
+    """Measured thicker than the current model beyond the measurement's noise but fitted thinner
+    (the thickness bound) refuses a fit every score accepts; within the noise, or fitted not
+    thinner, it does not."""
+    good = _rows([0.02, 0.03, 0.025, 0.02], [-1, 0, -0.5, 0.2], [0.03, 0.02, 0.04, 0.03], [0, -1, 0, 0])
+    contradicted = Validation(**good, measured_sigma=1.0 + GUARD_THICKNESS_NOISE + 0.02, current_sigma=1.0,
+                              fitted_sigma=0.93)
+    assert contradicted.thickness_contradicted() and not contradicted.accepted and not contradicted.already_fits
+    assert contradicted.failures()[0].startswith("fitted finger thickness 0.930 below the current 1.000")
+    for measured, fitted in ((1.0 + GUARD_THICKNESS_NOISE - 0.01, 0.93), (1.1, 1.0), (0.9, 0.9)):
+        v = Validation(**good, measured_sigma=measured, current_sigma=1.0, fitted_sigma=fitted)
+        assert v.accepted and not v.thickness_contradicted()
+    assert Validation(**good, measured_sigma=1.2).accepted  # current and fitted thickness unknown
 
 
 def test_best_pose_score_takes_each_models_better_pose_fit() -> None:
