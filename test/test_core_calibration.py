@@ -205,12 +205,36 @@ def test_a_gain_within_the_best_pose_noise_is_accepted_when_the_re_track_corrobo
     best = backed.evidence()[0]
     assert GUARD_MARGIN <= best.change < best.noise and not best.better
     assert backed.corroborated() and backed.accepted and backed.accepted_by_corroboration
-    flat_retrack = Validation(**_rows(gains, [0.0] * 4, [-0.01, 0.03, 0.04], [0.0] * 3), **still)
-    assert not flat_retrack.corroborated() and flat_retrack.already_fits
+    flat_retrack = Validation(**_rows(gains, [0.0] * 4, [-0.01, 0.0, 0.01], [0.0] * 3), **still)
+    assert not flat_retrack.corroborated() and flat_retrack.combined() < 1.0 and flat_retrack.already_fits
+    # A noisy re-track that gains on average: not corroborating, but the three scores together
+    # rise beyond their noise (test_three_score_gains_each_within_its_noise_are_accepted_together).
+    noisy_retrack = Validation(**_rows(gains, [0.0] * 4, [-0.01, 0.03, 0.04], [0.0] * 3), **still)
+    assert not noisy_retrack.corroborated() and noisy_retrack.combined() >= 1.0 and noisy_retrack.accepted
     small = Validation(**_rows([0.004, 0.0, 0.003, 0.001], [0.0] * 4, [0.002, 0.0025, 0.0022], [0.0] * 3), **still)
     assert not small.corroborated() and small.already_fits  # every gain under the margin
     worse_tips = Validation(**_rows(gains, [3.0, 2.5, 3.5, 3.0], [0.01, 0.012, 0.011], [0.0] * 3), **still)
     assert not worse_tips.accepted and not worse_tips.already_fits  # anything worse still refuses
+
+
+def test_three_score_gains_each_within_its_noise_are_accepted_together() -> None:
+    """Best-pose, held-out and re-tracked score all up, each within its noise (a hand held
+    still) and the re-track not beyond its own: accepted when their combination
+    (Stouffer's, in noise units) reaches 1; the same frames with the re-track flat already fit,
+    and a best-pose gain under the margin does however many scores agree."""
+    still = dict(independent_frames=1.8)
+    gains = [0.03, 0.0, 0.02, 0.0]
+    together = Validation(**_rows(gains, [0.0] * 4, [0.0, 0.004, 0.012], [0.0] * 3), **still)
+    ev = {e.name: e for e in together.evidence()}
+    assert not any(ev[n].better for n in ("best-pose score", "held-out score", "re-tracked score"))
+    assert not together.corroborated() and together.combined() >= 1.0 and together.gains_together()
+    assert together.accepted and together.accepted_by_corroboration
+    flat = Validation(**_rows(gains, [0.0] * 4, [-0.004, 0.0, 0.004], [0.0] * 3), **still)
+    assert flat.combined() < 1.0 and flat.already_fits
+    worse_tips = Validation(**_rows(gains, [3.0, 2.5, 3.5, 3.0], [0.0, 0.004, 0.012], [0.0] * 3), **still)
+    assert worse_tips.combined() >= 1.0 and not worse_tips.accepted  # anything worse still refuses
+    small = Validation(**_rows([0.004, 0.0, 0.003, 0.001], [0.0] * 4, [0.002, 0.0025, 0.0022], [0.0] * 3), **still)
+    assert small.combined() >= 1.0 and not small.gains_together() and small.already_fits
 
 
 def test_each_guard_rule_alone_refuses_and_small_changes_already_fit() -> None:

@@ -358,6 +358,34 @@ class Validation:
             return False
         return bool(rt.better and best.change >= self.margin and held.change >= self.margin)
 
+    def combined(self) -> float:
+        """The three scores' changes combined, in units of their noise (unitless; NaN without
+        the three): the best-pose, held-out and re-tracked score's change over its noise,
+        summed and divided by the square root of three (Stouffer's combination; each noise is
+        :data:`GUARD_NOISE_SE` standard errors, so 1 is a combined gain beyond the noise).
+
+        Three small gains that each stay within their own noise, all of one sign, are more
+        evidence than any one of them (doc/design/calibration_guard.md, "Combined evidence").
+        The three share their frames and the best-pose score is made of the other two's pose
+        fits, so they are not independent and this overstates the evidence; the dev hands it
+        adds all track better.
+        """
+        ev = {e.name: e for e in self.evidence()}
+        names = ("best-pose score", "held-out score", "re-tracked score")
+        if not self.per_frame or any(n not in ev for n in names):
+            return float("nan")
+        return float(sum(ev[n].change / ev[n].noise for n in names) / np.sqrt(len(names)))
+
+    def gains_together(self) -> bool:
+        """Whether the three scores gain together: their combination (:meth:`combined`) at
+        least 1, the deciding best-pose score up by at least :attr:`margin` (gains under the
+        margin are no gain, however many agree)."""
+        ev = {e.name: e for e in self.evidence()}
+        names = ("best-pose score", "held-out score", "re-tracked score")
+        if not self.per_frame or any(n not in ev for n in names):
+            return False
+        return bool(ev["best-pose score"].change >= self.margin and self.combined() >= 1.0)
+
     def thickness_contradicted(self) -> bool:
         """Whether the fit moves the finger thickness away from its own measurement: measured
         thicker than the current model by more than :data:`GUARD_THICKNESS_NOISE`, fitted
@@ -379,7 +407,8 @@ class Validation:
         than :attr:`frame_drop` or the fitted thickness contradicts its measurement
         (:meth:`thickness_contradicted`); "the current model already fits" when nothing is worse but the
         deciding score (the best-pose score) does not rise beyond its noise, unless the re-track
-        corroborates the gain (:meth:`corroborated`).
+        corroborates the gain (:meth:`corroborated`) or the three scores gain together
+        (:meth:`gains_together`).
         """
         ev = self.evidence()
         out = [f"{e.name} worse: {e.describe()}" for e in ev if e.worse]
@@ -392,7 +421,7 @@ class Validation:
             )
         if not out:
             flat = [e for e in ev if e.decides and not e.better]
-            if flat and self.corroborated():
+            if flat and (self.corroborated() or self.gains_together()):
                 flat = []
             if flat:
                 out.append(
@@ -409,7 +438,8 @@ class Validation:
 
     @property
     def accepted_by_corroboration(self) -> bool:
-        """Accepted only through :meth:`corroborated` (the best-pose score within its noise)."""
+        """Accepted only through :meth:`corroborated` or :meth:`gains_together` (the best-pose score
+        within its noise)."""
         ev = self.evidence()
         return self.accepted and bool(self.per_frame) and not any(e.better for e in ev if e.decides)
 
@@ -432,7 +462,8 @@ class Validation:
             "guard_rules": (
                 "no evidence worse beyond its noise; best-pose score higher by its noise, or "
                 "re-tracked score higher by its noise with best-pose and held-out scores higher by "
-                "the margin; every held-out frame's gain >= -guard_frame_drop; the fitted finger "
+                "the margin, or the three scores combined higher by their noise with the best-pose score higher "
+                "by the margin; every held-out frame's gain >= -guard_frame_drop; the fitted finger "
                 "thickness not below the current one where the depth data show thicker fingers (beyond their noise)"
             ),
             "guard_frame_drop": float(self.frame_drop),
