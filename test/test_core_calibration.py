@@ -12,6 +12,7 @@ from hand_sog_tracker.core.calibration import (
     DEFAULT_HOLDOUT_FRAMES,
     GUARD_FRAME_DROP,
     GUARD_MARGIN,
+    GUARD_THICKNESS_NOISE,
     MAX_THICKNESS_PER_WIDTH,
     CalibrationRejected,
     Validation,
@@ -63,17 +64,26 @@ def test_width_and_thickness_drawn_independently_are_fitted_within_five_percent(
     width: float, thickness: float, seed: int, tmp_path: Path
 ) -> None:
     """A wide hand with thin fingers and the reverse (the search alone trades the two off):
-    width and thickness come from the depth data (core/measure.py); the YAML keeps the numbers."""
+    width and thickness come from the depth data (core/measure.py); the YAML keeps the numbers.
+    The narrow palm's thick fingers are fitted at the thickness bound, thinner than the default
+    model's against their measurement: the guard refuses that fit."""
     from hand_sog_tracker.core.model_io import load_hand_shape, read_calibration_info, save_hand_shape
 
     truth = HandShape(1.05, width, thickness, thickness)
     seq = list(synthetic_sequence("abdadd", 7, INTR, shape=truth, seed=seed))
     fit_i, hold_i = select_frames([f.pose for f in seq], 3, 4)
-    res = calibrate(
-        [seq[i].depth_mm for i in fit_i], INTR, TrackerConfig(), default_hand_model(True),
-        poses=[seq[i].pose for i in fit_i], holdout=[seq[i].depth_mm for i in hold_i],
-        holdout_poses=[seq[i].pose for i in hold_i],
-    )
+    try:
+        res = calibrate(
+            [seq[i].depth_mm for i in fit_i], INTR, TrackerConfig(), default_hand_model(True),
+            poses=[seq[i].pose for i in fit_i], holdout=[seq[i].depth_mm for i in hold_i],
+            holdout_poses=[seq[i].pose for i in hold_i],
+        )
+    except CalibrationRejected as err:
+        # Fingers measured thicker than the model's but fitted thinner (the bound): refused.
+        assert thickness > 1.0 > width and err.validation.thickness_contradicted()
+        res = err
+    else:
+        assert not thickness > 1.0 > width
     v = res.validation
     print(f"truth {truth}: fitted {res.shape}; {v.describe() if v else ''}")
     assert res.shape.length == pytest.approx(truth.length, rel=0.05)
@@ -195,12 +205,36 @@ def test_a_gain_within_the_best_pose_noise_is_accepted_when_the_re_track_corrobo
     best = backed.evidence()[0]
     assert GUARD_MARGIN <= best.change < best.noise and not best.better
     assert backed.corroborated() and backed.accepted and backed.accepted_by_corroboration
-    flat_retrack = Validation(**_rows(gains, [0.0] * 4, [-0.01, 0.03, 0.04], [0.0] * 3), **still)
-    assert not flat_retrack.corroborated() and flat_retrack.already_fits
+    flat_retrack = Validation(**_rows(gains, [0.0] * 4, [-0.01, 0.0, 0.01], [0.0] * 3), **still)
+    assert not flat_retrack.corroborated() and flat_retrack.combined() < 1.0 and flat_retrack.already_fits
+    # A noisy re-track that gains on average: not corroborating, but the three scores together
+    # rise beyond their noise (test_three_score_gains_each_within_its_noise_are_accepted_together).
+    noisy_retrack = Validation(**_rows(gains, [0.0] * 4, [-0.01, 0.03, 0.04], [0.0] * 3), **still)
+    assert not noisy_retrack.corroborated() and noisy_retrack.combined() >= 1.0 and noisy_retrack.accepted
     small = Validation(**_rows([0.004, 0.0, 0.003, 0.001], [0.0] * 4, [0.002, 0.0025, 0.0022], [0.0] * 3), **still)
     assert not small.corroborated() and small.already_fits  # every gain under the margin
     worse_tips = Validation(**_rows(gains, [3.0, 2.5, 3.5, 3.0], [0.01, 0.012, 0.011], [0.0] * 3), **still)
     assert not worse_tips.accepted and not worse_tips.already_fits  # anything worse still refuses
+
+
+def test_three_score_gains_each_within_its_noise_are_accepted_together() -> None:
+    """Best-pose, held-out and re-tracked score all up, each within its noise (a hand held
+    still) and the re-track not beyond its own: accepted when their combination
+    (Stouffer's, in noise units) reaches 1; the same frames with the re-track flat already fit,
+    and a best-pose gain under the margin does however many scores agree."""
+    still = dict(independent_frames=1.8)
+    gains = [0.03, 0.0, 0.02, 0.0]
+    together = Validation(**_rows(gains, [0.0] * 4, [0.0, 0.004, 0.012], [0.0] * 3), **still)
+    ev = {e.name: e for e in together.evidence()}
+    assert not any(ev[n].better for n in ("best-pose score", "held-out score", "re-tracked score"))
+    assert not together.corroborated() and together.combined() >= 1.0 and together.gains_together()
+    assert together.accepted and together.accepted_by_corroboration
+    flat = Validation(**_rows(gains, [0.0] * 4, [-0.004, 0.0, 0.004], [0.0] * 3), **still)
+    assert flat.combined() < 1.0 and flat.already_fits
+    worse_tips = Validation(**_rows(gains, [3.0, 2.5, 3.5, 3.0], [0.0, 0.004, 0.012], [0.0] * 3), **still)
+    assert worse_tips.combined() >= 1.0 and not worse_tips.accepted  # anything worse still refuses
+    small = Validation(**_rows([0.004, 0.0, 0.003, 0.001], [0.0] * 4, [0.002, 0.0025, 0.0022], [0.0] * 3), **still)
+    assert small.combined() >= 1.0 and not small.gains_together() and small.already_fits
 
 
 def test_each_guard_rule_alone_refuses_and_small_changes_already_fit() -> None:
@@ -249,6 +283,21 @@ def test_each_guard_rule_alone_refuses_and_small_changes_already_fit() -> None:
     assert "one held-out frame loses" in str(err) and "held-out score" in str(err)
     back = pickle.loads(pickle.dumps(err))  # the node's fit runs in a child process
     assert isinstance(back, CalibrationRejected) and str(back) == str(err) and back.validation.gain == one_frame.gain
+
+
+def test_a_fit_whose_thickness_bound_contradicts_its_measurement_is_refused() -> None:
+    """Measured thicker than the current model beyond the measurement's noise but fitted thinner
+    (the thickness bound) refuses a fit every score accepts; within the noise, or fitted not
+    thinner, it does not."""
+    good = _rows([0.02, 0.03, 0.025, 0.02], [-1, 0, -0.5, 0.2], [0.03, 0.02, 0.04, 0.03], [0, -1, 0, 0])
+    contradicted = Validation(**good, measured_sigma=1.0 + GUARD_THICKNESS_NOISE + 0.02, current_sigma=1.0,
+                              fitted_sigma=0.93)
+    assert contradicted.thickness_contradicted() and not contradicted.accepted and not contradicted.already_fits
+    assert contradicted.failures()[0].startswith("fitted finger thickness 0.930 below the current 1.000")
+    for measured, fitted in ((1.0 + GUARD_THICKNESS_NOISE - 0.01, 0.93), (1.1, 1.0), (0.9, 0.9)):
+        v = Validation(**good, measured_sigma=measured, current_sigma=1.0, fitted_sigma=fitted)
+        assert v.accepted and not v.thickness_contradicted()
+    assert Validation(**good, measured_sigma=1.2).accepted  # current and fitted thickness unknown
 
 
 def test_best_pose_score_takes_each_models_better_pose_fit() -> None:

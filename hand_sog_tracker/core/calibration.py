@@ -88,6 +88,7 @@ from hand_sog_tracker.core.calibration_guard import (
     GUARD_REFIT_ITERATIONS,
     GUARD_RIGID_ITERATIONS,
     GUARD_TIP_FLOOR_MM,
+    GUARD_THICKNESS_NOISE,
     GUARD_TIP_LAMBDA_MM,
     PER_FRAME_COLUMNS,
     RETRACK_COLUMNS,
@@ -138,6 +139,7 @@ __all__ = [
     "GUARD_RIGID_ITERATIONS",
     "GUARD_FRAME_DROP",
     "GUARD_TIP_LAMBDA_MM",
+    "GUARD_THICKNESS_NOISE",
     "GUARD_NOISE_SE",
     "GUARD_TIP_FLOOR_MM",
     "MAX_THICKNESS_PER_WIDTH",
@@ -524,6 +526,8 @@ def calibrate(
                 measured_sigma=float(m_sigma),
                 measured_width=float(m_width),
                 widths_from_measurement=widths_fixed,
+                current_sigma=float(model.shape.sigma),
+                fitted_sigma=float(best_shape.sigma),
             )
         if not validation.accepted:
             raise CalibrationRejected(best_shape, validation)

@@ -61,6 +61,7 @@ __all__ = [
     "GUARD_RIGID_ITERATIONS",
     "GUARD_FRAME_DROP",
     "GUARD_TIP_LAMBDA_MM",
+    "GUARD_THICKNESS_NOISE",
     "DEFAULT_HOLDOUT_FRAMES",
     "PER_FRAME_COLUMNS",
     "RETRACK_COLUMNS",
@@ -97,6 +98,11 @@ GUARD_FRAME_DROP = 0.05
 #: The guard's fingertip-detection distance (``tip_current`` / ``tip_fitted``, one kind of its
 #: evidence): a model fingertip without a detection within this (mm) counts as this far.
 GUARD_TIP_LAMBDA_MM = 30.0
+#: Noise of the measured finger thickness (sigma factor, unitless): 2 SD of measured minus true
+#: thickness per width on the capsule dev hands (SD 0.022).  A fit whose thickness bound makes
+#: the fingers thinner than the current model's while the measurement says they are thicker by
+#: more than this is refused (:meth:`Validation.thickness_contradicted`).
+GUARD_THICKNESS_NOISE = 0.044
 _SCORE_MARGIN_PX = 12
 _RIGID = np.arange(N_PARAMS) < FIRST_JOINT
 
@@ -248,6 +254,9 @@ class Validation:
         The factors these widths give (:func:`~hand_sog_tracker.core.measure.shape_from_widths`).
     widths_from_measurement : bool
         Whether the fit took width, depth and sigma from the measurement (else from the search).
+    current_sigma, fitted_sigma : float
+        The finger thickness (sigma factor) of the current and of the fitted model (NaN: not
+        known); with :attr:`measured_sigma` for :meth:`thickness_contradicted`.
     per_frame : tuple of tuple of float
         Per held-out frame, :data:`PER_FRAME_COLUMNS` each as (current, fitted) (16 values).
     retrack_frames : tuple of tuple of float
@@ -273,6 +282,8 @@ class Validation:
     measured_sigma: float = float("nan")
     measured_width: float = float("nan")
     widths_from_measurement: bool = False
+    current_sigma: float = float("nan")
+    fitted_sigma: float = float("nan")
     per_frame: tuple[tuple[float, ...], ...] = ()
     retrack_frames: tuple[tuple[float, ...], ...] = ()
     independent_frames: float = float("inf")
@@ -347,21 +358,70 @@ class Validation:
             return False
         return bool(rt.better and best.change >= self.margin and held.change >= self.margin)
 
+    def combined(self) -> float:
+        """The three scores' changes combined, in units of their noise (unitless; NaN without
+        the three): the best-pose, held-out and re-tracked score's change over its noise,
+        summed and divided by the square root of three (Stouffer's combination; each noise is
+        :data:`GUARD_NOISE_SE` standard errors, so 1 is a combined gain beyond the noise).
+
+        Three small gains that each stay within their own noise, all of one sign, are more
+        evidence than any one of them (doc/design/calibration_guard.md, "Combined evidence").
+        The three share their frames and the best-pose score is made of the other two's pose
+        fits, so they are not independent and this overstates the evidence; the dev hands it
+        adds all track better.
+        """
+        ev = {e.name: e for e in self.evidence()}
+        names = ("best-pose score", "held-out score", "re-tracked score")
+        if not self.per_frame or any(n not in ev for n in names):
+            return float("nan")
+        return float(sum(ev[n].change / ev[n].noise for n in names) / np.sqrt(len(names)))
+
+    def gains_together(self) -> bool:
+        """Whether the three scores gain together: their combination (:meth:`combined`) at
+        least 1, the deciding best-pose score up by at least :attr:`margin` (gains under the
+        margin are no gain, however many agree)."""
+        ev = {e.name: e for e in self.evidence()}
+        names = ("best-pose score", "held-out score", "re-tracked score")
+        if not self.per_frame or any(n not in ev for n in names):
+            return False
+        return bool(ev["best-pose score"].change >= self.margin and self.combined() >= 1.0)
+
+    def thickness_contradicted(self) -> bool:
+        """Whether the fit moves the finger thickness away from its own measurement: measured
+        thicker than the current model by more than :data:`GUARD_THICKNESS_NOISE`, fitted
+        thinner than it (the fit's thickness bound, depth and sigma at most the width, cut it).
+
+        The fitted model is then not the measured hand, and these are the thick-fingered hands
+        whose fits pass every score and track worse (the tracker's side-by-side finger bias:
+        doc/design/calibration_guard.md, "Fits that contradict their measurement").
+        """
+        m, c, f = self.measured_sigma, self.current_sigma, self.fitted_sigma
+        if not (np.isfinite(m) and np.isfinite(c) and np.isfinite(f)):
+            return False
+        return bool(m > c + GUARD_THICKNESS_NOISE and f < c)
+
     def failures(self) -> list[str]:
         """Why the guard does not accept the fitted model (empty: accepted).
 
-        Refused when any evidence is worse beyond its noise or one held-out frame loses more
-        than :attr:`frame_drop`; "the current model already fits" when nothing is worse but the
+        Refused when any evidence is worse beyond its noise, one held-out frame loses more
+        than :attr:`frame_drop` or the fitted thickness contradicts its measurement
+        (:meth:`thickness_contradicted`); "the current model already fits" when nothing is worse but the
         deciding score (the best-pose score) does not rise beyond its noise, unless the re-track
-        corroborates the gain (:meth:`corroborated`).
+        corroborates the gain (:meth:`corroborated`) or the three scores gain together
+        (:meth:`gains_together`).
         """
         ev = self.evidence()
         out = [f"{e.name} worse: {e.describe()}" for e in ev if e.worse]
         if np.isfinite(self.worst_frame_gain) and self.worst_frame_gain < -self.frame_drop:
             out.append(f"one held-out frame loses {-self.worst_frame_gain:.4f} > {self.frame_drop:.4f}")
+        if self.thickness_contradicted():
+            out.append(
+                f"fitted finger thickness {self.fitted_sigma:.3f} below the current {self.current_sigma:.3f} "
+                f"while measured {self.measured_sigma:.3f} (the thickness bound: the fit is not the measured hand)"
+            )
         if not out:
             flat = [e for e in ev if e.decides and not e.better]
-            if flat and self.corroborated():
+            if flat and (self.corroborated() or self.gains_together()):
                 flat = []
             if flat:
                 out.append(
@@ -378,7 +438,8 @@ class Validation:
 
     @property
     def accepted_by_corroboration(self) -> bool:
-        """Accepted only through :meth:`corroborated` (the best-pose score within its noise)."""
+        """Accepted only through :meth:`corroborated` or :meth:`gains_together` (the best-pose score
+        within its noise)."""
         ev = self.evidence()
         return self.accepted and bool(self.per_frame) and not any(e.better for e in ev if e.decides)
 
@@ -401,7 +462,9 @@ class Validation:
             "guard_rules": (
                 "no evidence worse beyond its noise; best-pose score higher by its noise, or "
                 "re-tracked score higher by its noise with best-pose and held-out scores higher by "
-                "the margin; every held-out frame's gain >= -guard_frame_drop"
+                "the margin, or the three scores combined higher by their noise with the best-pose score higher "
+                "by the margin; every held-out frame's gain >= -guard_frame_drop; the fitted finger "
+                "thickness not below the current one where the depth data show thicker fingers (beyond their noise)"
             ),
             "guard_frame_drop": float(self.frame_drop),
         }
