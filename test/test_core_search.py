@@ -73,15 +73,18 @@ def test_two_trackers_give_the_same_answers_and_proposals() -> None:
     same poses and the same winning proposals."""
     intr = default_intrinsics()
     frames = list(synthetic_sequence("fingercount", 20, intrinsics=intr, seed=2))
-    runs = []
-    for _ in range(2):
-        tracker = Tracker(TrackerConfig())
-        out = []
-        for f in frames:
-            res = tracker.process(f.depth_mm, intr)
-            out.append((None if res.pose is None else res.pose.tobytes(), tracker.last_proposal))
-        runs.append(out)
+    runs = [_answers(frames, intr) for _ in range(2)]
     assert runs[0] == runs[1]
+
+
+def _answers(frames, intr) -> list:
+    """A new tracker's answers on ``frames``: (pose bytes or None, winning proposal) per frame."""
+    tracker = Tracker(TrackerConfig())
+    out = []
+    for f in frames:
+        res = tracker.process(f.depth_mm, intr)
+        out.append((None if res.pose is None else res.pose.tobytes(), tracker.last_proposal))
+    return out
 
 
 def test_a_detection_whose_pulls_lost_is_not_pulled_onto_again_where_it_stays() -> None:
@@ -223,11 +226,6 @@ def test_the_race_stops_candidates_and_changes_no_answer(monkeypatch: pytest.Mon
     runs = []
     for patch in (counted, unraced):
         monkeypatch.setattr(fit_module, "fit_batch", patch)
-        tracker = Tracker(TrackerConfig())
-        out = []
-        for f in frames:
-            res = tracker.process(f.depth_mm, intr)
-            out.append((None if res.pose is None else res.pose.tobytes(), tracker.last_proposal))
-        runs.append(out)
+        runs.append(_answers(frames, intr))
     assert any(stopped)
     assert runs[0] == runs[1]

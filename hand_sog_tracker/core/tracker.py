@@ -63,7 +63,7 @@ from hand_sog_tracker.core.search import (
     search,
 )
 from hand_sog_tracker.core.search.candidates import pull_target
-from hand_sog_tracker.core.search.fit import fit_batch
+from hand_sog_tracker.core.search.fit import fit_batch, with_targets
 from hand_sog_tracker.core.search.start import NEW_TRACK_DATA, Finalists, on_hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.support import without_support
@@ -603,24 +603,15 @@ class Tracker:
             return fits
         shared = Objective(self._model, data, self._config, silhouette=sil)
         parts = np.array([keep for _, keep, _, _ in items])
-        whole = bool(parts.all())
+        part_rows = None if parts.all() else parts
         targets = [obj.targets for _, _, _, obj in items]
-
-        def fun(
-            thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
-        ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-            assert index is not None
-            return shared.batch(
-                thetas, gradient, targets=[targets[i] for i in index.tolist()],
-                parts=None if whole else parts[index],
-            )
-
         starts = np.array([found.poses[k] for k, _, _, _ in items])
         results = fit_batch(
-            fun, starts, data.n, iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
+            with_targets(shared, targets, part_rows), starts, data.n,
+            iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
         )
         # (The finalists' plain objectives: ``shared`` on their parts without targets, one batch.)
-        values = shared.batch(np.array([fit.x for fit in results]), gradient=False, parts=None if whole else parts)[0]
+        values = shared.batch(np.array([fit.x for fit in results]), gradient=False, parts=part_rows)[0]
         for (k, _, data_x, obj), fit, value in zip(items, results, values.tolist()):
             frame = Frame(self._model, fit, obj, plain(obj), data_x, det, self._limits(), new_track=True)
             fits.append((k, (frame.score(fit.x, value), frame)))

@@ -56,15 +56,21 @@ def fit_batch(
     return out
 
 
-def with_targets(obj: Objective, targets: Sequence[TipTargets | None]) -> Callable[..., tuple]:
+def with_targets(
+    obj: Objective, targets: Sequence[TipTargets | None], parts: NDArray[np.bool_] | None = None
+) -> Callable[..., tuple]:
     """``obj.batch`` as :func:`maximise_batch` calls it ``with_index``: candidate ``i`` of the
-    batch with ``targets[i]`` (what ``obj.variant(obj.config, targets[i])`` gives it alone)."""
+    batch with ``targets[i]`` (what ``obj.variant(obj.config, targets[i])`` gives it alone),
+    and with ``parts`` (B, n) on its own data subset ``parts[i]``."""
 
     def fun(
         thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         assert index is not None
-        return obj.batch(thetas, gradient, targets=[targets[i] for i in index.tolist()])
+        return obj.batch(
+            thetas, gradient, targets=[targets[i] for i in index.tolist()],
+            parts=None if parts is None else parts[index],
+        )
 
     return fun
 
