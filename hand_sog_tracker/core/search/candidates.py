@@ -1,12 +1,11 @@
 """A frame's candidates: the proposals, small generators with a name and a reason.
 
 Each proposal looks at the frame's fit (:class:`Frame`) and yields start poses
-(:class:`Candidate`) for a way out of a local optimum the fit may be in; the search
-(:func:`~hand_sog_tracker.core.search.fit.search`) fits them all as one batch and the score
-(:mod:`.score`) picks the answer.  A proposal yields nothing when its reason does not apply
-to the frame: there are no schedules, waits or cooldowns.  ``margin`` is how much a
-candidate must beat the fit's score by where the score cannot tell the two apart well (the
-measurements behind each value: ``doc/design/search.md``).
+(:class:`Candidate`) out of a local optimum the fit may be in, or nothing when its reason does
+not apply (no schedules, waits or cooldowns); the search (:func:`~.fit.search`) fits them all as
+one batch and the score (:mod:`.score`) picks the answer.  ``margin``: how much a candidate must
+beat the fit's score by where the score tells the two apart poorly (the measurements behind the
+values: ``doc/design/search.md``).
 """
 
 from __future__ import annotations
@@ -44,23 +43,15 @@ from hand_sog_tracker.core.search.score import (
 )
 
 __all__ = [
-    "Candidate",
-    "Frame",
-    "Proposal",
-    "TRACK_PROPOSALS",
-    "NEW_TRACK_PROPOSALS",
-    "pull_target",
-    "shifted",
-    "swapped",
+    "Candidate", "Frame", "Proposal", "TRACK_PROPOSALS", "NEW_TRACK_PROPOSALS", "pull_target", "shifted", "swapped",
 ]
 
 #: A fingertip this far from all data (mm) hangs in empty space (seed 004's restarts); its
-#: candidates must win by ``DANGLING_MARGIN`` (tried on every such frame, they won by 0.002-0.017
-#: on rotating hands, wrongly; chosen here).
+#: candidates must win by ``DANGLING_MARGIN`` (without, they won wrongly on rotating hands).
 DANGLING_TIP_MM = 25.0
 DANGLING_MARGIN = 0.02
 #: Swap: a finger within 0.5 deg of its abduction limit toward a neighbour curled more by this
-#: much (MCP + PIP, rad), itself curled at most ``SWAP_MAX_CURL_RAD`` (issue 11).
+#: much (MCP + PIP, rad), itself curled at most ``SWAP_MAX_CURL_RAD`` (rad; issue 11).
 SWAP_ABD_MARGIN_RAD = float(np.radians(0.5))
 SWAP_CURL_GAP_RAD = 0.8
 SWAP_MAX_CURL_RAD = 2.2
@@ -75,13 +66,13 @@ CURL_MARGIN = 0.04
 #: a detection pull must then win by ``EDGE_ON_MARGIN`` (issue 11).
 EDGE_ON_PALM_COS = 0.6
 EDGE_ON_MARGIN = SWAP_MARGIN
-#: A detection within this of one whose pulls lost on the frame before is the same one (mm;
-#: a few frames' motion of a fingertip at 30 Hz; chosen here).
+#: A detection within this (mm: a few frames' motion at 30 Hz) of one whose pulls lost on the
+#: frame before is the same one.
 SAME_DETECTION_MM = 10.0
 #: The salient weight of a detection pull: 20 x ``w_sal`` (at least 20).
 PULL_WEIGHT = 20.0
-#: A shift that only the assignment calls for (no unexplained detection) must win by this
-#: (on a hand seen at an angle fingers one place over score alike; chosen here).
+#: A shift only the assignment calls for (no unexplained detection) must win by this (seen at
+#: an angle, fingers one place over score alike).
 SHIFT_MARGIN = 0.02
 #: A new track's lateral candidates move the hand this far across the palm (mm: about one
 #: finger's spacing) and must win by ``LATERAL_MARGIN`` (issue 11).
@@ -107,15 +98,12 @@ class Frame:
     limits : (low, high) arrays, shape (26,) each
         The model's joint limits (+-inf for the wrist).
     new_track : bool
-        A new track's first frame: scored without the hidden-tip discount, with the lateral
-        candidates and both finger shifts.
+        A new track's first frame: no hidden-tip discount, lateral candidates, both shifts.
     lost_pulls : array, shape (k, 3), mm
         Detections whose pulls lost on the frame before (see :func:`pull_target`).
     covered : callable or None
-        ``covered(tips)``: which fingertips (5, 3) mm lie against another hand's skin or
-        behind it (5,) bool; the detector sees no end there, so their missing detections call
-        for no curl, and they do not dangle (the multi-hand tracker's, :mod:`..hands`).  None:
-        none does.
+        ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand
+        (no end to detect: they call for no curl and do not dangle; :mod:`..hands`).
     """
 
     model: HandModel
@@ -136,21 +124,9 @@ class Frame:
 
 @dataclass(frozen=True, eq=False)
 class Candidate:
-    """One start pose of the search.
-
-    Attributes
-    ----------
-    proposal : str
-        Name of the proposal that made it.
-    x0 : array, shape (26,)
-        Start pose.
-    margin : float
-        Score it must beat the frame's fit by (unitless, score units).
-    pull : Objective or None
-        When given, the candidate is first fitted on this objective (a detection pulling a
-        finger), with only ``active`` parameters free, then released into the plain objective.
-    active : bool array, shape (26,), or None
-    """
+    """One start pose of the search: ``proposal`` (its name), ``x0`` (26,), the ``margin`` it must
+    beat the fit's score by and, optionally, a ``pull`` objective (a detection pulling a finger)
+    it is first fitted on with only its ``active`` (26,) parameters free."""
 
     proposal: str
     x0: NDArray[np.float64]
@@ -196,9 +172,9 @@ def _with_chain(theta: NDArray[np.float64], c: int, joints: NDArray[np.float64])
     return x0
 
 
-def _facing(theta: NDArray[np.float64]) -> bool:
-    """Whether the palm or the back of the hand faces the camera (``FACING_COS``)."""
-    return abs(global_rotation(theta)[2, 2]) >= FACING_COS
+def _view_cos(theta: NDArray[np.float64]) -> float:
+    """|palm normal . view axis| at ``theta``: 1 palm or back to the camera, 0 edge-on."""
+    return abs(global_rotation(theta)[2, 2])
 
 
 def _dangling(f: Frame) -> Iterator[Candidate]:
@@ -220,10 +196,9 @@ def _dangling(f: Frame) -> Iterator[Candidate]:
 
 
 def swap_pair(theta: NDArray[np.float64], limits: tuple[NDArray, NDArray]) -> tuple[int, int] | None:
-    """``(finger, neighbour)`` (chains 1-4) for the swap at ``theta`` (26,), or None: a finger
-    at its abduction limit toward a neighbour curled more (see ``SWAP_*``); of several, the
-    pair with the largest difference in curl."""
-    if not _facing(theta):
+    """``(finger, neighbour)`` (chains 1-4) to swap at ``theta`` (26,), or None: a finger at its
+    abduction limit toward a neighbour curled more (``SWAP_*``), of several the largest gap."""
+    if _view_cos(theta) < FACING_COS:
         return None
     lo, hi = limits
     abd = theta[FINGER_ABD]
@@ -246,7 +221,7 @@ def _swap(f: Frame) -> Iterator[Candidate]:
 
 def _curl(f: Frame) -> Iterator[Candidate]:
     x = f.fit.x
-    if f.det.n == 0 or not _facing(x):
+    if f.det.n == 0 or _view_cos(x) < FACING_COS:
         return
     flex = x[FINGER_MCP] + x[FINGER_PIP] + x[FINGER_DIP]  # index .. little (4,)
     fingers = [c for c in range(1, 5) if flex[c - 1] < CURL_MAX_FLEX_RAD]
@@ -266,7 +241,7 @@ def _shift(f: Frame) -> Iterator[Candidate]:
     if f.new_track or lonely_detections(f.model, x, f.det).size:
         sides: tuple[int, ...] = (1, -1)
         margin = 0.0
-    elif f.det.n == 0 or abs(global_rotation(x)[2, 2]) < EDGE_ON_PALM_COS:
+    elif f.det.n == 0 or _view_cos(x) < EDGE_ON_PALM_COS:
         return  # no detection says where the fingers are, or they overlap in the image (edge-on)
     elif f.det.n >= 5 and own_detections(f.model, x, f.det).all():
         return  # each fingertip has a detection of its own
@@ -279,9 +254,8 @@ def _shift(f: Frame) -> Iterator[Candidate]:
 
 
 def _joint_targets(model: HandModel, theta: NDArray[np.float64], det: Detections, c: int, s: int) -> TipTargets:
-    """Targets for fingertip ``c`` on detection ``s`` (weight 1) and for the other fingertips
-    at ``theta`` (26,) on the detections the optimal assignment gives them among the others
-    (their confidence; none for a detection seen end-on)."""
+    """Targets: fingertip ``c`` on detection ``s`` (weight 1), the others at ``theta`` (26,) on
+    what the optimal assignment gives them of the rest (their confidence; none seen end-on)."""
     rest = np.ones(det.n, dtype=bool)
     rest[s] = False
     others = np.flatnonzero(np.arange(5) != c)
@@ -296,10 +270,9 @@ def _joint_targets(model: HandModel, theta: NDArray[np.float64], det: Detections
 
 
 def pull_target(f: Frame) -> int | None:
-    """The detection the detection proposal pulls fingers onto: the most confident one that no
+    """The detection the detection proposal pulls fingers onto, or None: the most confident one no
     fingertip explains, unless its pulls lost on the frame before where it still is (within
-    ``SAME_DETECTION_MM`` of one of ``f.lost_pulls``: the score already preferred the fit
-    there); None when there is none."""
+    ``SAME_DETECTION_MM`` of ``f.lost_pulls``: the score preferred the fit there)."""
     lonely = lonely_detections(f.model, f.fit.x, f.det)
     if lonely.size and f.lost_pulls.shape[0]:
         near = np.sqrt(sq_distances(f.det.points[lonely], f.lost_pulls)).min(axis=1) < SAME_DETECTION_MM
@@ -314,7 +287,7 @@ def _detection(f: Frame) -> Iterator[Candidate]:
         return
     dist = np.linalg.norm(det.points[s] - fingertips(f.model, x), axis=1)
     cfg = f.obj.config
-    margin = EDGE_ON_MARGIN if abs(global_rotation(x)[2, 2]) < EDGE_ON_PALM_COS else 0.0
+    margin = EDGE_ON_MARGIN if _view_cos(x) < EDGE_ON_PALM_COS else 0.0
     strong = replace(cfg, w_sal=max(cfg.w_sal, 1.0) * PULL_WEIGHT)
     for c in np.argsort(dist)[:2]:
         c = int(c)

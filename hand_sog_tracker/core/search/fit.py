@@ -7,20 +7,18 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS
+from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS, ImageSoG
 from hand_sog_tracker.core.hand_model import N_PARAMS
 from hand_sog_tracker.core.objective import Objective, TipTargets
 from hand_sog_tracker.core.optimizer import OptimizeResult, maximise_batch
 from hand_sog_tracker.core.search.candidates import Candidate, Frame, Proposal
 
-__all__ = ["MAX_BATCH", "SEARCH_ITERATIONS", "batch_size", "fit_batch", "search", "with_targets"]
+__all__ = ["MAX_BATCH", "SEARCH_ITERATIONS", "batch_size", "fit_batch", "fit_parts", "part", "search", "with_targets"]
 
 #: Iterations each candidate gets (and each detection pull before it; chosen here, commit f16019d).
 SEARCH_ITERATIONS = 12
 #: Most candidates fitted in one call at the data cap: a batch holds its model x data arrays once
-#: per candidate (a frame with many data Gaussians and 11 candidates peaked 75 MB above steady
-#: tracking); a frame with fewer data Gaussians fits as many more in one call as the same pairs
-#: hold (:func:`batch_size`).
+#: per candidate (memory, issue 50); fewer data Gaussians fit as many more (:func:`batch_size`).
 MAX_BATCH = 4
 
 
@@ -28,6 +26,11 @@ def batch_size(n_data: int) -> int:
     """Most candidates fitted in one call on ``n_data`` data Gaussians: at most the model x data
     pairs of ``MAX_BATCH`` candidates at the data cap (``MAX_DATA_GAUSSIANS``)."""
     return MAX_BATCH * max(1, MAX_DATA_GAUSSIANS // max(n_data, 1))
+
+
+def part(data: ImageSoG, keep: NDArray[np.bool_]) -> ImageSoG:
+    """The Gaussians of ``data`` where ``keep`` (n,) is True (``data`` itself when all are)."""
+    return data if keep.all() else data.subset(keep)
 
 
 def fit_batch(
@@ -57,34 +60,51 @@ def fit_batch(
 
 
 def with_targets(
-    obj: Objective, targets: Sequence[TipTargets | None], parts: NDArray[np.bool_] | None = None
+    obj: Objective, targets: Sequence[TipTargets | None] | None = None, parts: NDArray[np.bool_] | None = None
 ) -> Callable[..., tuple]:
     """``obj.batch`` as :func:`maximise_batch` calls it ``with_index``: candidate ``i`` of the
-    batch with ``targets[i]`` (what ``obj.variant(obj.config, targets[i])`` gives it alone),
-    and with ``parts`` (B, n) on its own data subset ``parts[i]``."""
+    batch with ``targets[i]`` (what ``obj.variant(obj.config, targets[i])`` gives it alone), and
+    with ``parts`` (B, n) on its own data subset ``parts[i]``."""
 
     def fun(
         thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         assert index is not None
         return obj.batch(
-            thetas, gradient, targets=[targets[i] for i in index.tolist()],
+            thetas, gradient, targets=None if targets is None else [targets[i] for i in index.tolist()],
             parts=None if parts is None else parts[index],
         )
 
     return fun
 
 
-def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult, str | None]:
-    """The frame's answer: its fit or the best of the candidates ``proposals`` make for it.
+def fit_parts(
+    obj: Objective,
+    starts: NDArray[np.float64],
+    parts: NDArray[np.bool_],
+    targets: Sequence[TipTargets | None] | None = None,
+    **kwargs: Any,
+) -> list[OptimizeResult]:
+    """Each start pose (B, 26) fitted on ``obj`` with only its part ``parts[b]`` (B, n) of the
+    data (at least one Gaussian each) and, given, ``targets[b]``, all as one batch
+    (:func:`fit_batch`); a lone pose without targets on its part's own objective (the one-pose
+    path)."""
+    if len(starts) == 1 and targets is None:
+        keep = parts[0]
+        if not keep.all():
+            obj = Objective(obj.model, obj.data.subset(keep), obj.config, silhouette=obj.silhouette)
+        return fit_batch(obj.batch, starts, obj.data.n, **kwargs)
+    fun = with_targets(obj, targets, None if parts.all() else parts)
+    return fit_batch(fun, starts, obj.data.n, with_index=True, **kwargs)
 
-    Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain``, all as one batch (a
-    pull first on its own objective); one wins when its :meth:`Frame.score` beats the fit's by
-    the candidate's margin, and of the winners the highest score is the answer.  The fit is a
-    race: a score is the plain value minus an assignment cost (>= 0), so a candidate whose
-    value cannot reach the fit's score plus its margin cannot win and stops early
-    (:func:`maximise_batch`'s ``floor``).  Returns the
-    answer's fit and the name of the proposal it came from (None: the frame's fit).
+
+def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult, str | None]:
+    """The frame's answer and the name of the proposal it came from (None: the frame's fit).
+
+    Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain``, all as one batch (a pull
+    first on its own objective); the highest :meth:`Frame.score` among those that beat the fit's
+    by their margin wins.  A race: a score is the plain value minus a cost >= 0, so a candidate
+    whose value cannot reach the fit's score plus its margin stops early (``floor``).
     """
     candidates = [c for p in proposals for c in p.generate(frame)]
     if not candidates:
@@ -104,20 +124,17 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
 
 
 def _plain_value(frame: Frame) -> float:
-    """``frame.plain`` at the fit's pose, from the fit's own value on ``frame.obj``: its salient
-    term added back (the only term the two differ in; the same value up to rounding, without an
-    evaluation of the data terms)."""
+    """``frame.plain`` at the fit's pose: the fit's value on ``frame.obj`` with its salient term
+    added back (the only term the two differ in), without evaluating the data terms again."""
     if frame.plain is frame.obj:
         return frame.fit.fun
     return frame.fit.fun + frame.obj.config.w_sal * frame.obj.salient(frame.fit.x)
 
 
 def _pulled(candidates: Sequence[Candidate], limits: tuple[NDArray[np.float64], NDArray[np.float64]]) -> NDArray:
-    """The candidates' start poses (B, 26): after its pull for a candidate with one, fitted
-    ``SEARCH_ITERATIONS`` on its own objective with its ``active`` parameters.  The pulls of a
-    frame differ only in their targets (:meth:`Objective.variant` of one objective with one
-    config): they are fitted as one batch on the first, each with its own targets (the same
-    iterates as one by one)."""
+    """The candidates' start poses (B, 26), a pulled one's after ``SEARCH_ITERATIONS`` on its
+    pull with its ``active`` parameters.  Pulls that differ only in their targets are fitted as
+    one batch on the first, each with its own targets (the same iterates as one by one)."""
     starts = np.array([c.x0 for c in candidates])
     groups: dict[int, list[int]] = {}
     for i, c in enumerate(candidates):
