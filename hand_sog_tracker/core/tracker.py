@@ -96,12 +96,11 @@ FRESH_APART_MM = 40.0
 _PALM_ROWS = [0, 5, 9, 13, 17]  #: wrist and finger MCPs among the skeleton's 21 points
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 #: What :meth:`Tracker._fresh_start` keeps of the track when the fresh start loses.
-_TRACK_STATE = (
-    "_prev", "_steps", "_low_frames", "_status", "_model", "_refine_last", "last_proposal", "_lost_pulls",
-)
+_TRACK_STATE = ("_prev", "_steps", "_low_frames", "_status", "_model", "_refine_last", "last_proposal", "_lost_pulls")
 #: ``(data, detections, theta (26,)) -> (data, detections)``: see :attr:`Tracker.data_filter`.
 DataFilter = Callable[[ImageSoG, Detections, NDArray[np.float64]], tuple[ImageSoG, Detections]]
 _NO_POINTS = np.zeros((0, 3))
+RoiWindow = tuple[tuple[int, int, int, int], tuple[float, float]]  #: :func:`hand_roi`'s (box px, window mm)
 
 
 class _Keep:
@@ -112,8 +111,7 @@ class _Keep:
 
 
 def _apart(track: TrackResult, track_model: HandModel, fresh: TrackResult, fresh_model: HandModel) -> bool:
-    """Whether the palms (mean of wrist and MCPs) of two results lie ``FRESH_APART_MM`` apart
-    (always when the track has no pose): the fresh start found a hand elsewhere."""
+    """Whether the palms (wrist and MCPs) of two results lie ``FRESH_APART_MM`` apart (or one has none)."""
     if track.pose is None or fresh.pose is None:
         return True
     a = skeleton_points(track_model, track.pose)[_PALM_ROWS].mean(0)
@@ -133,8 +131,7 @@ def _size_models(right: bool) -> tuple[HandModel, HandModel]:
 
 
 def _warm(steps: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Start steps (26,) from a fit's final ``steps``: ``WARM_GROW`` x, within ``[WARM_MIN, 1]`` x
-    the initial ones."""
+    """Start steps (26,) from a fit's final ``steps`` (``WARM_GROW``, ``WARM_MIN``)."""
     return np.minimum(np.maximum(steps * WARM_GROW, _INITIAL_STEPS * WARM_MIN), _INITIAL_STEPS)
 
 
@@ -185,8 +182,7 @@ class Tracker:
         self.data_filter: DataFilter | None = None
         #: ``tips (5, 3) mm -> (5,) bool``: the fingertips against another hand (:attr:`Frame.covered`).
         self.covered_tips: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
-        #: ``theta (26,) -> (26,) bool``: what a tracked frame's fit holds at its start ``theta``
-        #: (the joints of fingers another hand hides).
+        #: ``theta (26,) -> (26,) bool``: what a tracked frame's fit holds at its start (hidden fingers).
         self.held: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
         #: ``(centres (m, 3), radii (m,)) mm -> InterHand or None``: the other hands' spheres this
         #: hand's, posed at a tracked frame's start, may not penetrate (:mod:`.objective.interhand`).
@@ -249,14 +245,8 @@ class Tracker:
         self._gate.forget()
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
-        """Track the hand in one depth frame.
-
-        Parameters
-        ----------
-        depth_mm : array, shape (H, W)
-            Depth in millimetres; 0, NaN and Inf are invalid.
-        intrinsics : Intrinsics
-            Intrinsics of this image (same H, W).
+        """Track the hand in one depth frame ``depth_mm`` (H, W) mm (0, NaN and Inf invalid) with
+        the ``intrinsics`` of its size.
 
         Raises
         ------
@@ -264,8 +254,8 @@ class Tracker:
             When the frame cannot be used; the track is left untouched.
         """
         t0 = time.perf_counter()  # (timings only: nothing below depends on the clock)
-        pre = preprocess(depth_mm, intrinsics, self._config)  # raises before any change of state
-        pre = without_support(pre)  # (a table under the hand; the hand check reads the frame as it is)
+        # (Raises before any change of state; without a table under the hand: the check reads it all.)
+        pre = without_support(preprocess(depth_mm, intrinsics, self._config))
         t1 = time.perf_counter()
         result, checked = self._fit(pre, (depth_mm, intrinsics) if self._withhold else None)
         t2 = time.perf_counter()
@@ -286,12 +276,11 @@ class Tracker:
         self, pre: Preprocessed, image: tuple[NDArray, Intrinsics] | None = None
     ) -> tuple[TrackResult, HandDecision | None]:
         """The frame's result before the gate and, with ``image`` (depth mm, intrinsics), a tracked
-        frame's hand check, below ``FRESH_BELOW`` against a fresh start (a lost track's check is 0;
-        the fresh start's data are capped at ``NEW_TRACK_DATA``: a frame costs at most a tracked
-        frame at the data cap and one new track, issue 50)."""
+        frame's hand check (a lost track's is 0), below ``FRESH_BELOW`` against a fresh start (its
+        data capped: a frame costs at most a tracked frame at the data cap and a new track)."""
         checked = None
         if self._prev is None:
-            result = self._new_track(pre)
+            result = self._initialise(pre)
         else:
             result = self._track(pre)
             if image is not None:
@@ -302,26 +291,16 @@ class Tracker:
         self.last_fit = result
         return result, checked
 
-    def _new_track(self, pre: Preprocessed) -> TrackResult:
-        """A new track's search on ``pre`` (:meth:`_initialise`), from fresh step lengths and, on
-        the default model, with its size chosen again."""
-        self._steps = None
-        self._lost_pulls = _NO_POINTS
-        if self._sizes is not None:
-            self._model = self._sizes[0]
-        return self._initialise(pre)
-
     def _fresh_start(
         self, pre: Preprocessed, image: tuple[NDArray, Intrinsics], track: TrackResult, checked: HandDecision
     ) -> tuple[TrackResult, HandDecision]:
-        """A doubted tracked frame (a lost one too) against the new track's search on the same
-        frame, which replaces it when its check is ``FRESH_MARGIN`` higher and its palm lies
-        elsewhere (:func:`_apart`: a wrong lock replaced at once) or, on the same hand, when its
-        pose also scores higher on the track's frame (the check does not judge the articulation);
-        else the track and its state are kept.  Returns (result, its check)."""
+        """(result, its check): a doubted tracked frame or a new track on it, which wins with a check
+        ``FRESH_MARGIN`` higher and a palm elsewhere (:func:`_apart`: a wrong lock replaced at once)
+        or, on the same hand, a higher score on the track's frame (the check does not judge the
+        articulation); else the track and its state are kept."""
         kept = {name: getattr(self, name) for name in _TRACK_STATE}
         on_track = self._track_frame if track.pose is not None else None
-        fresh = self._new_track(pre)
+        fresh = self._initialise(pre)
         if fresh.pose is not None:
             fresh_check = handcheck.check_hand(*image, self._model, fresh)
             better = fresh_check.confidence >= checked.confidence + FRESH_MARGIN
@@ -338,18 +317,12 @@ class Tracker:
         return track, checked
 
     def _data_near(
-        self,
-        pre: Preprocessed,
-        theta: NDArray[np.float64],
-        end_mm: float | None = None,
-        roi_window: tuple[tuple[int, int, int, int], tuple[float, float]] | None = None,
-        max_gaussians: int = MAX_DATA_GAUSSIANS,
+        self, pre: Preprocessed, theta: NDArray[np.float64], end_mm: float | None = None,
+        roi_window: RoiWindow | None = None, max_gaussians: int = MAX_DATA_GAUSSIANS,
     ) -> tuple[ImageSoG, Detections, Silhouette | None]:
-        """Data Gaussians, fingertip detections and silhouette (None when ``w_sil`` is 0) of the
-        depth window around the hand at ``theta``, without what lies beyond its wrist plane (the
-        model has no forearm).  ``end_mm``: the window ends there at the latest (a wall behind
-        the hand); ``roi_window``: :func:`hand_roi` at ``theta`` when known; ``max_gaussians``:
-        the quadtree's cap."""
+        """Data Gaussians (at most ``max_gaussians``), detections and silhouette (None without
+        ``w_sil``) of the depth window around the hand at ``theta`` (ending at ``end_mm`` at the
+        latest; ``roi_window``: :func:`hand_roi` when known), without what lies beyond its wrist."""
         if roi_window is None:
             roi_window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
         roi, window = roi_window
@@ -433,11 +406,9 @@ class Tracker:
         return self._result(answer, conf, res.fun, data.n, timings, centres)
 
     def _refined(self, obj: Objective, res: OptimizeResult, p1: NDArray[np.float64]) -> NDArray[np.float64]:
-        """A tracked frame's answer from its pose ``res`` on ``obj``: ``res.x`` (26,), or with a PIP
-        over ``REFINE_CURL_RAD`` refined ``refine_iterations`` on the frame's objective of the
-        joint model (overlaps weighted by visibility), from warm steps; from ``res.x`` plus the
-        frame before's correction, steps x ``REFINE_WARM_STEPS``, when that frame was refined and
-        the track went on from its pose ``p1``."""
+        """A tracked frame's answer (26,): its pose ``res.x`` or, with a PIP over ``REFINE_CURL_RAD``,
+        that refined on the frame's objective ``obj`` of the joint model; from the frame before's
+        correction (``REFINE_WARM_STEPS``) when the track went on from its refined pose ``p1``."""
         x = res.x
         iterations = self._config.refine_iterations
         last, self._refine_last = self._refine_last, None
@@ -466,8 +437,7 @@ class Tracker:
         return maximise(obj, x0, bounds=self._limits(), **kwargs)  # type: ignore[arg-type]
 
     def _limits(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The model's joint limits as bounds (low, high) (26,) each, read-only, +-inf for the
-        wrist (once per model)."""
+        """The model's joint limits as bounds (low, high) (26,) each, read-only (+-inf: the wrist)."""
         m = self._model
         if self._bounds is None or self._bounds[0] is not m:
             lo = np.concatenate([np.full(6, -np.inf), m.limits_low])
@@ -479,11 +449,11 @@ class Tracker:
 
     def _initialise(self, pre: Preprocessed) -> TrackResult:
         """A new track: the start search's finalists (:func:`~.search.start.start_search`) refined
-        on one data extraction around the first (:meth:`_finalist_fits`); the best, after the new
-        track's candidates (:data:`NEW_TRACK_PROPOSALS`), starts the track.  On the default model
-        the best ``SMALL_HAND_FINALISTS`` are also fitted on the small model, which the track
-        starts on when it scores ``SMALL_HAND_GAIN`` higher with open fingers."""
-        self.last_proposal = None
+        on one data extraction (:meth:`_finalist_fits`), the best searched (:data:`NEW_TRACK_PROPOSALS`);
+        on the default model the small one wins ``SMALL_HAND_GAIN`` higher with open fingers."""
+        self._steps, self._lost_pulls, self.last_proposal = None, _NO_POINTS, None
+        if self._sizes is not None:
+            self._model = self._sizes[0]
         found = start_search(pre, self._model, self._config, self._limits())
         if found is None:
             return self._no_hand({})
@@ -523,10 +493,9 @@ class Tracker:
     def _finalist_fits(
         self, found: Finalists, data: ImageSoG, det: Detections, sil: Silhouette | None
     ) -> list[tuple[int, tuple[float, Frame]]]:
-        """Each finalist of ``found`` with data on its hand side, refined ``final_iterations`` on
-        the tracker's model with the full objective of its part of ``data`` (with its own
-        targets), all as one batch: (index, (score, its :class:`Frame`)), best first (the earlier
-        on a tie)."""
+        """(index, (score, :class:`Frame`)) of each finalist of ``found`` with data on its hand side,
+        refined ``final_iterations`` with the full objective of its part of ``data``, as one batch;
+        best first (the earlier on a tie)."""
         items = []
         for k, x in enumerate(found.poses):
             keep = on_hand_side(data.points, x)
@@ -553,35 +522,22 @@ class Tracker:
         return fits
 
     def _result(
-        self,
-        theta: NDArray[np.float64] | None,
-        conf: float,
-        energy: float,
-        n: int,
-        timings: dict[str, float],
+        self, theta: NDArray[np.float64] | None, conf: float, energy: float, n: int, timings: dict[str, float],
         centres: NDArray[np.float64] | None = None,
     ) -> TrackResult:
         if theta is None:
             return TrackResult(self._status, None, None, None, float(conf), float(energy), n, dict(timings))
         if centres is None:  # (forward kinematics once: the fingertips are the tip Gaussians' centres)
             centres = gaussian_centres(self._model, theta)
+        m = self._model
         return TrackResult(
-            status=self._status,
-            pose=theta.copy(),
-            fingertips_mm=centres[self._model.tip_index],
-            skeleton_mm=keypoint_skeleton(self._model, theta),
-            confidence=float(conf),
-            energy=float(energy),
-            n_image_gaussians=n,
-            timings_ms=dict(timings),
-            gaussians_mm=centres,
-            gaussian_radii_mm=self._model.g_sigmas.copy(),
+            self._status, theta.copy(), centres[m.tip_index], keypoint_skeleton(m, theta), float(conf), float(energy),
+            n, dict(timings), gaussians_mm=centres, gaussian_radii_mm=m.g_sigmas.copy(),
         )
 
 
 def _timed(result: TrackResult, t0: float, t1: float, t2: float) -> TrackResult:
-    """``result`` with its ``timings_ms``: preprocessing ``t0``-``t1``, search ``t1``-``t2`` less
-    its data extraction, and the total to now (clock seconds)."""
+    """``result`` with its ``timings_ms``: preprocessing ``t0``-``t1``, fit ``t1``-``t2`` (s) less data, total."""
     ms = result.timings_ms
     ms["preprocess"] = (t1 - t0) * 1e3
     ms.setdefault("quadtree", 0.0)
