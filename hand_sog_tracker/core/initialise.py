@@ -82,40 +82,19 @@ DETECTION_DIRECTION_MIN_DEG = 10.0
 
 @dataclass(frozen=True)
 class InitSearch:
-    """Effort of a new track's search (counts and score thresholds; chosen here, issues 11 and 14).
+    """Effort of a new track's search (counts and score thresholds; chosen here, issues 11 and 14)."""
 
-    Attributes
-    ----------
-    coarse_quad_px : int
-        Smallest quadtree leaf (px) of the data the start poses are aligned to.
-    screened : int
-        Start poses of the blob's directions aligned per palm side: the best by the objective at
-        the start pose (those along the hand end's axis and the detections always).
-    rigid_iterations : int
-        Rigid (wrist pose only) iterations of every start pose on the coarse data.
-    kept : int
-        Poses articulated after the rigid alignment, the best by objective, half per palm side.
-    full_iterations : int
-        Iterations (all parameters) of each kept pose on the full-resolution data.
-    finalists : int
-        Best-scoring poses refined with the full objective (plus the other palm side's best).
-    final_iterations : int
-        Iterations of each finalist with the full objective.
-    combination_below : float
-        Single fingers curled (:func:`finger_combinations`) are tried when the best score is below.
-    combination_margin : float
-        ... and compete when their best beats the others by this much.
-    """
-
-    coarse_quad_px: int = 8
+    coarse_quad_px: int = 8  #: smallest quadtree leaf (px) of the coarse data the start poses are aligned on
+    #: start poses of the blob's directions aligned per palm side, the best by the objective at the
+    #: start (those along the hand end's axis and toward the detections always)
     screened: int = 4
-    rigid_iterations: int = 3
-    kept: int = 4
-    full_iterations: int = 8
-    finalists: int = 2
-    final_iterations: int = 10
-    combination_below: float = 0.36
-    combination_margin: float = 0.045
+    rigid_iterations: int = 3  #: rigid (wrist pose only) iterations of every start pose on the coarse data
+    kept: int = 4  #: poses articulated after the rigid alignment, the best, half per palm side
+    full_iterations: int = 8  #: iterations (all parameters) of each kept pose on the fine data
+    finalists: int = 2  #: best-scoring poses refined with the full objective (+ the other palm side's best)
+    final_iterations: int = 10  #: iterations of each finalist with the full objective
+    combination_below: float = 0.36  #: single fingers curled are tried when the best score is below this
+    combination_margin: float = 0.045  #: ... and compete when their best beats the others by this much
 
 
 #: The effort the tracker uses.
@@ -124,26 +103,15 @@ INIT_SEARCH = InitSearch()
 
 @dataclass(frozen=True, eq=False)
 class HandBlob:
-    """A hand candidate in the depth image (mm, camera frame).
+    """A hand candidate in the depth image (mm, camera frame)."""
 
-    Attributes
-    ----------
-    palm : array, shape (3,)
-        Estimated centre of the palm's bones (behind the visible surface).
-    directions : list of arrays, shape (3,)
-        Candidate unit vectors from the wrist toward the fingers, most likely first.
-    hand_direction : array, shape (3,), or None
-        The in-plane principal direction of the hand end alone, toward the fingers, when a forearm
-        was recognised and it lies more than ``DETECTION_DIRECTION_MIN_DEG`` from
-        ``directions[0]`` (then ``directions`` leaves out the most turned ones); else None.
-    far_mm : float
-        Depth (mm) of the blob's farthest pixel on a surface (``SURFACE_RANGE_MM``), inf if unknown.
-    """
-
-    palm: NDArray[np.float64]
-    directions: list[NDArray[np.float64]]
+    palm: NDArray[np.float64]  #: (3,) the centre of the palm's bones (behind the visible surface)
+    directions: list[NDArray[np.float64]]  #: unit vectors (3,) from the wrist toward the fingers, likeliest first
+    #: (3,) the in-plane principal direction of the hand end alone, toward the fingers, when a forearm
+    #: was recognised and it lies ``DETECTION_DIRECTION_MIN_DEG`` off ``directions[0]`` (which then
+    #: leaves out the most turned ones); else None
     hand_direction: NDArray[np.float64] | None = None
-    far_mm: float = np.inf
+    far_mm: float = np.inf  #: depth (mm) of the farthest pixel on a surface (``SURFACE_RANGE_MM``), inf: unknown
 
 
 def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:

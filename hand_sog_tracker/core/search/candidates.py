@@ -82,39 +82,20 @@ LATERAL_MARGIN = 0.01
 
 @dataclass(frozen=True, eq=False)
 class Frame:
-    """What the proposals look at: one frame's fit and data.
-
-    Attributes
-    ----------
-    model : HandModel
-    fit : OptimizeResult
-        The frame's fit (a tracked frame's, or a new track's best finalist).
-    obj : Objective
-        The frame's objective (with the salient term's targets).
-    plain : Objective
-        ``obj`` without its salient term: candidates are fitted and scored on it.
-    data : ImageSoG
-    det : Detections
-    limits : (low, high) arrays, shape (26,) each
-        The model's joint limits (+-inf for the wrist).
-    new_track : bool
-        A new track's first frame: no hidden-tip discount, lateral candidates, both shifts.
-    lost_pulls : array, shape (k, 3), mm
-        Detections whose pulls lost on the frame before (see :func:`pull_target`).
-    covered : callable or None
-        ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand
-        (no end to detect: they call for no curl and do not dangle; :mod:`..hands`).
-    """
+    """What the proposals look at: one frame's fit and data."""
 
     model: HandModel
-    fit: OptimizeResult
-    obj: Objective
-    plain: Objective
+    fit: OptimizeResult  #: the frame's fit (a tracked frame's, or a new track's best finalist)
+    obj: Objective  #: the frame's objective (with the salient term's targets)
+    plain: Objective  #: ``obj`` without its salient term: candidates are fitted and scored on it
     data: ImageSoG
     det: Detections
-    limits: tuple[NDArray[np.float64], NDArray[np.float64]]
-    new_track: bool = False
+    limits: tuple[NDArray[np.float64], NDArray[np.float64]]  #: joint limits (low, high) (26,) each, +-inf: wrist
+    new_track: bool = False  #: a new track: no hidden-tip discount, lateral candidates, both shifts
+    #: (k, 3) mm: detections whose pulls lost on the frame before (see :func:`pull_target`)
     lost_pulls: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    #: ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand (no end
+    #: to detect: they call for no curl and do not dangle; :mod:`..hands`); None: none
     covered: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
 
     def score(self, theta: NDArray[np.float64], value: float | None = None) -> float:
@@ -142,6 +123,11 @@ class Proposal:
     name: str
     reason: str
     generate: Callable[[Frame], Iterator[Candidate]]
+
+
+def _proposal(name: str, reason: str) -> Callable[[Callable[[Frame], Iterator[Candidate]]], Proposal]:
+    """Decorator: the generator of candidates it decorates as the :class:`Proposal` ``name``."""
+    return lambda generate: Proposal(name, reason, generate)
 
 
 def shifted(theta: NDArray[np.float64], side: int) -> NDArray[np.float64]:
@@ -177,7 +163,8 @@ def _view_cos(theta: NDArray[np.float64]) -> float:
     return abs(global_rotation(theta)[2, 2])
 
 
-def _dangling(f: Frame) -> Iterator[Candidate]:
+@_proposal("dangling", "a fingertip hangs in empty space: its finger extended, curled, like the others")
+def DANGLING(f: Frame) -> Iterator[Candidate]:
     if f.data.n == 0:
         return
     x = f.fit.x
@@ -213,13 +200,15 @@ def swap_pair(theta: NDArray[np.float64], limits: tuple[NDArray, NDArray]) -> tu
     return best
 
 
-def _swap(f: Frame) -> Iterator[Candidate]:
+@_proposal("swap", "a finger held at its abduction limit over a more curled neighbour's place: the two swap flexions")
+def SWAP(f: Frame) -> Iterator[Candidate]:
     pair = swap_pair(f.fit.x, f.limits)
     if pair is not None:
         yield Candidate("swap", swapped(f.fit.x, *pair), SWAP_MARGIN)
 
 
-def _curl(f: Frame) -> Iterator[Candidate]:
+@_proposal("curl", "an open finger without a detection of its own: each open finger curled into the palm")
+def CURL(f: Frame) -> Iterator[Candidate]:
     x = f.fit.x
     if f.det.n == 0 or _view_cos(x) < FACING_COS:
         return
@@ -235,7 +224,8 @@ def _curl(f: Frame) -> Iterator[Candidate]:
             yield Candidate("curl", _with_chain(x, c, FINGER_CURLED), CURL_MARGIN)
 
 
-def _shift(f: Frame) -> Iterator[Candidate]:
+@_proposal("shift", "an unexplained detection, or detections a pose with every finger one place over explains better")
+def SHIFT(f: Frame) -> Iterator[Candidate]:
     x = f.fit.x
     margin = SHIFT_MARGIN
     if f.new_track or lonely_detections(f.model, x, f.det).size:
@@ -280,7 +270,8 @@ def pull_target(f: Frame) -> int | None:
     return int(lonely[np.argmax(f.det.confidence[lonely])]) if lonely.size else None
 
 
-def _detection(f: Frame) -> Iterator[Candidate]:
+@_proposal("detection", "a detection no fingertip explains (pulls not lost before): the 2 nearest fingers pulled on it")
+def DETECTION(f: Frame) -> Iterator[Candidate]:
     x, det = f.fit.x, f.det
     s = pull_target(f)
     if s is None:
@@ -303,7 +294,8 @@ def _detection(f: Frame) -> Iterator[Candidate]:
             yield Candidate("detection", _with_chain(x, c, FINGER_CURLED), margin)
 
 
-def _lateral(f: Frame) -> Iterator[Candidate]:
+@_proposal("lateral", "a new track: the hand moved one finger's spacing sideways, fingers as they are and shifted")
+def LATERAL(f: Frame) -> Iterator[Candidate]:
     if not f.new_track:
         return
     x = f.fit.x
@@ -315,27 +307,6 @@ def _lateral(f: Frame) -> Iterator[Candidate]:
             yield Candidate("lateral", x0, LATERAL_MARGIN)
 
 
-DANGLING = Proposal(
-    "dangling", "a fingertip hangs in empty space: its finger extended, curled, like the others", _dangling
-)
-SWAP = Proposal(
-    "swap", "a finger held at its abduction limit over a more curled neighbour's place: the two swap flexions", _swap
-)
-CURL = Proposal("curl", "an open finger without a detection of its own: each open finger curled into the palm", _curl)
-SHIFT = Proposal(
-    "shift",
-    "an unexplained detection, or detections that a pose with every finger on its neighbour's place explains better",
-    _shift,
-)
-DETECTION = Proposal(
-    "detection",
-    "a detection no fingertip explains (and whose pulls did not lose on the frame before): the two nearest"
-    " fingers pulled onto it",
-    _detection,
-)
-LATERAL = Proposal(
-    "lateral", "a new track: the hand moved one finger's spacing sideways, fingers as they are and shifted", _lateral
-)
 #: The proposals of a tracked frame and of a new track's first frame.
 TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SWAP, CURL, SHIFT, DETECTION)
 NEW_TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SHIFT, LATERAL)

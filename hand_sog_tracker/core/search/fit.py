@@ -36,9 +36,8 @@ def part(data: ImageSoG, keep: NDArray[np.bool_]) -> ImageSoG:
 def fit_batch(
     fun_batch: Callable, starts: NDArray[np.float64], n_data: int = MAX_DATA_GAUSSIANS, **kwargs: Any
 ) -> list[OptimizeResult]:
-    """:func:`maximise_batch` of ``starts`` (B, 26) on ``n_data`` data Gaussians, in chunks of
-    at most :func:`batch_size` (a candidate's fit does not depend on its batch).  With
-    ``with_index``, ``fun_batch`` gets the candidates' positions in ``starts``."""
+    """:func:`maximise_batch` of ``starts`` (B, 26) on ``n_data`` data Gaussians in chunks of
+    :func:`batch_size` (a fit does not depend on its batch); ``with_index``: positions in ``starts``."""
     out: list[OptimizeResult] = []
     size = batch_size(n_data)
     for k in range(0, len(starts), size):
@@ -62,9 +61,8 @@ def fit_batch(
 def with_targets(
     obj: Objective, targets: Sequence[TipTargets | None] | None = None, parts: NDArray[np.bool_] | None = None
 ) -> Callable[..., tuple]:
-    """``obj.batch`` as :func:`maximise_batch` calls it ``with_index``: candidate ``i`` of the
-    batch with ``targets[i]`` (what ``obj.variant(obj.config, targets[i])`` gives it alone), and
-    with ``parts`` (B, n) on its own data subset ``parts[i]``."""
+    """``obj.batch`` as :func:`maximise_batch` calls it ``with_index``: candidate ``i`` with
+    ``targets[i]`` (as ``obj.variant(obj.config, targets[i])`` alone) and on the data ``parts[i]`` (n,)."""
 
     def fun(
         thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
@@ -79,16 +77,12 @@ def with_targets(
 
 
 def fit_parts(
-    obj: Objective,
-    starts: NDArray[np.float64],
-    parts: NDArray[np.bool_],
-    targets: Sequence[TipTargets | None] | None = None,
-    **kwargs: Any,
+    obj: Objective, starts: NDArray[np.float64], parts: NDArray[np.bool_],
+    targets: Sequence[TipTargets | None] | None = None, **kwargs: Any,
 ) -> list[OptimizeResult]:
-    """Each start pose (B, 26) fitted on ``obj`` with only its part ``parts[b]`` (B, n) of the
-    data (at least one Gaussian each) and, given, ``targets[b]``, all as one batch
-    (:func:`fit_batch`); a lone pose without targets on its part's own objective (the one-pose
-    path)."""
+    """Each of ``starts`` (B, 26) fitted on ``obj`` with only its part ``parts[b]`` (B, n) of the
+    data and, given, ``targets[b]``, as one batch (a lone pose without targets on its part's own
+    objective: the one-pose path)."""
     if len(starts) == 1 and targets is None:
         keep = parts[0]
         if not keep.all():

@@ -30,6 +30,7 @@ from hand_sog_tracker.core.initialise import (
 )
 from hand_sog_tracker.core.kinematics import global_rotation
 from hand_sog_tracker.core.objective import Objective
+from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import detect_fingertips
 from hand_sog_tracker.core.search.fit import MAX_BATCH, fit_parts, part
@@ -58,11 +59,10 @@ Bounds = tuple[NDArray[np.float64], NDArray[np.float64]]
 
 @dataclass(frozen=True, eq=False)
 class Finalists:
-    """The search's outcome: ``poses`` (26,) each, best first, and ``end_mm``, where its depth
-    window ended (mm): the finish's window ends there too."""
+    """The search's outcome."""
 
-    poses: list[NDArray[np.float64]]
-    end_mm: float = np.inf
+    poses: list[NDArray[np.float64]]  #: the finalist poses (26,), best first
+    end_mm: float = np.inf  #: where the search's depth window ended (mm): the finish's ends there too
 
 
 def on_hand_side(points: NDArray[np.float64], theta: NDArray[np.float64]) -> NDArray[np.bool_]:
@@ -88,16 +88,16 @@ def _balanced(ranked: list[tuple], n: int) -> list[tuple]:
 def _screened(
     model: HandModel, config: TrackerConfig, data: ImageSoG, starts: list, keeps: list[NDArray[np.bool_]], n: int
 ) -> set[int]:
-    """Indices of the ``n`` start poses per palm side that score best by the objective of their
-    part ``keeps[i]`` of ``data`` at the start pose (one batch per distinct part; the first on a tie)."""
+    """Indices of the ``n`` start poses per palm side best by the objective of their part
+    ``keeps[i]`` (n,) of ``data`` at the start (one batch per distinct part; the first on a tie)."""
     values = [-np.inf] * len(starts)
     groups: dict[bytes, list[int]] = {}
     for i, keep in enumerate(keeps):
         if keep.any():
             groups.setdefault(keep.tobytes(), []).append(i)
     for ks in groups.values():
-        obj = Objective(model, part(data, keeps[ks[0]]), config)
-        for i, value in zip(ks, obj.batch(np.array([starts[i] for i in ks]), gradient=False)[0].tolist()):
+        batch = _values(Objective(model, part(data, keeps[ks[0]]), config))(np.array([starts[i] for i in ks]))
+        for i, value in zip(ks, batch.tolist()):
             values[i] = value
     scored = [(value, -i, back_toward(x0)) for i, (x0, value) in enumerate(zip(starts, values))]
     chosen: set[int] = set()
@@ -135,7 +135,7 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
     rigid = np.zeros(starts[0].size, dtype=bool)
     rigid[:6] = True
 
-    def fitted(data: ImageSoG, poses: list, **kwargs: object) -> list[tuple[int, NDArray, object]]:
+    def fitted(data: ImageSoG, poses: list, **kwargs: object) -> list[tuple[int, NDArray, OptimizeResult]]:
         """(k, pose, fit) of each of ``poses`` with data on its hand side, fitted on its part."""
         keeps = [on_hand_side(data.points, x) for x in poses]
         ks = [k for k, keep in enumerate(keeps) if keep.any()]
@@ -173,9 +173,9 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
     if ranked[0][0] < eff.combination_below:
         # A poor best: maybe a hand found mid-motion.  The best combination of curled fingers at
         # the first two start poses (palm toward and away) competes by ``combination_margin``.
-        ranks = [k for k in range(2) if keeps[k].any()]
-        combos = [best_combination(starts[k], _values(Objective(model, part(coarse, keeps[k]), cfg))) for k in ranks]
-        tried = sorted(articulate(align([len(starts) + k for k in ranks], combos)), key=lambda s: s[:2], reverse=True)
+        ks = [k for k in range(2) if keeps[k].any()]
+        combos = [best_combination(starts[k], _values(Objective(model, part(coarse, keeps[k]), cfg))) for k in ks]
+        tried = sorted(articulate(align([len(starts) + k for k in ks], combos)), key=lambda s: s[:2], reverse=True)
         if tried and tried[0][0] >= ranked[0][0] + eff.combination_margin:
             ranked = sorted(ranked + tried, key=lambda s: s[:2], reverse=True)
     # The best of the other palm side joins the finalists when none of them has it: the search
