@@ -34,25 +34,16 @@ __all__ = [
 
 # The hand finder's constants, all chosen here (paper 000 has no initialisation, seed 001 starts
 # from a manual pose).
-#: Smallest blob accepted as a hand: area in mm^2 at its depth (a palm is ~ 6000).
-MIN_BLOB_AREA_MM2 = 2500.0
-#: Largest (mm^2 at its median depth, after the depth band's cut): beyond, a wall or a table.
-MAX_BLOB_AREA_MM2 = 150_000.0
+MIN_BLOB_AREA_MM2 = 2500.0  #: smallest blob accepted as a hand: mm^2 at its depth (a palm is ~ 6000)
+MAX_BLOB_AREA_MM2 = 150_000.0  #: largest (mm^2 at its median depth after the band's cut): else a wall or a table
 #: ... and a blob covering more than this share of the image fills the view: its area is only a
 #: lower bound (a wall under a focal length 10x too large measures a hand's, issue 50).
 MAX_VIEW_SHARE = 0.9
-#: A blob reaching this far (mm) beyond its thickest point, 1.4x farther than on the other side,
-#: holds a forearm there (palm centre to fingertips: about 135 mm).
-FOREARM_MIN_EXTENT_MM = 150.0
-#: A run along the image border narrower than this (mm) is a finger leaving the view, not a forearm.
-FOREARM_MIN_WIDTH_MM = 30.0
-#: Border runs this close (px) count as one: a missing pixel splits no forearm in two.
-BORDER_GAP_PX = 1
-#: Depth extent (mm) of a hand and wrist behind its nearest point: farther is arm or body.
-HAND_DEPTH_BAND_MM = 250.0
-#: Narrower bands (mm), tried in turn while the blob within the band is too large (a body close
-#: behind the hand) ...
-NARROW_BANDS_MM = (175.0, 120.0)
+FOREARM_MIN_EXTENT_MM = 150.0  #: reaching this far (mm) beyond the thickest point, 1.4x the other side: a forearm
+FOREARM_MIN_WIDTH_MM = 30.0  #: a border run narrower than this (mm) is a finger leaving the view, not a forearm
+BORDER_GAP_PX = 1  #: border runs this close (px) count as one: a missing pixel splits no forearm
+HAND_DEPTH_BAND_MM = 250.0  #: depth extent (mm) of a hand and wrist behind its nearest point: beyond, arm or body
+NARROW_BANDS_MM = (175.0, 120.0)  #: bands (mm) tried while the blob within is too large (a body close behind)
 #: ... and last, for a wall or a table 50-120 mm behind the hand, bands (mm) taken only when at
 #: most their share in ``SURFACE_GAP_SHARES`` of the pixels lie in the last ``SURFACE_GAP_MM``.
 SURFACE_BANDS_MM = (90.0, 60.0)
@@ -65,19 +56,11 @@ _BANDS: tuple[tuple[float, float | None, bool], ...] = (
     (NARROW_BANDS_MM[-1], SURFACE_GAP_SHARES[0], True),
     *((band, share, False) for band, share in zip(SURFACE_BANDS_MM, SURFACE_GAP_SHARES)),
 )
-#: A blob pixel is on a surface when its 3 x 3 window lies on the blob within this depth range
-#: (mm; flying pixels are not): :attr:`HandBlob.far_mm` is the farthest such pixel.
-SURFACE_RANGE_MM = 15.0
-#: The hand end's own axis is that of the blob's points less than this far (mm) behind the palm
-#: centre: hand, wrist and the start of the forearm.
-HAND_AXIS_BEHIND_PALM_MM = 60.0
-#: Invalid pixels in 4-connected groups up to this size (px) inside a blob are filled before the
-#: palm is searched (sensor dropouts leave no thick part; larger fills close gaps between fingers).
-MAX_HOLE_PX = 4
-#: A start direction toward the fingertip detections needs this many on the hand side ...
-DETECTION_DIRECTION_MIN_DETECTIONS = 3
-#: ... and must differ from each of the blob's directions by more than this (degrees).
-DETECTION_DIRECTION_MIN_DEG = 10.0
+SURFACE_RANGE_MM = 15.0  #: on a surface: a pixel whose 3 x 3 window lies on the blob within this depth range (mm)
+HAND_AXIS_BEHIND_PALM_MM = 60.0  #: the hand end's axis: of the blob's points at most this (mm) behind the palm
+MAX_HOLE_PX = 4  #: holes up to this size (px) are filled before the palm is searched (dropouts; not finger gaps)
+DETECTION_DIRECTION_MIN_DETECTIONS = 3  #: a start direction toward the detections needs this many ...
+DETECTION_DIRECTION_MIN_DEG = 10.0  #: ... and must differ from each of the blob's by more than this (degrees)
 
 
 @dataclass(frozen=True)
@@ -202,14 +185,10 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     vs, us = np.nonzero(blob)
     zs = depth[vs, us].astype(np.float64)
     pts = intr.backproject(np.stack([us, vs], 1).astype(np.float64), zs)
-    c = pts.mean(axis=0)
-    _, V = np.linalg.eigh(np.cov((pts - c).T))
-    axis = V[:, -1].copy()
-    axis[2] = 0.0
-    if np.linalg.norm(axis) < 1e-6:
+    axis = _principal(pts)
+    if axis is None:
         axis = np.array([0.0, -1.0, 0.0])
-    axis /= np.linalg.norm(axis)
-    t = (pts - c) @ axis
+    t = (pts - pts.mean(axis=0)) @ axis
     dist = cv2.distanceTransform(_without_holes(blob).astype(np.uint8), cv2.DIST_L2, 5)
     # The blob's extent on either side of its thickest point: fingers reach about a hand length
     # from the palm, a forearm much farther (and it usually leaves the image).
@@ -313,16 +292,24 @@ def _hand_axis(
     toward the fingers), of the points ``pts`` (n, 3) mm less than ``HAND_AXIS_BEHIND_PALM_MM``
     behind ``palm_surface``; None with too few.  (A forearm tilts the whole blob's axis.)"""
     hand = pts[(pts - palm_surface) @ main > -HAND_AXIS_BEHIND_PALM_MM]
-    if hand.shape[0] < 20:
+    axis = _principal(hand) if hand.shape[0] >= 20 else None
+    if axis is None:
         return None
-    _, V = np.linalg.eigh(np.cov((hand - hand.mean(axis=0)).T))
-    axis = V[:, -1].copy()
-    axis[2] = 0.0
-    norm = float(np.linalg.norm(axis))
-    if norm < 1e-6:
-        return None
-    axis /= norm
     return axis if float(axis @ main) >= 0.0 else -axis
+
+
+def _principal(pts: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """The in-plane principal direction (3,) of ``pts`` (n, 3) (:func:`_in_plane_unit`)."""
+    _, V = np.linalg.eigh(np.cov((pts - pts.mean(axis=0)).T))
+    return _in_plane_unit(V[:, -1])
+
+
+def _in_plane_unit(v: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """``v`` (3,) with z = 0, normalised; None when that is (nearly) zero."""
+    v = v.copy()
+    v[2] = 0.0
+    norm = float(np.linalg.norm(v))
+    return None if norm < 1e-6 else v / norm
 
 
 def detection_direction(blob: HandBlob, points: NDArray[np.float64]) -> NDArray[np.float64] | None:
@@ -331,14 +318,9 @@ def detection_direction(blob: HandBlob, points: NDArray[np.float64]) -> NDArray[
     fingertips point along the hand whatever the forearm does."""
     if points.shape[0] < DETECTION_DIRECTION_MIN_DETECTIONS:
         return None
-    toward = points.mean(axis=0) - blob.palm
-    toward[2] = 0.0
-    norm = float(np.linalg.norm(toward))
-    if norm < 1e-6:
-        return None
-    toward /= norm
+    toward = _in_plane_unit(points.mean(axis=0) - blob.palm)
     cos_min = np.cos(np.deg2rad(DETECTION_DIRECTION_MIN_DEG))
-    if any(float(toward @ d) > cos_min for d in blob.directions):
+    if toward is None or any(float(toward @ d) > cos_min for d in blob.directions):
         return None
     return toward
 

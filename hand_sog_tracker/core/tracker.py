@@ -59,40 +59,27 @@ __all__ = ["ALPHA", "ASSIGN_LAMBDA_MM", "Tracker", "before_surface", "coverage",
 
 # Module constants, not TrackerConfig fields (which become ROS parameters): none is meant to be
 # tuned per camera or user; all chosen here unless said.  The measurements: doc/design/search.md.
-#: Velocity extrapolation of the start pose (paper 000 sec. 5.3: alpha = 0.5).
-ALPHA = 0.5
-#: A tracked frame's steps start from the last frame's final ones x ``WARM_GROW``, within
-#: ``[WARM_MIN, 1]`` x the initial ones (settled parameters start small).
-WARM_GROW = 2.0
-WARM_MIN = 0.1
-#: A fit still climbing after ``iterations`` gets up to this many more while the last raised the
-#: objective by ``EXTRA_GAIN`` x |E(start)| (fast rotations outran 7 iterations).
-EXTRA_ITERATIONS = 3
-EXTRA_GAIN = 0.002
-#: Whether detections of fingers seen end-on pull fingertips (off: they only seed candidates).
-SALIENT_END_ON = False
+ALPHA = 0.5  #: velocity extrapolation of the start pose (paper 000 sec. 5.3: alpha = 0.5)
+WARM_GROW = 2.0  #: a tracked frame's steps start at the last frame's final ones x this ...
+WARM_MIN = 0.1  #: ... within [this, 1] x the initial ones (settled parameters start small)
+EXTRA_ITERATIONS = 3  #: a fit still climbing after ``iterations`` gets up to this many more ...
+EXTRA_GAIN = 0.002  #: ... while the last raised E by this x abs(E(start)) (fast rotations outran 7)
+SALIENT_END_ON = False  #: whether detections of fingers seen end-on pull tips (off: they seed candidates)
 #: A PIP flexed over this (rad) has the answer refined on the joint-Gaussian model (issue 11: the
 #: tracking model opens curled fingers into claws; refining only the answer keeps the track's).
 REFINE_CURL_RAD = math.radians(60.0)
-#: After a refined frame the refinement starts from the pose plus that frame's correction, its
-#: steps x this (issue 14: the correction changes little from frame to frame).
-REFINE_WARM_STEPS = 0.5
-#: The refinement weights the overlaps by visibility at the pose (a fist's hidden palm and tips).
-REFINE_VISIBILITY = True
-#: On the default model a new track's best ``SMALL_HAND_FINALISTS`` finalists are also fitted on
-#: the model scaled to this length, which wins by ``SMALL_HAND_GAIN`` of the score with open
-#: fingers (mean MCP + PIP under ``SMALL_HAND_MAX_FLEX`` rad: curled ones hide their length;
-#: issue 11: small hands started with their fingers one over).
+REFINE_WARM_STEPS = 0.5  #: steps x this from the frame before's correction (issue 14: it changes little)
+REFINE_VISIBILITY = True  #: the refinement weights overlaps by visibility (a fist's hidden palm and tips)
+#: A new track on the default model also fits its best ``SMALL_HAND_FINALISTS`` on the model of
+#: this length, which wins by ``SMALL_HAND_GAIN`` with open fingers (mean MCP + PIP under
+#: ``SMALL_HAND_MAX_FLEX`` rad; issue 11: small hands started with their fingers one over).
 SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
-#: A tracked frame whose hand check is below this (the gate's threshold) competes with a fresh
-#: start, which wins with a check ``FRESH_MARGIN`` higher (issue 46; chosen on scenes_dev) ...
-FRESH_BELOW = HAND_THRESHOLD
-FRESH_MARGIN = 0.1
-#: ... and its palm this far (mm, about half a palm's width) from the track's.
-FRESH_APART_MM = 40.0
+FRESH_BELOW = HAND_THRESHOLD  #: a tracked frame checked below this competes with a fresh start (issue 46) ...
+FRESH_MARGIN = 0.1  #: ... which wins with a check this much higher (chosen on scenes_dev) ...
+FRESH_APART_MM = 40.0  #: ... and its palm this far (mm, half a palm's width) from the track's
 _PALM_ROWS = [0, 5, 9, 13, 17]  #: wrist and finger MCPs among the skeleton's 21 points
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 #: What :meth:`Tracker._fresh_start` keeps of the track when the fresh start loses.

@@ -46,38 +46,26 @@ __all__ = [
     "Candidate", "Frame", "Proposal", "TRACK_PROPOSALS", "NEW_TRACK_PROPOSALS", "pull_target", "shifted", "swapped",
 ]
 
-#: A fingertip this far from all data (mm) hangs in empty space (seed 004's restarts); its
-#: candidates must win by ``DANGLING_MARGIN`` (without, they won wrongly on rotating hands).
-DANGLING_TIP_MM = 25.0
-DANGLING_MARGIN = 0.02
-#: Swap: a finger within 0.5 deg of its abduction limit toward a neighbour curled more by this
-#: much (MCP + PIP, rad), itself curled at most ``SWAP_MAX_CURL_RAD`` (rad; issue 11).
+DANGLING_TIP_MM = 25.0  #: a fingertip this far (mm) from all data hangs in empty space (seed 004's restarts)
+DANGLING_MARGIN = 0.02  #: ... and its candidates must win by this (without, they won wrongly on rotating hands)
+#: Swap: a finger within this of its abduction limit (rad) toward a neighbour curled
+#: ``SWAP_CURL_GAP_RAD`` more (MCP + PIP), itself curled at most ``SWAP_MAX_CURL_RAD`` (issue 11).
 SWAP_ABD_MARGIN_RAD = float(np.radians(0.5))
 SWAP_CURL_GAP_RAD = 0.8
 SWAP_MAX_CURL_RAD = 2.2
-#: Swaps and curls need the palm or the back toward the camera (|palm normal . view| at least
-#: this): seen from the side the score cannot tell neighbouring fingers apart.
-FACING_COS = 0.85
 SWAP_MARGIN = 0.02
-#: Curl: an open finger (MCP + PIP + DIP under this, rad) without a detection of its own.
-CURL_MAX_FLEX_RAD = 1.5
+#: Swaps and curls need |palm normal . view| at least this: from the side the score cannot tell
+#: neighbouring fingers apart.
+FACING_COS = 0.85
+CURL_MAX_FLEX_RAD = 1.5  #: curl: an open finger (MCP + PIP + DIP under this, rad) without a detection of its own
 CURL_MARGIN = 0.04
-#: A hand nearly edge-on (|palm normal . view| under this) overlaps its fingers in the image:
-#: a detection pull must then win by ``EDGE_ON_MARGIN`` (issue 11).
-EDGE_ON_PALM_COS = 0.6
-EDGE_ON_MARGIN = SWAP_MARGIN
-#: A detection within this (mm: a few frames' motion at 30 Hz) of one whose pulls lost on the
-#: frame before is the same one.
-SAME_DETECTION_MM = 10.0
-#: The salient weight of a detection pull: 20 x ``w_sal`` (at least 20).
-PULL_WEIGHT = 20.0
-#: A shift only the assignment calls for (no unexplained detection) must win by this (seen at
-#: an angle, fingers one place over score alike).
-SHIFT_MARGIN = 0.02
-#: A new track's lateral candidates move the hand this far across the palm (mm: about one
-#: finger's spacing) and must win by ``LATERAL_MARGIN`` (issue 11).
-LATERAL_MM = 15.0
-LATERAL_MARGIN = 0.01
+EDGE_ON_PALM_COS = 0.6  #: a hand this nearly edge-on (|palm normal . view| under) overlaps its fingers ...
+EDGE_ON_MARGIN = SWAP_MARGIN  #: ... and a detection pull must win by this (issue 11)
+SAME_DETECTION_MM = 10.0  #: within this (mm, a few frames' motion) of a detection whose pulls lost: the same
+PULL_WEIGHT = 20.0  #: the salient weight of a detection pull: this x ``w_sal`` (at least this)
+SHIFT_MARGIN = 0.02  #: a shift without an unexplained detection wins by this (at an angle fingers one over score alike)
+LATERAL_MM = 15.0  #: a new track's lateral candidates move the hand this far across the palm (mm: a finger's spacing)
+LATERAL_MARGIN = 0.01  #: ... and must win by this (issue 11)
 
 
 @dataclass(frozen=True, eq=False)

@@ -24,8 +24,7 @@ __all__ = [
     "tip_lambdas",
 ]
 
-#: Cost (mm) of a fingertip without a detection (seed 001's lambda, eq. 11, in mm; chosen here).
-ASSIGN_LAMBDA_MM = 30.0
+ASSIGN_LAMBDA_MM = 30.0  #: cost (mm) of a fingertip without a detection (seed 001's lambda, eq. 11)
 #: A tip curled against a palm facing the camera (normal within acos(``HIDDEN_PALM_COS``) of the
 #: view) costs less, down to ``HIDDEN_TIP_LAMBDA`` x lambda from PIP + DIP ``OPEN_TIP_RAD`` to
 #: ``CURLED_TIP_RAD`` (rad; issue 11: the detector cannot see such a tip).
@@ -33,15 +32,11 @@ HIDDEN_TIP_LAMBDA = 0.0
 HIDDEN_PALM_COS = 0.5
 OPEN_TIP_RAD = 1.0
 CURLED_TIP_RAD = 2.0
-#: A detection this far (mm, about the MCPs' spacing) from every fingertip, this confident, is a
-#: finger the model missed ...
-UNEXPLAINED_DETECTION_MM = 20.0
-UNEXPLAINED_CONFIDENCE = 0.5
-#: ... and a less confident one this far: no neighbour's partly seen tip (issue 11).
-FAR_UNEXPLAINED_MM = 40.0
-FAR_UNEXPLAINED_CONFIDENCE = 0.3
-#: A fingertip has a detection of its own when the optimal assignment gives it one this near (mm).
-OWN_DETECTION_MM = 10.0
+UNEXPLAINED_DETECTION_MM = 20.0  #: a detection this far (mm, the MCPs' spacing) from every fingertip ...
+UNEXPLAINED_CONFIDENCE = 0.5  #: ... this confident, is a finger the model missed ...
+FAR_UNEXPLAINED_MM = 40.0  #: ... and one this far ...
+FAR_UNEXPLAINED_CONFIDENCE = 0.3  #: ... this confident (no neighbour's partly seen tip; issue 11)
+OWN_DETECTION_MM = 10.0  #: a tip's own detection: the optimal assignment gives it one this near (mm)
 
 
 def sq_distances(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -42,11 +42,8 @@ __all__ = [
     "start_search",
 ]
 
-#: The search's depth window ends this far (mm) behind the blob's farthest surface pixel (depth
-#: noise at its edge): what lies farther was cut off as a body or a wall.
-BLOB_BEHIND_MM = 20.0
-#: Data farther than this (mm) beyond the wrist plane are forearm (the model has none).
-WRIST_MARGIN_MM = 0.0
+BLOB_BEHIND_MM = 20.0  #: the window ends this far (mm) behind the blob's farthest surface pixel (edge noise)
+WRIST_MARGIN_MM = 0.0  #: data farther than this (mm) beyond the wrist plane are forearm (the model has none)
 #: Most candidates of one stage: the rigid alignment of ``screened`` start poses per palm side
 #: and the two open hands of each of the two extra directions.
 NEW_TRACK_CANDIDATES = 2 * INIT_SEARCH.screened + 4
