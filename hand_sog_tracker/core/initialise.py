@@ -212,9 +212,7 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     dvals = dist[vs, us] * hand_end
     k = int(np.argmax(dvals))
     near = (np.abs(us - us[k]) <= 3) & (np.abs(vs - vs[k]) <= 3)
-    palm_surface = intr.backproject(
-        np.array([[us[k], vs[k]]], dtype=np.float64), np.array([np.median(zs[near])])
-    )[0]
+    palm_surface = intr.backproject(np.array([[us[k], vs[k]]], dtype=np.float64), np.array([np.median(zs[near])]))[0]
     palm = palm_surface + np.array([0.0, 0.0, 12.0])  # bones lie behind the skin
     hand_direction = _hand_axis(pts, palm_surface, main) if sign != 0.0 else None
     if hand_direction is not None and float(hand_direction @ main) > np.cos(np.deg2rad(DETECTION_DIRECTION_MIN_DEG)):
@@ -239,11 +237,7 @@ def _surface_far(depth: NDArray[np.float32], blob: NDArray[np.bool_]) -> float:
 
 
 def _forearm_side(
-    blob: NDArray[np.bool_],
-    depth: NDArray[np.float32],
-    intr: Intrinsics,
-    vs: NDArray[np.int64],
-    us: NDArray[np.int64],
+    blob: NDArray[np.bool_], depth: NDArray[np.float32], intr: Intrinsics, vs: NDArray[np.int64], us: NDArray[np.int64],
     t: NDArray[np.float64],
 ) -> float | None:
     """Where the blob leaves the image along its axis (``t``: mm along it per blob pixel ``vs,
