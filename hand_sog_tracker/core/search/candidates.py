@@ -43,7 +43,8 @@ from hand_sog_tracker.core.search.score import (
 )
 
 __all__ = [
-    "Candidate", "Frame", "Proposal", "TRACK_PROPOSALS", "NEW_TRACK_PROPOSALS", "pull_target", "shifted", "swapped",
+    "Candidate", "Frame", "Proposal", "TRACK_PROPOSALS", "NEW_TRACK_PROPOSALS", "pull_objective", "pull_target",
+    "shifted", "swapped",
 ]
 
 DANGLING_TIP_MM = 25.0  #: a fingertip this far (mm) from all data hangs in empty space (seed 004's restarts)
@@ -94,13 +95,13 @@ class Frame:
 @dataclass(frozen=True, eq=False)
 class Candidate:
     """One start pose of the search: ``proposal`` (its name), ``x0`` (26,), the ``margin`` it must
-    beat the fit's score by and, optionally, a ``pull`` objective (a detection pulling a finger)
-    it is first fitted on with only its ``active`` (26,) parameters free."""
+    beat the fit's score by and, optionally, the fingertip targets it is first ``pull``-ed onto
+    (:func:`pull_objective`) with only its ``active`` (26,) parameters free."""
 
     proposal: str
     x0: NDArray[np.float64]
     margin: float = 0.0
-    pull: Objective | None = None
+    pull: TipTargets | None = None
     active: NDArray[np.bool_] | None = None
 
 
@@ -247,6 +248,11 @@ def _joint_targets(model: HandModel, theta: NDArray[np.float64], det: Detections
     return TipTargets(points, weights)
 
 
+def pull_objective(obj: Objective) -> Objective:
+    """The frame's objective ``obj`` with the salient weight of a pull (``PULL_WEIGHT``), no targets."""
+    return obj.variant(replace(obj.config, w_sal=max(obj.config.w_sal, 1.0) * PULL_WEIGHT), None)
+
+
 def pull_target(f: Frame) -> int | None:
     """The detection the detection proposal pulls fingers onto, or None: the most confident one no
     fingertip explains, unless its pulls lost on the frame before where it still is (within
@@ -265,9 +271,7 @@ def DETECTION(f: Frame) -> Iterator[Candidate]:
     if s is None:
         return
     dist = np.linalg.norm(det.points[s] - fingertips(f.model, x), axis=1)
-    cfg = f.obj.config
     margin = EDGE_ON_MARGIN if _view_cos(x) < EDGE_ON_PALM_COS else 0.0
-    strong = replace(cfg, w_sal=max(cfg.w_sal, 1.0) * PULL_WEIGHT)
     for c in np.argsort(dist)[:2]:
         c = int(c)
         pts, w = np.zeros((5, 3)), np.zeros(5)
@@ -276,8 +280,8 @@ def DETECTION(f: Frame) -> Iterator[Candidate]:
         finger[chain_slice(c)] = True
         # The finger alone pulled onto it, and the whole pose with every other fingertip
         # pulled onto its own detection (a model finger on its neighbour's data moves back).
-        yield Candidate("detection", x, margin, f.obj.variant(strong, TipTargets(pts, w)), finger)
-        yield Candidate("detection", x, margin, f.obj.variant(strong, _joint_targets(f.model, x, det, c, s)))
+        yield Candidate("detection", x, margin, TipTargets(pts, w), finger)
+        yield Candidate("detection", x, margin, _joint_targets(f.model, x, det, c, s))
         if det.end_on[s] and c > 0:  # a finger seen end-on is curled toward the camera
             yield Candidate("detection", _with_chain(x, c, FINGER_CURLED), margin)
 

@@ -11,7 +11,7 @@ from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS, ImageSoG
 from hand_sog_tracker.core.hand_model import N_PARAMS
 from hand_sog_tracker.core.objective import Objective, TipTargets
 from hand_sog_tracker.core.optimizer import OptimizeResult, maximise_batch
-from hand_sog_tracker.core.search.candidates import Candidate, Frame, Proposal
+from hand_sog_tracker.core.search.candidates import Candidate, Frame, Proposal, pull_objective
 
 __all__ = ["MAX_BATCH", "SEARCH_ITERATIONS", "batch_size", "fit_batch", "fit_parts", "part", "search", "with_targets"]
 
@@ -103,7 +103,7 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
     candidates = [c for p in proposals for c in p.generate(frame)]
     if not candidates:
         return frame.fit, None
-    starts = _pulled(candidates, frame.limits)
+    starts = _pulled(candidates, frame.obj, frame.limits)
     base = frame.score(frame.fit.x, _plain_value(frame))
     floor = base + np.array([c.margin for c in candidates])
     fits = fit_batch(
@@ -125,36 +125,20 @@ def _plain_value(frame: Frame) -> float:
     return frame.fit.fun + frame.obj.config.w_sal * frame.obj.salient(frame.fit.x)
 
 
-def _pulled(candidates: Sequence[Candidate], limits: tuple[NDArray[np.float64], NDArray[np.float64]]) -> NDArray:
-    """The candidates' start poses (B, 26), a pulled one's after ``SEARCH_ITERATIONS`` on its
-    pull with its ``active`` parameters.  Pulls that differ only in their targets are fitted as
-    one batch on the first, each with its own targets (the same iterates as one by one)."""
+def _pulled(
+    candidates: Sequence[Candidate], obj: Objective, limits: tuple[NDArray[np.float64], NDArray[np.float64]]
+) -> NDArray[np.float64]:
+    """The candidates' start poses (B, 26), a pulled one's after ``SEARCH_ITERATIONS`` on the
+    frame's :func:`pull_objective` of ``obj`` with its own targets and ``active`` parameters (all
+    pulls as one batch: the same iterates as one by one)."""
     starts = np.array([c.x0 for c in candidates])
-    groups: dict[int, list[int]] = {}
-    for i, c in enumerate(candidates):
-        if c.pull is not None:
-            key = next((k for k in groups if _same_pull(candidates[k].pull, c.pull)), i)
-            groups.setdefault(key, []).append(i)
-    for key, ks in groups.items():
-        shared = candidates[key].pull
-        assert shared is not None
-        active = np.ones((len(ks), N_PARAMS), dtype=bool)
-        for row, i in enumerate(ks):
-            if candidates[i].active is not None:
-                active[row] = candidates[i].active
+    ks = [i for i, c in enumerate(candidates) if c.pull is not None]
+    if ks:
+        pull, rows = pull_objective(obj), [candidates[i] for i in ks]
+        active = np.array([np.ones(N_PARAMS, bool) if c.active is None else c.active for c in rows])
         fits = fit_batch(
-            with_targets(shared, [candidates[i].pull.targets for i in ks]),  # type: ignore[union-attr]
-            starts[ks], shared.data.n, iterations=SEARCH_ITERATIONS, active=active, bounds=limits,
-            with_index=True,
+            with_targets(pull, [c.pull for c in rows]), starts[ks], pull.data.n, iterations=SEARCH_ITERATIONS,
+            active=active, bounds=limits, with_index=True,
         )
-        for i, res in zip(ks, fits):
-            starts[i] = res.x
+        starts[ks] = [r.x for r in fits]
     return starts
-
-
-def _same_pull(a: Objective | None, b: Objective) -> bool:
-    """Whether the pull objectives ``a`` and ``b`` differ at most in their targets."""
-    return a is not None and (
-        a.model is b.model and a.data is b.data and a.config == b.config and a.previous is b.previous
-        and a.silhouette is b.silhouette and a.contact is b.contact and a.visible_from is b.visible_from
-    )
