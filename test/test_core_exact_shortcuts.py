@@ -138,7 +138,7 @@ def test_deferred_gradient_is_the_gradient_bit_for_bit_and_only_until_the_next_e
     # (data, dangling, collisions, salient targets, silhouette off the hand, limits, order).
     frame, pre, model, roi, window = _first_frame("fistopen", 4)
     tracker = Tracker(TrackerConfig())
-    data, det, sil = tracker._data_near(pre, frame.pose, detect=True)
+    data, det, sil = tracker._data_near(pre, frame.pose)
     assert det.n > 0 and sil is not None
     obj = Objective(
         model, data, tracker.config, previous=(frame.pose, frame.pose),

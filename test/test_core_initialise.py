@@ -25,7 +25,8 @@ from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
 from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.search import SEARCH_ITERATIONS as RESTART_ITERATIONS
 from hand_sog_tracker.core.search import start as start_module
-from hand_sog_tracker.core.search.start import _balanced, _screened, hand_side
+from hand_sog_tracker.core.search.fit import part
+from hand_sog_tracker.core.search.start import _balanced, _screened, on_hand_side
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig, TrackerStatus
 from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequence
@@ -82,9 +83,9 @@ def test_the_start_poses_aligned_are_the_best_at_their_start_on_each_palm_side(f
     starts = initial_hypotheses(tracker.model, blob, config.init_hypotheses)
     roi, window = hand_roi(tracker.model, starts[0], INTR, config.roi_radius_mm)
     data = quadtree_sog(pre, config.quadtree_threshold_mm, roi, window, INIT_SEARCH.coarse_quad_px)
-    parts = [hand_side(data, x) for x in starts]
-    chosen = _screened(tracker.model, config, starts, parts, 2)
-    value = [Objective(tracker.model, part, config)(x, gradient=False)[0] for x, part in zip(starts, parts)]
+    keeps = [on_hand_side(data.points, x) for x in starts]
+    chosen = _screened(tracker.model, config, data, starts, keeps, 2)
+    value = [Objective(tracker.model, part(data, k), config)(x, gradient=False)[0] for x, k in zip(starts, keeps)]
     palm = [bool(global_rotation(x)[2, 2] > 0) for x in starts]
     for side in (True, False):
         mine = [i for i in range(len(starts)) if palm[i] == side]

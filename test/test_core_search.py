@@ -133,11 +133,12 @@ def test_a_frames_pulls_fitted_as_one_batch_are_the_pulls_fitted_one_by_one() ->
             active = np.zeros(theta.size, dtype=bool)
             active[chain_slice(1 + k % 4)] = True
         x0 = theta + rng.normal(0.0, 0.02, theta.size)
-        candidates.append(Candidate("detection", x0, 0.0, obj.variant(strong, TipTargets(points, weights)), active))
-    starts = fit_module._pulled(candidates, limits)
+        candidates.append(Candidate("detection", x0, 0.0, TipTargets(points, weights), active))
+    starts = fit_module._pulled(candidates, obj, limits)
     assert starts[0].tobytes() == candidates[0].x0.tobytes()
     for c, x in zip(candidates[1:], starts[1:]):
-        alone = maximise(c.pull, c.x0, iterations=fit_module.SEARCH_ITERATIONS, active=c.active, bounds=limits).x
+        pull = obj.variant(strong, c.pull)
+        alone = maximise(pull, c.x0, iterations=fit_module.SEARCH_ITERATIONS, active=c.active, bounds=limits).x
         assert x.tobytes() == alone.tobytes() and np.abs(x - c.x0).max() > 1e-3
 
 

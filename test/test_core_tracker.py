@@ -420,7 +420,7 @@ def _fit_wrong(
     frame's own fit from ``wrong`` (7 iterations: it stays wrong), its data and detections."""
     intr = default_intrinsics()
     pre = preprocess(render_depth(default_hand_model(), truth, intr, RenderOptions()), intr, tracker.config)
-    data, det, sil = tracker._data_near(pre, wrong, detect=True)
+    data, det, sil = tracker._data_near(pre, wrong)
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(wrong, det), silhouette=sil)
     return obj, tracker._maximise(obj, wrong, iterations=7), data, det
 
@@ -448,7 +448,7 @@ def test_no_shift_is_proposed_when_every_fingertip_is_seen_at_its_finger() -> No
     truth = frame.pose
     tracker = Tracker(TrackerConfig())
     pre = preprocess(frame.depth_mm, intr, tracker.config)
-    data, det, sil = tracker._data_near(pre, truth, detect=True)
+    data, det, sil = tracker._data_near(pre, truth)
     assert det.n >= 5
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(truth, det), silhouette=sil)
     res = tracker._maximise(obj, truth, iterations=7)
@@ -571,7 +571,7 @@ def test_an_open_finger_on_its_neighbours_data_is_curled_into_the_palm() -> None
     wrong = truth.copy()
     wrong[chain_slice(3)] = (0.0, -0.1, 0.3, 0.0)  # the ring finger open, toward the middle finger
     pre = preprocess(depth, intr, tracker.config)
-    data, det, sil = tracker._data_near(pre, wrong, detect=True)
+    data, det, sil = tracker._data_near(pre, wrong)
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(wrong, det), silhouette=sil)
     res = tracker._maximise(obj, wrong, iterations=21)
     err_wrong = np.linalg.norm(fingertips(tracker.model, res.x) - true_tips, axis=1)
@@ -619,7 +619,7 @@ def _fist_data(tracker: Tracker) -> tuple[NDArray[np.float64], ImageSoG, Detecti
     for c in range(1, 5):
         truth[chain_slice(c)] = np.radians(FIST_FINGER_DEG)
     pre = preprocess(render_depth(tracker.model, truth, intr, RenderOptions()), intr, tracker.config)
-    return (truth, *tracker._data_near(pre, truth, detect=True))
+    return (truth, *tracker._data_near(pre, truth))
 
 
 def _fist_frame(tracker: Tracker) -> tuple[NDArray[np.float64], Objective]:

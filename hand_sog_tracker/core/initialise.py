@@ -1,15 +1,14 @@
 """Automatic initialisation: find the hand in a depth image and propose start poses.
 
-No rest pose is required.  The nearest sizeable blob of in-range depth is taken as hand (plus
-forearm), less what lies more than :data:`HAND_DEPTH_BAND_MM` behind its nearest points (an arm
-joins hand and body in one surface).  Its 3D principal axis gives the arm direction; the end of
-the blob that leaves the image in a run as wide as a forearm is the forearm, so the hand lies at
-the other end; else a side reaching far beyond the palm is the forearm (when both ends leave the
-image, or nothing decides, both directions are tried).  Start poses combine palm toward / away
-from the camera, open / closed hand and in-plane rotations; open hands along the hand end's own
-axis (:attr:`HandBlob.hand_direction`) and toward the fingertip detections
-(:func:`detection_direction`) are tried besides (a wrist bent sideways turns hand and forearm
-apart).  The search over them is :func:`hand_sog_tracker.core.search.start.start_search`.
+No rest pose is required.  The nearest sizeable blob of in-range depth is the hand (plus
+forearm), less what lies too far behind its nearest points (an arm joins hand and body in one
+surface).  Its principal axis gives the arm direction; the end that leaves the image as wide as a
+forearm, else the side reaching far beyond the palm, is the forearm (undecided: both directions
+are tried).  Start poses combine palm toward / away from the camera, open / closed hand and
+in-plane rotations, plus open hands along the hand end's own axis and toward the fingertip
+detections (a wrist bent sideways turns hand and forearm apart).  The search over them is
+:func:`hand_sog_tracker.core.search.start.start_search`; the measurements behind the constants:
+``doc/design/search.md``.
 """
 
 from __future__ import annotations
@@ -28,118 +27,57 @@ from hand_sog_tracker.core.rotations import euler_from_matrix, rot_y  # euler_fr
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
 
 __all__ = [
-    "HandBlob",
-    "InitSearch",
-    "INIT_SEARCH",
-    "DETECTION_DIRECTION_MIN_DETECTIONS",
-    "DETECTION_DIRECTION_MIN_DEG",
-    "HAND_AXIS_BEHIND_PALM_MM",
-    "MAX_VIEW_SHARE",
-    "detection_direction",
-    "find_hand",
-    "finger_combinations",
-    "best_combination",
-    "initial_hypotheses",
-    "euler_from_matrix",
+    "HandBlob", "InitSearch", "INIT_SEARCH", "DETECTION_DIRECTION_MIN_DETECTIONS", "DETECTION_DIRECTION_MIN_DEG",
+    "HAND_AXIS_BEHIND_PALM_MM", "MAX_VIEW_SHARE", "detection_direction", "find_hand", "finger_combinations",
+    "best_combination", "initial_hypotheses", "euler_from_matrix",
 ]
 
-# Constants of the hand finder (not in the papers: paper 000 describes no initialisation, seed
-# 001 starts from a manual pose); all chosen here, the reason beside each.
-#: Smallest blob accepted as a hand: area in mm^2 at its depth (a palm is ~ 6000).
-MIN_BLOB_AREA_MM2 = 2500.0
-#: Largest: a blob larger than this (mm^2 at its median depth, after the cut at
-#: :data:`HAND_DEPTH_BAND_MM`) is a wall or a table, not a hand (hand and forearm measure
-#: 16,000-20,000 mm^2 in the RealSense frames and 38,000 in the NYU Kinect frame; a wall
-#: filling the view at 0.9 m, 750,000). (measurements: doc/design/search.md)
-MAX_BLOB_AREA_MM2 = 150_000.0
-#: ... and a blob covering more than this share of the image's pixels fills the view: its
-#: outline lies outside it, so its area in mm^2 is a lower bound, and under a focal length many
-#: times too large a wall's is a hand's (fx 10x: a wall at 0.9 m measures 7,500 mm^2; issue 50).
-#: A hand leaves the view free between and around its fingers (dev scenes: at most 0.51, the
-#: labelled real frames 0.07-0.12; chosen here, measurements: doc/design/bounded_input.md).
+# The hand finder's constants, all chosen here (paper 000 has no initialisation, seed 001 starts
+# from a manual pose).
+MIN_BLOB_AREA_MM2 = 2500.0  #: smallest blob accepted as a hand: mm^2 at its depth (a palm is ~ 6000)
+MAX_BLOB_AREA_MM2 = 150_000.0  #: largest (mm^2 at its median depth after the band's cut): else a wall or a table
+#: ... and a blob covering more than this share of the image fills the view: its area is only a
+#: lower bound (a wall under a focal length 10x too large measures a hand's, issue 50).
 MAX_VIEW_SHARE = 0.9
-#: A blob reaching this far beyond its thickest point (and 1.4x farther than
-#: on the other side) is taken to hold a forearm on that side (mm; a hand reaches about 135
-#: mm from its palm centre to the fingertips).
-FOREARM_MIN_EXTENT_MM = 150.0
-#: A run of blob pixels along the image border narrower than this (mm at its depth) is a finger
-#: leaving the view, not a forearm (a finger is 15-22 mm wide, a wrist or forearm 45-70 mm).
-FOREARM_MIN_WIDTH_MM = 30.0
-#: Runs along the border this close (px) count as one: a column of missing pixels splits no
-#: forearm in two (and fingers a pixel apart count as one run: as fingers pressed together).
-BORDER_GAP_PX = 1
-#: Depth extent (mm) of a hand (plus wrist) behind its nearest point: what lies farther behind
-#: is cut off as arm or body (commit ea81b12).
-HAND_DEPTH_BAND_MM = 250.0
-#: Narrower depth bands tried, in turn, while the part of a blob within the band is larger than
-#: :data:`MAX_BLOB_AREA_MM2` (mm): a body 150-250 mm behind the hand (held in front of the chest)
-#: is then cut off; a wall stays too large in every band.
-NARROW_BANDS_MM = (175.0, 120.0)
-#: Narrower bands still (mm), tried last, for a wall or a table top 50-120 mm behind the hand:
-#: the part within one is taken only when at most its share in :data:`SURFACE_GAP_SHARES` of
-#: its pixels lie in the band's last :data:`SURFACE_GAP_MM` (a wall's slice fills it; chosen
-#: here, measurements: doc/design/search.md).
+FOREARM_MIN_EXTENT_MM = 150.0  #: reaching this far (mm) beyond the thickest point, 1.4x the other side: a forearm
+FOREARM_MIN_WIDTH_MM = 30.0  #: a border run narrower than this (mm) is a finger leaving the view, not a forearm
+BORDER_GAP_PX = 1  #: border runs this close (px) count as one: a missing pixel splits no forearm
+HAND_DEPTH_BAND_MM = 250.0  #: depth extent (mm) of a hand and wrist behind its nearest point: beyond, arm or body
+NARROW_BANDS_MM = (175.0, 120.0)  #: bands (mm) tried while the blob within is too large (a body close behind)
+#: ... and last, for a wall or a table 50-120 mm behind the hand, bands (mm) taken only when at
+#: most their share in ``SURFACE_GAP_SHARES`` of the pixels lie in the last ``SURFACE_GAP_MM``.
 SURFACE_BANDS_MM = (90.0, 60.0)
 SURFACE_GAP_MM = 15.0
 SURFACE_GAP_SHARES = (0.05, 0.12)
-#: The bands :func:`_nearest_blob` tries in turn: (band mm, gap share or None for no gap test,
-#: whether a part that fails the gap test is still taken when no narrower band passes).
-#: (measurements: doc/design/search.md)
+#: The bands :func:`_nearest_blob` tries: (band mm, gap share or None, whether a part failing the
+#: gap test is still taken when no narrower band passes).
 _BANDS: tuple[tuple[float, float | None, bool], ...] = (
     *((band, None, False) for band in (HAND_DEPTH_BAND_MM, *NARROW_BANDS_MM[:-1])),
     (NARROW_BANDS_MM[-1], SURFACE_GAP_SHARES[0], True),
     *((band, share, False) for band, share in zip(SURFACE_BANDS_MM, SURFACE_GAP_SHARES)),
 )
-#: A blob pixel is on a surface when it and its 8 neighbours all belong to the blob and lie
-#: within this depth range (mm): :attr:`HandBlob.far_mm` is the farthest such pixel.
-#: (measurements: doc/design/search.md)
-SURFACE_RANGE_MM = 15.0
-#: The hand end's own axis (:attr:`HandBlob.hand_direction`) is the principal direction of the
-#: blob's points less than this far behind the palm centre along the blob's axis: hand, wrist
-#: and the start of the forearm (mm; chosen here, issue 11, on the labelled real frames).
-HAND_AXIS_BEHIND_PALM_MM = 60.0
+SURFACE_RANGE_MM = 15.0  #: on a surface: a pixel whose 3 x 3 window lies on the blob within this depth range (mm)
+HAND_AXIS_BEHIND_PALM_MM = 60.0  #: the hand end's axis: of the blob's points at most this (mm) behind the palm
+MAX_HOLE_PX = 4  #: holes up to this size (px) are filled before the palm is searched (dropouts; not finger gaps)
+DETECTION_DIRECTION_MIN_DETECTIONS = 3  #: a start direction toward the detections needs this many ...
+DETECTION_DIRECTION_MIN_DEG = 10.0  #: ... and must differ from each of the blob's by more than this (degrees)
 
 
 @dataclass(frozen=True)
 class InitSearch:
-    """Effort of a new track's search (counts; chosen here, issues 11 and 14, against the dev
-    bags and the labelled real frames; measurements: doc/design/search.md).
+    """Effort of a new track's search (counts and score thresholds; chosen here, issues 11 and 14)."""
 
-    Attributes
-    ----------
-    coarse_quad_px : int
-        Smallest quadtree leaf (px) of the data the start poses are aligned to.
-    screened : int
-        Start poses of the blob's directions aligned per palm side: the best by the objective
-        at the start pose itself (those along the hand end's axis and the detections always).
-    rigid_iterations : int
-        Rigid (wrist pose only) iterations of every start pose on the coarse data.
-    kept : int
-        Start poses articulated after the rigid alignment, the best by objective, half per palm
-        side (the rigid fit alone favours the back of the hand).
-    full_iterations : int
-        Iterations (all parameters) of each kept pose on the full-resolution data.
-    finalists : int
-        Best-scoring poses refined with the full objective (plus the best of the other palm side
-        when none of them has it).
-    final_iterations : int
-        Iterations of each finalist with the full objective.
-    combination_below : float
-        Single fingers curled (:func:`finger_combinations`) are tried when the best pose scores
-        below this (the search's score, unitless: the first frames of open hands score 0.36-0.5).
-    combination_margin : float
-        ... and compete when their best beats the others by this much (unitless).
-    """
-
-    coarse_quad_px: int = 8
+    coarse_quad_px: int = 8  #: smallest quadtree leaf (px) of the coarse data the start poses are aligned on
+    #: start poses of the blob's directions aligned per palm side, the best by the objective at the
+    #: start (those along the hand end's axis and toward the detections always)
     screened: int = 4
-    rigid_iterations: int = 3
-    kept: int = 4
-    full_iterations: int = 8
-    finalists: int = 2
-    final_iterations: int = 10
-    combination_below: float = 0.36
-    combination_margin: float = 0.045
+    rigid_iterations: int = 3  #: rigid (wrist pose only) iterations of every start pose on the coarse data
+    kept: int = 4  #: poses articulated after the rigid alignment, the best, half per palm side
+    full_iterations: int = 8  #: iterations (all parameters) of each kept pose on the fine data
+    finalists: int = 2  #: best-scoring poses refined with the full objective (+ the other palm side's best)
+    final_iterations: int = 10  #: iterations of each finalist with the full objective
+    combination_below: float = 0.36  #: single fingers curled are tried when the best score is below this
+    combination_margin: float = 0.045  #: ... and compete when their best beats the others by this much
 
 
 #: The effort the tracker uses.
@@ -148,43 +86,21 @@ INIT_SEARCH = InitSearch()
 
 @dataclass(frozen=True, eq=False)
 class HandBlob:
-    """A hand candidate in the depth image (mm, camera frame).
+    """A hand candidate in the depth image (mm, camera frame)."""
 
-    Attributes
-    ----------
-    palm : array, shape (3,)
-        Estimated centre of the palm's bones (behind the visible surface).
-    directions : list of arrays, shape (3,)
-        Candidate unit vectors from the wrist toward the fingers, most likely first.
-    hand_direction : array, shape (3,), or None
-        The in-plane principal direction of the hand end alone (see
-        :data:`HAND_AXIS_BEHIND_PALM_MM`), toward the fingers, when a forearm was recognised and
-        it lies more than :data:`DETECTION_DIRECTION_MIN_DEG` from ``directions[0]`` (a wrist
-        bent sideways: the blob's axis, of hand and forearm, lies between the two); else None.
-        With it, ``directions`` leaves out the blob's most turned directions.
-    far_mm : float
-        Depth of the blob's farthest pixel on a surface (mm, see :data:`SURFACE_RANGE_MM`; what
-        lies farther behind was cut off as a body or a surface, see :data:`HAND_DEPTH_BAND_MM`),
-        inf when not known.
-    """
-
-    palm: NDArray[np.float64]
-    directions: list[NDArray[np.float64]]
+    palm: NDArray[np.float64]  #: (3,) the centre of the palm's bones (behind the visible surface)
+    directions: list[NDArray[np.float64]]  #: unit vectors (3,) from the wrist toward the fingers, likeliest first
+    #: (3,) the in-plane principal direction of the hand end alone, toward the fingers, when a forearm
+    #: was recognised and it lies ``DETECTION_DIRECTION_MIN_DEG`` off ``directions[0]`` (which then
+    #: leaves out the most turned ones); else None
     hand_direction: NDArray[np.float64] | None = None
-    far_mm: float = np.inf
+    far_mm: float = np.inf  #: depth (mm) of the farthest pixel on a surface (``SURFACE_RANGE_MM``), inf: unknown
 
 
 def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
-    """The nearest blob of valid depth that can be a hand (plus forearm), or None.
-
-    Blobs (8-connected valid pixels) are taken nearest first (median depth); a blob must
-    measure at least :data:`MIN_BLOB_AREA_MM2`, and at most :data:`MAX_BLOB_AREA_MM2` and
-    :data:`MAX_VIEW_SHARE` of the image after
-    the cut at :data:`HAND_DEPTH_BAND_MM` behind its nearest points (or a narrower band of
-    :data:`NARROW_BANDS_MM`, or of :data:`SURFACE_BANDS_MM` whose last millimetres are nearly
-    empty; the narrowest of :data:`NARROW_BANDS_MM` only when they are, or when no narrower
-    band passes: see :data:`_BANDS`).
-    """
+    """The nearest blob of valid depth (8-connected, by median depth) that can be a hand (plus
+    forearm): at least ``MIN_BLOB_AREA_MM2``, and within ``MAX_BLOB_AREA_MM2`` and
+    ``MAX_VIEW_SHARE`` after the cut at the first of :data:`_BANDS` that passes; or None."""
     depth = pre.depth_mm
     mask = (depth > 0).astype(np.uint8)
     if not mask.any():
@@ -196,8 +112,7 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
         area_px = stats[lab, cv2.CC_STAT_AREA]
         if area_px < 20:
             continue
-        # (Its depths inside its bounding box: the same values, without a full-image pass.)
-        x, y, bw, bh = stats[lab, :4]
+        x, y, bw, bh = stats[lab, :4]  # (its depths inside its bounding box: no full-image pass)
         box = (slice(y, y + bh), slice(x, x + bw))
         z = float(np.median(depth[box][labels[box] == lab]))
         if _area_mm2(area_px, z, intr) >= MIN_BLOB_AREA_MM2:
@@ -212,9 +127,7 @@ def _nearest_blob(pre: Preprocessed) -> NDArray[np.bool_] | None:
             if z.size > MAX_VIEW_SHARE * depth.size or _area_mm2(z.size, float(np.median(z)), intr) > MAX_BLOB_AREA_MM2:
                 continue
             if share is not None and np.count_nonzero(z > near + band_mm - SURFACE_GAP_MM) > share * z.size:
-                # (a slice of a surface, not a hand in front of one; or, kept, a hand with a
-                # surface's fringe)
-                if keep and last_resort is None:
+                if keep and last_resort is None:  # (a surface's slice; kept: a hand with its fringe)
                     last_resort = blob
                 continue
             return blob
@@ -229,18 +142,10 @@ def _area_mm2(n_px: int, z_mm: float, intr: Intrinsics) -> float:
 
 
 def _hand_part(
-    depth: NDArray[np.float32],
-    blob: NDArray[np.bool_],
-    intr: Intrinsics,
-    band_mm: float = HAND_DEPTH_BAND_MM,
-    near: float | None = None,
+    depth: NDArray[np.float32], blob: NDArray[np.bool_], intr: Intrinsics, band_mm: float, near: float
 ) -> NDArray[np.bool_]:
-    """An arm reaching toward the camera joins hand and body in one surface: the largest part
-    of ``blob`` within a hand's depth extent (``band_mm``) of its nearest points (``near``, mm:
-    the 2nd percentile of its depths unless given), if that is large enough for a hand; else
-    ``blob``."""
-    if near is None:
-        near = float(np.percentile(depth[blob], 2))
+    """The largest part of ``blob`` within ``band_mm`` behind its nearest points (``near``, mm)
+    if that is large enough for a hand, else ``blob`` (an arm joins hand and body in one surface)."""
     band = (blob & (depth <= near + band_mm)).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(band, connectivity=8)
     if n <= 1:
@@ -256,15 +161,8 @@ def _in_plane(direction: NDArray[np.float64], angle: float) -> NDArray[np.float6
     return d / np.linalg.norm(d)
 
 
-#: Invalid pixels inside a blob in 4-connected groups up to this size (px) are filled before
-#: the palm is searched: a blob riddled with sensor dropouts has no thick part (chosen here;
-#: larger fills close the gaps between fingers; measurements: doc/design/search.md).
-MAX_HOLE_PX = 4
-
-
 def _without_holes(blob: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """``blob`` (H, W) with its small holes (:data:`MAX_HOLE_PX`, not touching the image border)
-    filled."""
+    """``blob`` (H, W) with its holes of up to ``MAX_HOLE_PX`` (off the image border) filled."""
     n, labels, stats, _ = cv2.connectedComponentsWithStats((~blob).astype(np.uint8), connectivity=4)
     h, w = blob.shape
     x, y, bw, bh, area = (stats[:, k] for k in range(5))
@@ -274,11 +172,10 @@ def _without_holes(blob: NDArray[np.bool_]) -> NDArray[np.bool_]:
 
 
 def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
-    """Locate the nearest sizeable depth blob, its palm and candidate hand directions.
+    """The nearest sizeable depth blob, its palm and candidate hand directions, or None.
 
-    The palm centre is the point of the blob farthest from its outline
-    (distance-transform maximum, small holes filled), searched at the hand end when a forearm is
-    recognised.  Returns None when nothing in range is large enough to be a hand.
+    The palm centre is the point of the blob farthest from its outline (distance-transform
+    maximum, small holes filled), at the hand end when a forearm is recognised.
     """
     blob = _nearest_blob(pre)
     if blob is None:
@@ -288,18 +185,13 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     vs, us = np.nonzero(blob)
     zs = depth[vs, us].astype(np.float64)
     pts = intr.backproject(np.stack([us, vs], 1).astype(np.float64), zs)
-    c = pts.mean(axis=0)
-    _, V = np.linalg.eigh(np.cov((pts - c).T))
-    axis = V[:, -1].copy()
-    axis[2] = 0.0
-    if np.linalg.norm(axis) < 1e-6:
+    axis = _principal(pts)
+    if axis is None:
         axis = np.array([0.0, -1.0, 0.0])
-    axis /= np.linalg.norm(axis)
-    t = (pts - c) @ axis
+    t = (pts - pts.mean(axis=0)) @ axis
     dist = cv2.distanceTransform(_without_holes(blob).astype(np.uint8), cv2.DIST_L2, 5)
-    # Extent of the blob on either side of its thickest point along the axis:
-    # fingers reach about a hand length from the palm, a forearm much farther,
-    # and a forearm usually leaves the image.
+    # The blob's extent on either side of its thickest point: fingers reach about a hand length
+    # from the palm, a forearm much farther (and it usually leaves the image).
     k0 = int(np.argmax(dist[vs, us]))
     t0 = t[k0]
     ext_pos = float(np.percentile(t, 99) - t0)
@@ -309,8 +201,7 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
         sign = 0.0
     elif sign == 0.0 and max(ext_pos, ext_neg) > max(FOREARM_MIN_EXTENT_MM, 1.4 * min(ext_pos, ext_neg)):
         sign = 1.0 if ext_pos < ext_neg else -1.0
-    if sign != 0.0:
-        # The hand end is the far side from the forearm.
+    if sign != 0.0:  # the hand end is the far side from the forearm
         hand_end = sign * t > np.percentile(sign * t, 40)
         main = sign * axis
         angles = (0.0, 0.6, -0.6, 1.2, -1.2)
@@ -321,27 +212,22 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
     dvals = dist[vs, us] * hand_end
     k = int(np.argmax(dvals))
     near = (np.abs(us - us[k]) <= 3) & (np.abs(vs - vs[k]) <= 3)
-    palm_surface = intr.backproject(
-        np.array([[us[k], vs[k]]], dtype=np.float64), np.array([np.median(zs[near])])
-    )[0]
+    palm_surface = intr.backproject(np.array([[us[k], vs[k]]], dtype=np.float64), np.array([np.median(zs[near])]))[0]
     palm = palm_surface + np.array([0.0, 0.0, 12.0])  # bones lie behind the skin
     hand_direction = _hand_axis(pts, palm_surface, main) if sign != 0.0 else None
     if hand_direction is not None and float(hand_direction @ main) > np.cos(np.deg2rad(DETECTION_DIRECTION_MIN_DEG)):
         hand_direction = None  # (the blob's own direction already)
     if hand_direction is not None:
-        # Its two start poses take the place of the four of the blob's most turned directions.
-        angles = angles[:3]
+        angles = angles[:3]  # (its two start poses replace the four of the most turned directions)
     return HandBlob(
-        palm=palm,
-        directions=[_in_plane(main, a) for a in angles],
-        hand_direction=hand_direction,
+        palm=palm, directions=[_in_plane(main, a) for a in angles], hand_direction=hand_direction,
         far_mm=_surface_far(depth, blob),
     )
 
 
 def _surface_far(depth: NDArray[np.float32], blob: NDArray[np.bool_]) -> float:
-    """Depth (mm) of the farthest pixel of ``blob`` (H, W) on a surface (see
-    :data:`SURFACE_RANGE_MM`) in ``depth`` (H, W) mm; its farthest pixel when none is."""
+    """Depth (mm) of the farthest pixel of ``blob`` (H, W) on a surface (``SURFACE_RANGE_MM``),
+    else its farthest pixel."""
     square = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
     inner = cv2.erode(blob.astype(np.uint8), square).astype(bool)
     # (An inner pixel's 3 x 3 window lies on the blob: there the depth's own range is the blob's.)
@@ -351,27 +237,16 @@ def _surface_far(depth: NDArray[np.float32], blob: NDArray[np.bool_]) -> float:
 
 
 def _forearm_side(
-    blob: NDArray[np.bool_],
-    depth: NDArray[np.float32],
-    intr: Intrinsics,
-    vs: NDArray[np.int64],
-    us: NDArray[np.int64],
+    blob: NDArray[np.bool_], depth: NDArray[np.float32], intr: Intrinsics, vs: NDArray[np.int64], us: NDArray[np.int64],
     t: NDArray[np.float64],
 ) -> float | None:
-    """Where the blob leaves the image, along its axis (``t``: mm along it, per blob pixel
-    ``vs, us``): ``s`` = 1.0 or -1.0 when a forearm leaves it where ``s t < 0`` (the hand end is
-    where ``s t > 0``), 0.0 when nothing arm-like leaves it, None when the blob leaves it at
-    both ends (fingers at one end, or a forearm at each: undecided).
-
-    Only runs along the border at least :data:`FOREARM_MIN_WIDTH_MM` wide are arm-like; the
-    narrower runs of fingers leaving the view count only toward "both ends".  (Issue 11: a
-    hand held close, whose fingertips leave the top of the image, was found upside down on its
-    forearm: the fingers' border pixels outweighed the forearm's.)
-    """
+    """Where the blob leaves the image along its axis (``t``: mm along it per blob pixel ``vs,
+    us``): ``s`` = +-1.0 when a forearm leaves it where ``s t < 0``, 0.0 when nothing arm-like
+    does, None when the blob leaves it at both ends (undecided).  Only border runs at least
+    ``FOREARM_MIN_WIDTH_MM`` wide are arm-like; fingers count only toward "both ends"."""
     h, w = blob.shape
     arm = np.zeros(blob.shape, dtype=bool)
-    # Each border's two outermost lines together (a sensor's missing pixel splits no forearm
-    # in two), runs up to BORDER_GAP_PX apart joined.
+    # Each border's two outermost lines together, runs up to BORDER_GAP_PX apart joined.
     lines = (
         (np.s_[0, :], np.s_[1, :], intr.fx),
         (np.s_[h - 1, :], np.s_[h - 2, :], intr.fx),
@@ -407,56 +282,45 @@ def _forearm_side(
 def _hand_axis(
     pts: NDArray[np.float64], palm_surface: NDArray[np.float64], main: NDArray[np.float64]
 ) -> NDArray[np.float64] | None:
-    """The in-plane principal direction (3,) of the points ``pts`` (n, 3) mm less than
-    :data:`HAND_AXIS_BEHIND_PALM_MM` behind ``palm_surface`` along ``main`` (the blob's unit
-    direction toward the fingers), signed like ``main``; None with too few such points.
-
-    A forearm tilts the principal axis of the whole blob off the hand's (issue 11).
-    """
+    """The in-plane principal direction (3,), signed like ``main`` (the blob's unit direction
+    toward the fingers), of the points ``pts`` (n, 3) mm less than ``HAND_AXIS_BEHIND_PALM_MM``
+    behind ``palm_surface``; None with too few.  (A forearm tilts the whole blob's axis.)"""
     hand = pts[(pts - palm_surface) @ main > -HAND_AXIS_BEHIND_PALM_MM]
-    if hand.shape[0] < 20:
+    axis = _principal(hand) if hand.shape[0] >= 20 else None
+    if axis is None:
         return None
-    _, V = np.linalg.eigh(np.cov((hand - hand.mean(axis=0)).T))
-    axis = V[:, -1].copy()
-    axis[2] = 0.0
-    norm = float(np.linalg.norm(axis))
-    if norm < 1e-6:
-        return None
-    axis /= norm
     return axis if float(axis @ main) >= 0.0 else -axis
 
 
-#: A start direction from the palm toward the fingertip detections needs at least this many
-#: detections on the hand side (count; chosen here, issue 11: 2 and 3 scored alike).
-DETECTION_DIRECTION_MIN_DETECTIONS = 3
-#: ... and is tried only when it differs from every direction of the blob by more than this
-#: (degrees; chosen here: 5 and 10 scored alike on the perturbed real frames, 20 never fired).
-DETECTION_DIRECTION_MIN_DEG = 10.0
+def _principal(pts: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """The in-plane principal direction (3,) of ``pts`` (n, 3) (:func:`_in_plane_unit`)."""
+    _, V = np.linalg.eigh(np.cov((pts - pts.mean(axis=0)).T))
+    return _in_plane_unit(V[:, -1])
+
+
+def _in_plane_unit(v: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """``v`` (3,) with z = 0, normalised; None when that is (nearly) zero."""
+    v = v.copy()
+    v[2] = 0.0
+    norm = float(np.linalg.norm(v))
+    return None if norm < 1e-6 else v / norm
 
 
 def detection_direction(blob: HandBlob, points: NDArray[np.float64]) -> NDArray[np.float64] | None:
-    """The in-plane unit direction (3,) from the palm to the mean of fingertip detections
-    ``points`` (n, 3) mm, or None (too few detections, or a direction the blob offers already).
-
-    The blob's directions come from its principal axis, which a forearm tilts; the seen
-    fingertips point along the hand whatever the forearm does (issue 11).
-    """
+    """The in-plane unit direction (3,) from the palm to the mean of the fingertip detections
+    ``points`` (n, 3) mm, or None (too few, or a direction the blob offers already): seen
+    fingertips point along the hand whatever the forearm does."""
     if points.shape[0] < DETECTION_DIRECTION_MIN_DETECTIONS:
         return None
-    toward = points.mean(axis=0) - blob.palm
-    toward[2] = 0.0
-    norm = float(np.linalg.norm(toward))
-    if norm < 1e-6:
-        return None
-    toward /= norm
+    toward = _in_plane_unit(points.mean(axis=0) - blob.palm)
     cos_min = np.cos(np.deg2rad(DETECTION_DIRECTION_MIN_DEG))
-    if any(float(toward @ d) > cos_min for d in blob.directions):
+    if toward is None or any(float(toward @ d) > cos_min for d in blob.directions):
         return None
     return toward
 
 
 def _frame(y_dir: NDArray[np.float64], palm_to_camera: bool, roll: float) -> NDArray[np.float64]:
-    """Hand-frame axes in camera coordinates (columns x, y, z)."""
+    """Hand-frame axes in camera coordinates (columns x, y, z), rolled about the finger axis."""
     y = y_dir / np.linalg.norm(y_dir)
     view = np.array([0.0, 0.0, -1.0]) if palm_to_camera else np.array([0.0, 0.0, 1.0])
     z = view - (view @ y) * y
@@ -464,48 +328,32 @@ def _frame(y_dir: NDArray[np.float64], palm_to_camera: bool, roll: float) -> NDA
         z = np.array([1.0, 0.0, 0.0]) - y[0] * y
     z /= np.linalg.norm(z)
     x = np.cross(y, z)
-    R = np.stack([x, y, z], axis=1)
-    # Roll about the finger axis.
-    return R @ rot_y(roll)
+    return np.stack([x, y, z], axis=1) @ rot_y(roll)
 
 
 def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray[np.float64]]:
-    """Up to ``n`` start poses (26,) for the hand in ``blob``, most likely first.
-
-    Each direction is tried with the palm toward and away from the camera,
-    open; a closed and a half-closed hand are added for the most likely direction.
-    """
+    """Up to ``n`` start poses (26,) for the hand in ``blob``, most likely first: each direction
+    open with the palm toward and away from the camera, closed and half-closed for the first."""
     palm_local = np.array([0.0, 0.55 * float(model.bases[2, 1]), 0.0])
     combos = []
     for i, d in enumerate(blob.directions):
-        combos.append((d, True, OPEN))
-        combos.append((d, False, OPEN))
-        if i == 0:
-            for joints in (CLOSED, HALF_CLOSED):
-                combos.append((d, True, joints))
-                combos.append((d, False, joints))
+        for joints in (OPEN, CLOSED, HALF_CLOSED) if i == 0 else (OPEN,):
+            combos += [(d, True, joints), (d, False, joints)]
     out = []
     for d, palm, joints in combos:
-        # The mirror of a left hand acts inside the hand frame, so the same
-        # proper rotation puts a left or right hand's fingers along d.
+        # (The mirror of a left hand acts inside the hand frame: the same rotation serves both.)
         R = _frame(d, palm, 0.0)
-        rx, ry, rz = euler_from_matrix(R)
         theta = np.zeros(N_PARAMS)
         theta[:3] = blob.palm - R @ palm_local
-        theta[3:6] = rx, ry, rz
+        theta[3:6] = euler_from_matrix(R)
         theta[JOINTS] = joints
         out.append(theta)
     return out[:n]
 
 
 def finger_combinations(start: NDArray[np.float64]) -> list[NDArray[np.float64]]:
-    """``start`` (26,) with its fingers each extended or curled: the 31 combinations with at
-    least one finger curled (a curled thumb as in :data:`CLOSED`), in the order of the bits
-    of 1..31 (bit c: chain c curled).
-
-    A hand found mid-motion (after a loss, a camera started late) often has some fingers
-    curled and others extended; the whole-hand start poses miss it (issue 11).
-    """
+    """``start`` (26,) with each finger extended or curled: the 31 combinations with at least one
+    curled (the thumb as in :data:`CLOSED`), in the order of the bits of 1..31 (bit c: chain c)."""
     curled = (CLOSED[:4], *[FINGER_CURLED] * 4)  # (CLOSED[:4]: the thumb's joints)
     out = []
     for bits in range(1, 32):
@@ -519,16 +367,10 @@ def finger_combinations(start: NDArray[np.float64]) -> list[NDArray[np.float64]]
 def best_combination(
     start: NDArray[np.float64], values: Callable[[NDArray[np.float64]], NDArray[np.float64]]
 ) -> NDArray[np.float64]:
-    """The pose of :func:`finger_combinations` at ``start`` (26,) that ``values`` scores highest,
-    looked for with 17 evaluations instead of 31: the 15 combinations of the fingers index ..
-    little with the thumb extended, the thumb alone curled, and the best of the 15 with the
-    thumb curled as well (the first of equal scores, as ``max``).  Exact when the score adds
-    up per chain.  ``values``: the scores (k,) of poses (k, 26), e.g. ``Objective.batch``'s
-    values (two calls: the 15, then the 2).
-
-    The thumb's data lie apart from the fingers', so the fingers' best combination hardly
-    depends on the thumb (issue 14).
-    """
+    """The pose of :func:`finger_combinations` at ``start`` (26,) that ``values`` (scores (k,) of
+    poses (k, 26)) scores highest, from 17 of the 31 in two calls: the 15 of index .. little with
+    the thumb extended, then the thumb alone and with the best of them (the first of equal
+    scores).  Exact when the score adds up per chain."""
     combos = finger_combinations(start)
     # combos[i] curls the chains of the bits of i + 1 (bit 0: the thumb).
     first = [i for i in range(31) if (i + 1) % 2 == 0]

@@ -1,22 +1,15 @@
 """Frame-to-frame hand tracker: depth in, 26-DOF pose and fingertips out.
 
-Units: depth images and every position in millimetres, camera optical frame (x right, y down,
-z forward); angles in radians.
-
-Per frame (paper 000, sec. 5), after a supporting plane much larger than a hand (a table under
-the hand, a wall behind it: :mod:`.support`) is dropped from the frame, the depth near the
-hand's extrapolated pose is clustered into
-Gaussians, the pose is fitted from there by the adaptive gradient ascent, and the search
-(:mod:`hand_sog_tracker.core.search`) fits the candidates its proposals make from that fit
-(fingers shifted, swapped, curled, pulled onto unexplained detections) as one batch; one
-score picks the frame's pose.  Without a track (the first frame, after a loss) the same
-search starts from the hand found in the depth (:mod:`.search.start`) with more candidates.
-A frame with a curled finger answers with its pose refined on a model with joint Gaussians
-(``REFINE_CURL_RAD``); the track goes on from the pose.  Every frame ends with the hand
-decision (:mod:`.handcheck`, issue 46): a frame that is no hand is answered without a pose and
-may reset the track, and a tracked frame the check doubts competes with a fresh start (the new
-track's search on the same frame).  Nothing depends on the wall clock: the same frames give
-the same answers.
+Units: millimetres (depth and every position, camera optical frame: x right, y down, z forward)
+and radians.  Per frame (paper 000, sec. 5) a large supporting plane is dropped (:mod:`.support`),
+the depth near the hand's extrapolated pose is clustered into Gaussians, the pose is fitted by the
+adaptive gradient ascent, and the search (:mod:`.search`) fits the candidates its proposals make
+from that fit as one batch; one score picks the pose.  Without a track the same search starts
+from the hand found in the depth (:mod:`.search.start`) with more candidates.  A curled finger's
+answer is refined on a model with joint Gaussians (the track goes on from the pose).  Every frame
+ends with the hand decision (:mod:`.handcheck`, issue 46): no hand is answered without a pose and
+may reset the track; a doubted track competes with a fresh start on the same frame.  Nothing
+depends on the wall clock: the same frames give the same answers.
 """
 
 from __future__ import annotations
@@ -54,16 +47,9 @@ from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
 from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
 from hand_sog_tracker.core.salient import MAX_DETECTIONS, Detections, assigned_targets, detect_fingertips
-from hand_sog_tracker.core.search import (
-    ASSIGN_LAMBDA_MM,
-    NEW_TRACK_PROPOSALS,
-    TRACK_PROPOSALS,
-    Frame,
-    plain,
-    search,
-)
+from hand_sog_tracker.core.search import ASSIGN_LAMBDA_MM, NEW_TRACK_PROPOSALS, TRACK_PROPOSALS, Frame, plain, search
 from hand_sog_tracker.core.search.candidates import pull_target
-from hand_sog_tracker.core.search.fit import fit_batch, with_targets
+from hand_sog_tracker.core.search.fit import fit_parts, part
 from hand_sog_tracker.core.search.start import NEW_TRACK_DATA, Finalists, on_hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
 from hand_sog_tracker.core.support import without_support
@@ -72,69 +58,51 @@ from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig,
 __all__ = ["ALPHA", "ASSIGN_LAMBDA_MM", "Tracker", "before_surface", "coverage", "hand_roi"]
 
 # Module constants, not TrackerConfig fields (which become ROS parameters): none is meant to be
-# tuned per camera or user.  The measurements behind them: doc/design/search.md.
-#: Velocity extrapolation of the start pose (paper 000 sec. 5.3: alpha = 0.5).
-ALPHA = 0.5
-#: A tracked frame starts from the last frame's final step lengths x ``WARM_GROW``, within
-#: ``[WARM_MIN, 1]`` x the initial ones (settled parameters start small; chosen here).
-WARM_GROW = 2.0
-WARM_MIN = 0.1
-#: A fit still climbing after ``iterations`` gets up to this many more while the last raised the
-#: objective by ``EXTRA_GAIN`` x |E(start)| (fast rotations outran 7 iterations; chosen here).
-EXTRA_ITERATIONS = 3
-EXTRA_GAIN = 0.002
-#: Whether detections of fingers seen end-on pull fingertips (off: they only seed candidates).
-SALIENT_END_ON = False
-#: A PIP flexed over this (rad) has the answer refined on the joint-Gaussian model (issue 11:
-#: the tracking model opens curled fingers into claws; refining only the answer keeps the
-#: track's choices).
+# tuned per camera or user; all chosen here unless said.  The measurements: doc/design/search.md.
+ALPHA = 0.5  #: velocity extrapolation of the start pose (paper 000 sec. 5.3: alpha = 0.5)
+WARM_GROW = 2.0  #: a tracked frame's steps start at the last frame's final ones x this ...
+WARM_MIN = 0.1  #: ... within [this, 1] x the initial ones (settled parameters start small)
+EXTRA_ITERATIONS = 3  #: a fit still climbing after ``iterations`` gets up to this many more ...
+EXTRA_GAIN = 0.002  #: ... while the last raised E by this x abs(E(start)) (fast rotations outran 7)
+SALIENT_END_ON = False  #: whether detections of fingers seen end-on pull tips (off: they seed candidates)
+#: A PIP flexed over this (rad) has the answer refined on the joint-Gaussian model (issue 11: the
+#: tracking model opens curled fingers into claws; refining only the answer keeps the track's).
 REFINE_CURL_RAD = math.radians(60.0)
-#: After a refined frame the refinement starts from the track's pose plus that frame's
-#: correction, its steps x this (issue 14: the correction changes little frame to frame).
-REFINE_WARM_STEPS = 0.5
-#: The refinement weights the overlaps by visibility at the pose (a fist's hidden palm and tips).
-REFINE_VISIBILITY = True
-#: On the default model a new track's finalists are also fitted on the model scaled to this
-#: length, which wins by ``SMALL_HAND_GAIN`` of the score with open fingers (mean MCP + PIP
-#: under ``SMALL_HAND_MAX_FLEX`` rad: curled fingers do not show their length), tried on the
-#: best ``SMALL_HAND_FINALISTS`` (issue 11: a small hand started with its fingers one over).
+REFINE_WARM_STEPS = 0.5  #: steps x this from the frame before's correction (issue 14: it changes little)
+REFINE_VISIBILITY = True  #: the refinement weights overlaps by visibility (a fist's hidden palm and tips)
+#: A new track on the default model also fits its best ``SMALL_HAND_FINALISTS`` on the model of
+#: this length, which wins by ``SMALL_HAND_GAIN`` with open fingers (mean MCP + PIP under
+#: ``SMALL_HAND_MAX_FLEX`` rad; issue 11: small hands started with their fingers one over).
 SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
-#: A tracked frame whose hand check is below this competes with a fresh start from the hand
-#: found in the frame, which wins when its check is ``FRESH_MARGIN`` higher (issue 46; the
-#: gate's threshold: a frame it would not report; the margin chosen on scenes_dev).
-FRESH_BELOW = HAND_THRESHOLD
-FRESH_MARGIN = 0.1
-#: ... and its palm lies this far (mm) from the track's: about half a palm's width (chosen here).
-FRESH_APART_MM = 40.0
-_PALM_ROWS = (0, 5, 9, 13, 17)  #: wrist and finger MCPs among the skeleton's 21 points
+FRESH_BELOW = HAND_THRESHOLD  #: a tracked frame checked below this competes with a fresh start (issue 46) ...
+FRESH_MARGIN = 0.1  #: ... which wins with a check this much higher (chosen on scenes_dev) ...
+FRESH_APART_MM = 40.0  #: ... and its palm this far (mm, half a palm's width) from the track's
+_PALM_ROWS = [0, 5, 9, 13, 17]  #: wrist and finger MCPs among the skeleton's 21 points
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
+#: What :meth:`Tracker._fresh_start` keeps of the track when the fresh start loses.
+_TRACK_STATE = ("_prev", "_steps", "_low_frames", "_status", "_model", "_refine_last", "last_proposal", "_lost_pulls")
 #: ``(data, detections, theta (26,)) -> (data, detections)``: see :attr:`Tracker.data_filter`.
 DataFilter = Callable[[ImageSoG, Detections, NDArray[np.float64]], tuple[ImageSoG, Detections]]
+_NO_POINTS = np.zeros((0, 3))
+RoiWindow = tuple[tuple[int, int, int, int], tuple[float, float]]  #: :func:`hand_roi`'s (box px, window mm)
 
 
 class _Keep:
-    """What the hand gate resets when the tracker keeps its track (``withhold=False``)."""
+    """What the hand gate resets when the tracker keeps its track (``withhold=False``): nothing."""
 
     def reset(self) -> None:
         pass
 
 
-_KEEP = _Keep()
-_NO_POINTS = np.zeros((0, 3))
-
-
 def _apart(track: TrackResult, track_model: HandModel, fresh: TrackResult, fresh_model: HandModel) -> bool:
-    """Whether the palms (the skeleton's wrist and finger MCPs, mean) of two results, each
-    with its model, lie ``FRESH_APART_MM`` apart (a track without a pose: always): the fresh
-    start found a hand elsewhere."""
+    """Whether the palms (wrist and MCPs) of two results lie ``FRESH_APART_MM`` apart (or one has none)."""
     if track.pose is None or fresh.pose is None:
         return True
-    palm = list(_PALM_ROWS)
-    a = skeleton_points(track_model, track.pose)[palm].mean(0)
-    b = skeleton_points(fresh_model, fresh.pose)[palm].mean(0)
+    a = skeleton_points(track_model, track.pose)[_PALM_ROWS].mean(0)
+    b = skeleton_points(fresh_model, fresh.pose)[_PALM_ROWS].mean(0)
     return float(np.linalg.norm(a - b)) > FRESH_APART_MM
 
 
@@ -149,6 +117,11 @@ def _size_models(right: bool) -> tuple[HandModel, HandModel]:
     return default, default.scaled(HandShape(length=SMALL_HAND_LENGTH))
 
 
+def _warm(steps: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Start steps (26,) from a fit's final ``steps`` (``WARM_GROW``, ``WARM_MIN``)."""
+    return np.minimum(np.maximum(steps * WARM_GROW, _INITIAL_STEPS * WARM_MIN), _INITIAL_STEPS)
+
+
 class Tracker:
     """Tracks one hand through a depth sequence.
 
@@ -156,15 +129,13 @@ class Tracker:
     ----------
     config : TrackerConfig, optional
     model : HandModel, optional
-        Hand model (mm), kept as given; default: the default adult hand of
-        ``config.right_hand``, on which every new track may start the smaller hand of
-        ``SMALL_HAND_LENGTH`` instead (until :meth:`set_model`).
+        Hand model (mm), kept as given; default: the default adult hand of ``config.right_hand``,
+        on which every new track may start the small hand instead (until :meth:`set_model`).
     withhold : bool
-        Every frame's result carries its hand decision (:class:`~.handcheck.HandGate`, issue
-        46); by default a frame that is no hand has no pose and resets the track as the gate
-        says (what the node publishes), and a doubted track competes with a fresh start
-        (:meth:`_fresh_start`).  False keeps every fitted pose and track, without fresh starts
-        (the raw fit's evidence, for the tools).
+        Every result carries its hand decision (:class:`~.handcheck.HandGate`); by default a
+        frame that is no hand has no pose and resets the track as the gate says (what the node
+        publishes), and a doubted track competes with a fresh start.  False keeps every fitted
+        pose and track, without fresh starts (the raw fit's evidence, for the tools).
     """
 
     def __init__(
@@ -175,43 +146,33 @@ class Tracker:
         self._withhold = bool(withhold)
         #: The last frame's result before its hand decision withheld the pose (for the tools).
         self.last_fit: TrackResult | None = None
-        #: This tracked frame's search :class:`Frame` and its pose (26,), for the fresh start.
-        self._track_frame: tuple[Frame, NDArray[np.float64]] | None = None
-        # (the default model, the small one) while the model is the default (SMALL_HAND_LENGTH).
-        self._sizes: tuple[HandModel, HandModel] | None = None
+        #: The proposal the last frame's pose came from (None: its fit), for the tools.
+        self.last_proposal: str | None = None
+        self._track_frame: tuple[Frame, NDArray[np.float64]] | None = None  # (this frame's, its pose)
+        self._sizes: tuple[HandModel, HandModel] | None = None  # (default, small) while the default
         if model is None:
             self._sizes = _size_models(self._config.right_hand)
             self._model = self._sizes[0]
         else:
             self._model = model.mirrored(self._config.right_hand)
-        self._prev: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+        self._prev: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None  # last two poses
         self._steps: NDArray[np.float64] | None = None  # last frame's final step lengths (26,)
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
-        #: (model, low, high): the joint limits as bounds (26,) each, read-only.
         self._bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
-        #: (tracking model, its :meth:`HandModel.with_joint_gaussians`) of :meth:`_refined`.
-        self._joint_model: tuple[HandModel, HandModel] | None = None
+        self._joint_model: tuple[HandModel, HandModel] | None = None  # (model, with joint Gaussians)
         #: (track pose, answer) (26,) each of the frame before, when it was refined.
         self._refine_last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
-        #: The proposal the last frame's pose came from (None: its fit), for the tools.
-        self.last_proposal: str | None = None
-        #: The detection (1, 3) mm whose pulls lost on the last frame, or none (0, 3).
-        self._lost_pulls = _NO_POINTS
-        #: ``(data, detections, theta) -> (data, detections)``: what of the data near the hand
-        #: at ``theta`` (26,) is this hand's (the multi-hand tracker drops what another hand's
-        #: model explains, :mod:`.hands`); None: all of it.
+        self._lost_pulls = _NO_POINTS  # the detection (1, 3) mm whose pulls lost last frame, or none
+        # Set by the multi-hand tracker (:mod:`.hands`); None: not used.
+        #: What of the data near the hand at ``theta`` is this hand's (drops another hand's).
         self.data_filter: DataFilter | None = None
-        #: ``tips (5, 3) mm -> (5,) bool``: the fingertips against another hand (the search's
-        #: :attr:`Frame.covered`, set by the multi-hand tracker); None: none.
+        #: ``tips (5, 3) mm -> (5,) bool``: the fingertips against another hand (:attr:`Frame.covered`).
         self.covered_tips: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
-        #: ``theta (26,) -> (26,) bool``: the parameters a tracked frame's fit holds at its start
-        #: pose ``theta`` (the joints of fingers another hand hides: no data speak for them; set by
-        #: the multi-hand tracker); None: none.
+        #: ``theta (26,) -> (26,) bool``: what a tracked frame's fit holds at its start (hidden fingers).
         self.held: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
-        #: ``(centres (m, 3) mm, radii (m,) mm) -> InterHand or None``: the other hands' spheres
-        #: that this hand's, posed at a tracked frame's start, may not penetrate in its fit
-        #: (:mod:`.objective.interhand`; set by the multi-hand tracker); None: none.
+        #: ``(centres (m, 3), radii (m,)) mm -> InterHand or None``: the other hands' spheres this
+        #: hand's, posed at a tracked frame's start, may not penetrate (:mod:`.objective.interhand`).
         self.interhand: Callable[[NDArray[np.float64], NDArray[np.float64]], InterHand | None] | None = None
 
     @property
@@ -235,12 +196,8 @@ class Tracker:
         return None if self._prev is None else self._prev[0].copy()
 
     def set_model(self, model: HandModel) -> None:
-        """Use another hand model (e.g. after calibration); keeps the track.
-
-        The track's poses are moved so that the palm centre stays where it was tracked
-        (:func:`~hand_sog_tracker.core.kinematics.keep_palm_centre`): a rescaled model at the
-        same wrist position would have its palm, and its fingers, off the hand.
-        """
+        """Use another hand model (e.g. after calibration); keeps the track, its poses moved so
+        that the palm centre stays where it was tracked (:func:`~.kinematics.keep_palm_centre`)."""
         new = model.mirrored(self._config.right_hand)
         if self._prev is not None:
             old = self._model
@@ -258,9 +215,8 @@ class Tracker:
         self._config = config
 
     def start_at(self, pose: NDArray[np.float64]) -> None:
-        """Go on as if the last frame had been tracked at ``pose`` (26,), at rest: the next
-        frame is a tracked frame from there (the multi-hand tracker starts the other label's
-        model of a new hand so, :mod:`.hands`)."""
+        """Go on as if the last frame had been tracked at ``pose`` (26,), at rest (the multi-hand
+        tracker starts the other label's model of a new hand so, :mod:`.hands`)."""
         self._prev = (np.array(pose, dtype=np.float64), np.array(pose, dtype=np.float64))
         self._steps = None
         self._low_frames = 0
@@ -276,14 +232,8 @@ class Tracker:
         self._gate.forget()
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
-        """Track the hand in one depth frame.
-
-        Parameters
-        ----------
-        depth_mm : array, shape (H, W)
-            Depth in millimetres; 0, NaN and Inf are invalid.
-        intrinsics : Intrinsics
-            Intrinsics of this image (same H, W).
+        """Track the hand in one depth frame ``depth_mm`` (H, W) mm (0, NaN and Inf invalid) with
+        the ``intrinsics`` of its size.
 
         Raises
         ------
@@ -291,135 +241,90 @@ class Tracker:
             When the frame cannot be used; the track is left untouched.
         """
         t0 = time.perf_counter()  # (timings only: nothing below depends on the clock)
-        pre = preprocess(depth_mm, intrinsics, self._config)  # raises before any change of state
-        pre = without_support(pre)  # (a table under the hand; the hand check reads the frame as it is)
+        # (Raises before any change of state; without a table under the hand: the check reads it all.)
+        pre = without_support(preprocess(depth_mm, intrinsics, self._config))
         t1 = time.perf_counter()
-        checked = None
-        if self._prev is not None:
-            result = self._track(pre)
-            if self._withhold:
-                checked = handcheck.check_hand(depth_mm, intrinsics, self._model, result)
-                # (A lost track's check is 0.  The fresh start's data are capped at
-                # ``NEW_TRACK_DATA`` whatever the track's: a frame costs at most a tracked frame
-                # at the data cap and one new track, issue 50.)
-                if checked.confidence < FRESH_BELOW:
-                    result, checked = self._fresh_start(pre, depth_mm, intrinsics, result, checked)
-            self._track_frame = None  # (the frame's data are not kept)
-        else:
-            result = self._new_track(pre)
+        result, checked = self._fit(pre, (depth_mm, intrinsics) if self._withhold else None)
         t2 = time.perf_counter()
-        self.last_fit = result
-        # The hand decision (may reset the track: the next frame searches afresh).
-        keeper = self if self._withhold else _KEEP
+        keeper = self if self._withhold else _Keep()  # (the decision may reset the track)
         result = self._gate.gate(keeper, depth_mm, intrinsics, self._model, result, self._withhold, checked)
-        t3 = time.perf_counter()
-        result.timings_ms["preprocess"] = (t1 - t0) * 1e3
-        result.timings_ms.setdefault("quadtree", 0.0)
-        result.timings_ms["optimise"] = (t2 - t1) * 1e3 - result.timings_ms["quadtree"]
-        result.timings_ms["check"] = (t3 - t2) * 1e3
-        result.timings_ms["total"] = (t3 - t0) * 1e3
-        return result
+        result.timings_ms["check"] = (time.perf_counter() - t2) * 1e3
+        return _timed(result, t0, t1, t2)
 
     def process_preprocessed(self, pre: Preprocessed) -> TrackResult:
-        """:meth:`process` of a frame already preprocessed with this tracker's configuration,
-        without the hand check and gate (several hands share one preprocessing and the
-        multi-hand tracker decides for its hands, :mod:`.hands`: a gate's reset would search
-        the whole image, the other hand's data too); ``timings_ms["preprocess"]`` 0."""
+        """:meth:`process` of a frame preprocessed with this tracker's configuration, without the
+        hand check and gate (the multi-hand tracker decides for its hands, :mod:`.hands`: a gate's
+        reset would search the other hand's data too); ``timings_ms["preprocess"]`` 0."""
         t1 = time.perf_counter()
-        result = self._track(pre) if self._prev is not None else self._new_track(pre)
-        self._track_frame = None
-        t2 = time.perf_counter()
-        self.last_fit = result
-        result.timings_ms["preprocess"] = 0.0
-        result.timings_ms.setdefault("quadtree", 0.0)
-        result.timings_ms["optimise"] = (t2 - t1) * 1e3 - result.timings_ms["quadtree"]
-        result.timings_ms["total"] = (t2 - t1) * 1e3
-        return result
+        return _timed(self._fit(pre)[0], t1, t1, time.perf_counter())
 
     # -- internals -----------------------------------------------------------
-    def _new_track(self, pre: Preprocessed) -> TrackResult:
-        """A new track's search on ``pre`` (see :meth:`_initialise`), from fresh step lengths
-        and, on the default model, with its size chosen again."""
-        self._steps = None
-        self._lost_pulls = _NO_POINTS
-        if self._sizes is not None:
-            self._model = self._sizes[0]
-        return self._initialise(pre)
+    def _fit(
+        self, pre: Preprocessed, image: tuple[NDArray, Intrinsics] | None = None
+    ) -> tuple[TrackResult, HandDecision | None]:
+        """The frame's result before the gate and, with ``image`` (depth mm, intrinsics), a tracked
+        frame's hand check (a lost track's is 0), below ``FRESH_BELOW`` against a fresh start (its
+        data capped: a frame costs at most a tracked frame at the data cap and a new track)."""
+        checked = None
+        if self._prev is None:
+            result = self._initialise(pre)
+        else:
+            result = self._track(pre)
+            if image is not None:
+                checked = handcheck.check_hand(*image, self._model, result)
+                if checked.confidence < FRESH_BELOW:
+                    result, checked = self._fresh_start(pre, image, result, checked)
+            self._track_frame = None  # (the frame's data are not kept)
+        self.last_fit = result
+        return result, checked
 
     def _fresh_start(
-        self, pre: Preprocessed, depth_mm: NDArray, intrinsics: Intrinsics, track: TrackResult, checked: HandDecision
+        self, pre: Preprocessed, image: tuple[NDArray, Intrinsics], track: TrackResult, checked: HandDecision
     ) -> tuple[TrackResult, HandDecision]:
-        """A tracked frame the hand check doubts (``checked`` below ``FRESH_BELOW``; a track
-        lost on this frame too) against a fresh start from the hand found in the same frame:
-        the new track's search on ``pre`` replaces the track when its check's confidence is
-        ``FRESH_MARGIN`` higher and its palm lies elsewhere (:func:`_apart`: a wrong lock
-        replaced at once, not after the gate's reset and the next frame's search) or, on the
-        same hand, when its pose also scores higher on the track's frame (the check does not
-        judge the articulation: a doubted curled hand was replaced by a worse fresh start);
-        else the track and its state are kept.  Returns (result, its check)."""
-        kept = (
-            self._prev, self._steps, self._low_frames, self._status, self._model, self._refine_last,
-            self.last_proposal, self._lost_pulls,
-        )
+        """(result, its check): a doubted tracked frame or a new track on it, which wins with a check
+        ``FRESH_MARGIN`` higher and a palm elsewhere (:func:`_apart`: a wrong lock replaced at once)
+        or, on the same hand, a higher score on the track's frame (the check does not judge the
+        articulation); else the track and its state are kept."""
+        kept = {name: getattr(self, name) for name in _TRACK_STATE}
         on_track = self._track_frame if track.pose is not None else None
-        fresh = self._new_track(pre)
+        fresh = self._initialise(pre)
         if fresh.pose is not None:
-            fresh_check = handcheck.check_hand(depth_mm, intrinsics, self._model, fresh)
+            fresh_check = handcheck.check_hand(*image, self._model, fresh)
             better = fresh_check.confidence >= checked.confidence + FRESH_MARGIN
-            if better and on_track is not None and not _apart(track, kept[4], fresh, self._model):
-                # (the same hand: the track's own score judges the articulation)
-                frame, x = on_track
+            if better and on_track is not None and not _apart(track, kept["_model"], fresh, self._model):
+                frame, x = on_track  # (the same hand: the track's own score judges the articulation)
                 better = frame.score(fresh.pose) > frame.score(x)
             if better:
                 self._gate.forget()  # (a new track: reported once a finger is seen to end)
                 self.last_proposal = "fresh_start"
                 fresh.timings_ms["quadtree"] = fresh.timings_ms.get("quadtree", 0.0) + track.timings_ms["quadtree"]
                 return fresh, fresh_check
-        (
-            self._prev, self._steps, self._low_frames, self._status, self._model, self._refine_last,
-            self.last_proposal, self._lost_pulls,
-        ) = kept
+        for name, value in kept.items():
+            setattr(self, name, value)
         return track, checked
 
     def _data_near(
-        self,
-        pre: Preprocessed,
-        theta: NDArray[np.float64],
-        detect: bool = False,
-        outline: bool = True,
-        end_mm: float | None = None,
-        roi_window: tuple[tuple[int, int, int, int], tuple[float, float]] | None = None,
-        max_gaussians: int = MAX_DATA_GAUSSIANS,
+        self, pre: Preprocessed, theta: NDArray[np.float64], end_mm: float | None = None,
+        roi_window: RoiWindow | None = None, max_gaussians: int = MAX_DATA_GAUSSIANS,
     ) -> tuple[ImageSoG, Detections, Silhouette | None]:
-        """Data Gaussians around the hand at ``theta``, without the forearm.
-
-        Quads and (with ``detect``) fingertip detections beyond the wrist plane at ``theta``
-        are dropped (the model has no forearm); with ``outline`` also the silhouette of the
-        depth window (None without it or when ``w_sil`` is 0).  ``end_mm``: the window ends
-        there at the latest (a wall behind the hand is no data).  ``roi_window``:
-        :func:`hand_roi` at ``theta`` when already computed.  ``max_gaussians``: the quadtree's
-        cap (a new track's is ``NEW_TRACK_DATA``).
-        """
+        """Data Gaussians (at most ``max_gaussians``), detections and silhouette (None without
+        ``w_sil``) of the depth window around the hand at ``theta`` (ending at ``end_mm`` at the
+        latest; ``roi_window``: :func:`hand_roi` when known), without what lies beyond its wrist."""
         if roi_window is None:
             roi_window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
         roi, window = roi_window
-        # (The leaves follow the window's centre, the hand's depth, whatever ``end_mm``.)
-        leaf = leaf_px(self._config.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)
+        leaf = leaf_px(self._config.min_quad_px, 0.5 * (window[0] + window[1]), pre.intrinsics)  # (the hand's depth)
         if end_mm is not None:
             window = (window[0], min(window[1], end_mm))
-        sil = silhouette(pre, window, roi) if outline and self._config.w_sil > 0 else None
-        det = Detections.empty()
+        sil = silhouette(pre, window, roi) if self._config.w_sil > 0 else None
         axis = global_rotation(theta)[:, 1]  # the hand's long axis (camera frame)
-        if detect:
-            # (With a data filter the cap applies to what the filter leaves: another hand's
-            # tips in the region would take this hand's places, and the filter drops them.)
-            det = detect_fingertips(pre, roi, window, None if self.data_filter is not None else MAX_DETECTIONS)
-            if det.n:
-                det = det.subset((det.points - theta[:3]) @ axis > 0.0)
+        # (With a data filter the cap applies to what it leaves: another hand's tips would take places.)
+        det = detect_fingertips(pre, roi, window, None if self.data_filter is not None else MAX_DETECTIONS)
+        if det.n:
+            det = det.subset((det.points - theta[:3]) @ axis > 0.0)
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf, max_gaussians)
         if data.n:
-            keep = (data.points - theta[:3]) @ axis > 0.0
-            data = data if keep.all() else data.subset(keep)
+            data = part(data, (data.points - theta[:3]) @ axis > 0.0)
         if self.data_filter is not None:
             data, det = self.data_filter(data, det, theta)
             if det.n > MAX_DETECTIONS:  # (most confident first: the detector's order)
@@ -436,8 +341,7 @@ class Tracker:
         cfg = self._config
         assert self._prev is not None
         p1, p2 = self._prev
-        # The paper prints Theta_{t-1} + alpha Theta_{t-2}; we read it as a constant-velocity
-        # extrapolation damped by alpha.
+        # (The paper prints Theta_{t-1} + alpha Theta_{t-2}: read as a damped constant velocity.)
         x0 = p1 + ALPHA * (p1 - p2)
         tq = time.perf_counter()
         start_centres = posed_centres(self._model, x0)
@@ -446,7 +350,7 @@ class Tracker:
         end = before_surface(
             pre.depth_mm, pre.intrinsics, roi_window[0], far + SURFACE_SEARCH_MM, far + WINDOW_BEHIND_MM
         )
-        data, det, sil = self._data_near(pre, x0, detect=True, end_mm=end, roi_window=roi_window)
+        data, det, sil = self._data_near(pre, x0, end_mm=end, roi_window=roi_window)
         timings = {"quadtree": (time.perf_counter() - tq) * 1e3}
         obj = Objective(
             self._model, data, cfg, previous=(p1, p2), targets=self._targets(x0, det), silhouette=sil,
@@ -454,13 +358,11 @@ class Tracker:
         )
         if self.interhand is not None:
             obj.interhand = self.interhand(start_centres, self._model.g_sigmas)
-        base = _INITIAL_STEPS
-        start = base if self._steps is None else np.minimum(np.maximum(self._steps * WARM_GROW, base * WARM_MIN), base)
         held = None if self.held is None else self.held(x0)
+        start = _INITIAL_STEPS if self._steps is None else _warm(self._steps)
         fit = self._maximise(
-            obj, x0, iterations=cfg.iterations, initial_steps=start,
-            extra_iterations=EXTRA_ITERATIONS, extra_gain=EXTRA_GAIN,
-            active=None if held is None or not held.any() else ~held,
+            obj, x0, iterations=cfg.iterations, initial_steps=start, extra_iterations=EXTRA_ITERATIONS,
+            extra_gain=EXTRA_GAIN, active=None if held is None or not held.any() else ~held,
         )
         self._steps = fit.steps
         frame = Frame(
@@ -491,11 +393,9 @@ class Tracker:
         return self._result(answer, conf, res.fun, data.n, timings, centres)
 
     def _refined(self, obj: Objective, res: OptimizeResult, p1: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The answer of a tracked frame whose pose is ``res`` on ``obj``: ``res.x`` (26,), or,
-        with a PIP flexed over ``REFINE_CURL_RAD``, ``res.x`` refined ``refine_iterations`` on the
-        same frame's objective of the joint model (warm steps as a tracked frame's; from
-        ``res.x`` plus the frame before's correction when that frame was refined and the track
-        went on from its pose ``p1``, ``REFINE_WARM_STEPS``; overlaps weighted by visibility)."""
+        """A tracked frame's answer (26,): its pose ``res.x`` or, with a PIP over ``REFINE_CURL_RAD``,
+        that refined on the frame's objective ``obj`` of the joint model; from the frame before's
+        correction (``REFINE_WARM_STEPS``) when the track went on from its refined pose ``p1``."""
         x = res.x
         iterations = self._config.refine_iterations
         last, self._refine_last = self._refine_last, None
@@ -509,9 +409,9 @@ class Tracker:
             visible_from=x if REFINE_VISIBILITY else None,
         )
         refine.interhand = obj.interhand
-        steps = np.minimum(np.maximum(res.steps * WARM_GROW, _INITIAL_STEPS * WARM_MIN), _INITIAL_STEPS)
+        steps = _warm(res.steps)
         x0 = x
-        if last is not None and last[0] is p1:  # (the frame before's refinement, from this frame's start)
+        if last is not None and last[0] is p1:
             lo, hi = self._limits()
             x0 = np.minimum(np.maximum(x + (last[1] - last[0]), lo), hi)
             steps *= REFINE_WARM_STEPS
@@ -524,34 +424,28 @@ class Tracker:
         return maximise(obj, x0, bounds=self._limits(), **kwargs)  # type: ignore[arg-type]
 
     def _limits(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The model's joint limits as bounds (low, high), shape (26,) each, read-only
-        (+-inf for the wrist; computed once per model)."""
+        """The model's joint limits as bounds (low, high) (26,) each, read-only (+-inf: the wrist)."""
         m = self._model
-        cached = self._bounds
-        if cached is None or cached[0] is not m:
+        if self._bounds is None or self._bounds[0] is not m:
             lo = np.concatenate([np.full(6, -np.inf), m.limits_low])
             hi = np.concatenate([np.full(6, np.inf), m.limits_high])
             lo.setflags(write=False)
             hi.setflags(write=False)
-            cached = self._bounds = (m, lo, hi)
-        return cached[1:]
+            self._bounds = (m, lo, hi)
+        return self._bounds[1:]
 
     def _initialise(self, pre: Preprocessed) -> TrackResult:
-        """A new track (first frame, after a loss): the start search's finalists
-        (:func:`~hand_sog_tracker.core.search.start.start_search`) refined
-        ``final_iterations`` with the full objective on one data extraction around the first
-        (its window ending where the search's did); the best by the score, after the new
-        track's candidates (:data:`NEW_TRACK_PROPOSALS`), starts the track.  On the default
-        model the best ``SMALL_HAND_FINALISTS`` are also fitted on the small model, which the
-        track starts on when it scores ``SMALL_HAND_GAIN`` higher with open fingers."""
-        self.last_proposal = None
+        """A new track: the start search's finalists (:func:`~.search.start.start_search`) refined
+        on one data extraction (:meth:`_finalist_fits`), the best searched (:data:`NEW_TRACK_PROPOSALS`);
+        on the default model the small one wins ``SMALL_HAND_GAIN`` higher with open fingers."""
+        self._steps, self._lost_pulls, self.last_proposal = None, _NO_POINTS, None
+        if self._sizes is not None:
+            self._model = self._sizes[0]
         found = start_search(pre, self._model, self._config, self._limits())
         if found is None:
             return self._no_hand({})
         tq = time.perf_counter()
-        data, det, sil = self._data_near(
-            pre, found.poses[0], detect=True, end_mm=found.end_mm, max_gaussians=NEW_TRACK_DATA
-        )
+        data, det, sil = self._data_near(pre, found.poses[0], end_mm=found.end_mm, max_gaussians=NEW_TRACK_DATA)
         timings = {"quadtree": (time.perf_counter() - tq) * 1e3}
         if data.n == 0:
             return self._no_hand(timings)
@@ -586,61 +480,54 @@ class Tracker:
     def _finalist_fits(
         self, found: Finalists, data: ImageSoG, det: Detections, sil: Silhouette | None
     ) -> list[tuple[int, tuple[float, Frame]]]:
-        """Each finalist of ``found`` refined ``final_iterations`` on the tracker's model with
-        the full objective of its hand side of ``data``: (index, (score, its :class:`Frame`)),
-        best first by score (the earlier on a tie); finalists without data left out."""
-        # All finalists are fitted as one batch on one objective of ``data``, each on its hand
-        # side (``parts``) with its own targets (what its own objective gives it, up to rounding).
+        """(index, (score, :class:`Frame`)) of each finalist of ``found`` with data on its hand side,
+        refined ``final_iterations`` with the full objective of its part of ``data``, as one batch;
+        best first (the earlier on a tie)."""
         items = []
         for k, x in enumerate(found.poses):
             keep = on_hand_side(data.points, x)
             if keep.any():
-                data_x = data if keep.all() else data.subset(keep)
-                obj = Objective(self._model, data_x, self._config, targets=self._targets(x, det), silhouette=sil)
-                items.append((k, keep, data_x, obj))
-        fits = []
+                targets = self._targets(x, det)
+                obj = Objective(self._model, part(data, keep), self._config, targets=targets, silhouette=sil)
+                items.append((k, keep, obj))
         if not items:
-            return fits
+            return []
         shared = Objective(self._model, data, self._config, silhouette=sil)
-        parts = np.array([keep for _, keep, _, _ in items])
-        part_rows = None if parts.all() else parts
-        targets = [obj.targets for _, _, _, obj in items]
-        starts = np.array([found.poses[k] for k, _, _, _ in items])
-        results = fit_batch(
-            with_targets(shared, targets, part_rows), starts, data.n,
-            iterations=INIT_SEARCH.final_iterations, bounds=self._limits(), with_index=True,
+        parts = np.array([keep for _, keep, _ in items])
+        results = fit_parts(
+            shared, np.array([found.poses[k] for k, _, _ in items]), parts, [obj.targets for _, _, obj in items],
+            iterations=INIT_SEARCH.final_iterations, bounds=self._limits(),
         )
-        # (The finalists' plain objectives: ``shared`` on their parts without targets, one batch.)
-        values = shared.batch(np.array([fit.x for fit in results]), gradient=False, parts=part_rows)[0]
-        for (k, _, data_x, obj), fit, value in zip(items, results, values.tolist()):
-            frame = Frame(self._model, fit, obj, plain(obj), data_x, det, self._limits(), new_track=True)
+        # (The finalists' plain values: ``shared`` on their parts without targets, one batch.)
+        values = shared.batch(np.array([r.x for r in results]), gradient=False, parts=None if parts.all() else parts)[0]
+        fits = []
+        for (k, _, obj), fit, value in zip(items, results, values.tolist()):
+            frame = Frame(self._model, fit, obj, plain(obj), obj.data, det, self._limits(), new_track=True)
             fits.append((k, (frame.score(fit.x, value), frame)))
         fits.sort(key=lambda f: f[0])
         fits.sort(key=lambda f: f[1][0], reverse=True)  # (stable: the earlier first on a tie)
         return fits
 
     def _result(
-        self,
-        theta: NDArray[np.float64] | None,
-        conf: float,
-        energy: float,
-        n: int,
-        timings: dict[str, float],
+        self, theta: NDArray[np.float64] | None, conf: float, energy: float, n: int, timings: dict[str, float],
         centres: NDArray[np.float64] | None = None,
     ) -> TrackResult:
         if theta is None:
             return TrackResult(self._status, None, None, None, float(conf), float(energy), n, dict(timings))
         if centres is None:  # (forward kinematics once: the fingertips are the tip Gaussians' centres)
             centres = gaussian_centres(self._model, theta)
+        m = self._model
         return TrackResult(
-            status=self._status,
-            pose=theta.copy(),
-            fingertips_mm=centres[self._model.tip_index],
-            skeleton_mm=keypoint_skeleton(self._model, theta),
-            confidence=float(conf),
-            energy=float(energy),
-            n_image_gaussians=n,
-            timings_ms=dict(timings),
-            gaussians_mm=centres,
-            gaussian_radii_mm=self._model.g_sigmas.copy(),
+            self._status, theta.copy(), centres[m.tip_index], keypoint_skeleton(m, theta), float(conf), float(energy),
+            n, dict(timings), gaussians_mm=centres, gaussian_radii_mm=m.g_sigmas.copy(),
         )
+
+
+def _timed(result: TrackResult, t0: float, t1: float, t2: float) -> TrackResult:
+    """``result`` with its ``timings_ms``: preprocessing ``t0``-``t1``, fit ``t1``-``t2`` (s) less data, total."""
+    ms = result.timings_ms
+    ms["preprocess"] = (t1 - t0) * 1e3
+    ms.setdefault("quadtree", 0.0)
+    ms["optimise"] = (t2 - t1) * 1e3 - ms["quadtree"]
+    ms["total"] = (time.perf_counter() - t0) * 1e3
+    return result

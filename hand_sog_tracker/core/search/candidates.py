@@ -1,12 +1,11 @@
 """A frame's candidates: the proposals, small generators with a name and a reason.
 
 Each proposal looks at the frame's fit (:class:`Frame`) and yields start poses
-(:class:`Candidate`) for a way out of a local optimum the fit may be in; the search
-(:func:`~hand_sog_tracker.core.search.fit.search`) fits them all as one batch and the score
-(:mod:`.score`) picks the answer.  A proposal yields nothing when its reason does not apply
-to the frame: there are no schedules, waits or cooldowns.  ``margin`` is how much a
-candidate must beat the fit's score by where the score cannot tell the two apart well (the
-measurements behind each value: ``doc/design/search.md``).
+(:class:`Candidate`) out of a local optimum the fit may be in, or nothing when its reason does
+not apply (no schedules, waits or cooldowns); the search (:func:`~.fit.search`) fits them all as
+one batch and the score (:mod:`.score`) picks the answer.  ``margin``: how much a candidate must
+beat the fit's score by where the score tells the two apart poorly (the measurements behind the
+values: ``doc/design/search.md``).
 """
 
 from __future__ import annotations
@@ -44,89 +43,48 @@ from hand_sog_tracker.core.search.score import (
 )
 
 __all__ = [
-    "Candidate",
-    "Frame",
-    "Proposal",
-    "TRACK_PROPOSALS",
-    "NEW_TRACK_PROPOSALS",
-    "pull_target",
-    "shifted",
-    "swapped",
+    "Candidate", "Frame", "Proposal", "TRACK_PROPOSALS", "NEW_TRACK_PROPOSALS", "pull_objective", "pull_target",
+    "shifted", "swapped",
 ]
 
-#: A fingertip this far from all data (mm) hangs in empty space (seed 004's restarts); its
-#: candidates must win by ``DANGLING_MARGIN`` (tried on every such frame, they won by 0.002-0.017
-#: on rotating hands, wrongly; chosen here).
-DANGLING_TIP_MM = 25.0
-DANGLING_MARGIN = 0.02
-#: Swap: a finger within 0.5 deg of its abduction limit toward a neighbour curled more by this
-#: much (MCP + PIP, rad), itself curled at most ``SWAP_MAX_CURL_RAD`` (issue 11).
+DANGLING_TIP_MM = 25.0  #: a fingertip this far (mm) from all data hangs in empty space (seed 004's restarts)
+DANGLING_MARGIN = 0.02  #: ... and its candidates must win by this (without, they won wrongly on rotating hands)
+#: Swap: a finger within this of its abduction limit (rad) toward a neighbour curled
+#: ``SWAP_CURL_GAP_RAD`` more (MCP + PIP), itself curled at most ``SWAP_MAX_CURL_RAD`` (issue 11).
 SWAP_ABD_MARGIN_RAD = float(np.radians(0.5))
 SWAP_CURL_GAP_RAD = 0.8
 SWAP_MAX_CURL_RAD = 2.2
-#: Swaps and curls need the palm or the back toward the camera (|palm normal . view| at least
-#: this): seen from the side the score cannot tell neighbouring fingers apart.
-FACING_COS = 0.85
 SWAP_MARGIN = 0.02
-#: Curl: an open finger (MCP + PIP + DIP under this, rad) without a detection of its own.
-CURL_MAX_FLEX_RAD = 1.5
+#: Swaps and curls need |palm normal . view| at least this: from the side the score cannot tell
+#: neighbouring fingers apart.
+FACING_COS = 0.85
+CURL_MAX_FLEX_RAD = 1.5  #: curl: an open finger (MCP + PIP + DIP under this, rad) without a detection of its own
 CURL_MARGIN = 0.04
-#: A hand nearly edge-on (|palm normal . view| under this) overlaps its fingers in the image:
-#: a detection pull must then win by ``EDGE_ON_MARGIN`` (issue 11).
-EDGE_ON_PALM_COS = 0.6
-EDGE_ON_MARGIN = SWAP_MARGIN
-#: A detection within this of one whose pulls lost on the frame before is the same one (mm;
-#: a few frames' motion of a fingertip at 30 Hz; chosen here).
-SAME_DETECTION_MM = 10.0
-#: The salient weight of a detection pull: 20 x ``w_sal`` (at least 20).
-PULL_WEIGHT = 20.0
-#: A shift that only the assignment calls for (no unexplained detection) must win by this
-#: (on a hand seen at an angle fingers one place over score alike; chosen here).
-SHIFT_MARGIN = 0.02
-#: A new track's lateral candidates move the hand this far across the palm (mm: about one
-#: finger's spacing) and must win by ``LATERAL_MARGIN`` (issue 11).
-LATERAL_MM = 15.0
-LATERAL_MARGIN = 0.01
+EDGE_ON_PALM_COS = 0.6  #: a hand this nearly edge-on (|palm normal . view| under) overlaps its fingers ...
+EDGE_ON_MARGIN = SWAP_MARGIN  #: ... and a detection pull must win by this (issue 11)
+SAME_DETECTION_MM = 10.0  #: within this (mm, a few frames' motion) of a detection whose pulls lost: the same
+PULL_WEIGHT = 20.0  #: the salient weight of a detection pull: this x ``w_sal`` (at least this)
+SHIFT_MARGIN = 0.02  #: a shift without an unexplained detection wins by this (at an angle fingers one over score alike)
+LATERAL_MM = 15.0  #: a new track's lateral candidates move the hand this far across the palm (mm: a finger's spacing)
+LATERAL_MARGIN = 0.01  #: ... and must win by this (issue 11)
 
 
 @dataclass(frozen=True, eq=False)
 class Frame:
-    """What the proposals look at: one frame's fit and data.
-
-    Attributes
-    ----------
-    model : HandModel
-    fit : OptimizeResult
-        The frame's fit (a tracked frame's, or a new track's best finalist).
-    obj : Objective
-        The frame's objective (with the salient term's targets).
-    plain : Objective
-        ``obj`` without its salient term: candidates are fitted and scored on it.
-    data : ImageSoG
-    det : Detections
-    limits : (low, high) arrays, shape (26,) each
-        The model's joint limits (+-inf for the wrist).
-    new_track : bool
-        A new track's first frame: scored without the hidden-tip discount, with the lateral
-        candidates and both finger shifts.
-    lost_pulls : array, shape (k, 3), mm
-        Detections whose pulls lost on the frame before (see :func:`pull_target`).
-    covered : callable or None
-        ``covered(tips)``: which fingertips (5, 3) mm lie against another hand's skin or
-        behind it (5,) bool; the detector sees no end there, so their missing detections call
-        for no curl, and they do not dangle (the multi-hand tracker's, :mod:`..hands`).  None:
-        none does.
-    """
+    """What the proposals look at: one frame's fit and data."""
 
     model: HandModel
-    fit: OptimizeResult
-    obj: Objective
-    plain: Objective
+    fit: OptimizeResult  #: the frame's fit (a tracked frame's, or a new track's best finalist)
+    obj: Objective  #: the frame's objective (with the salient term's targets)
+    plain: Objective  #: ``obj`` without its salient term: candidates are fitted and scored on it
     data: ImageSoG
     det: Detections
-    limits: tuple[NDArray[np.float64], NDArray[np.float64]]
-    new_track: bool = False
+    limits: tuple[NDArray[np.float64], NDArray[np.float64]]  #: joint limits (low, high) (26,) each, +-inf: wrist
+    new_track: bool = False  #: a new track: no hidden-tip discount, lateral candidates, both shifts
+    #: (k, 3) mm: detections whose pulls lost on the frame before (see :func:`pull_target`)
     lost_pulls: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    #: ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand (no end
+    #: to detect: they call for no curl and do not dangle; :mod:`..hands`); None: none
     covered: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
 
     def score(self, theta: NDArray[np.float64], value: float | None = None) -> float:
@@ -136,26 +94,14 @@ class Frame:
 
 @dataclass(frozen=True, eq=False)
 class Candidate:
-    """One start pose of the search.
-
-    Attributes
-    ----------
-    proposal : str
-        Name of the proposal that made it.
-    x0 : array, shape (26,)
-        Start pose.
-    margin : float
-        Score it must beat the frame's fit by (unitless, score units).
-    pull : Objective or None
-        When given, the candidate is first fitted on this objective (a detection pulling a
-        finger), with only ``active`` parameters free, then released into the plain objective.
-    active : bool array, shape (26,), or None
-    """
+    """One start pose of the search: ``proposal`` (its name), ``x0`` (26,), the ``margin`` it must
+    beat the fit's score by and, optionally, the fingertip targets it is first ``pull``-ed onto
+    (:func:`pull_objective`) with only its ``active`` (26,) parameters free."""
 
     proposal: str
     x0: NDArray[np.float64]
     margin: float = 0.0
-    pull: Objective | None = None
+    pull: TipTargets | None = None
     active: NDArray[np.bool_] | None = None
 
 
@@ -166,6 +112,11 @@ class Proposal:
     name: str
     reason: str
     generate: Callable[[Frame], Iterator[Candidate]]
+
+
+def _proposal(name: str, reason: str) -> Callable[[Callable[[Frame], Iterator[Candidate]]], Proposal]:
+    """Decorator: the generator of candidates it decorates as the :class:`Proposal` ``name``."""
+    return lambda generate: Proposal(name, reason, generate)
 
 
 def shifted(theta: NDArray[np.float64], side: int) -> NDArray[np.float64]:
@@ -196,12 +147,13 @@ def _with_chain(theta: NDArray[np.float64], c: int, joints: NDArray[np.float64])
     return x0
 
 
-def _facing(theta: NDArray[np.float64]) -> bool:
-    """Whether the palm or the back of the hand faces the camera (``FACING_COS``)."""
-    return abs(global_rotation(theta)[2, 2]) >= FACING_COS
+def _view_cos(theta: NDArray[np.float64]) -> float:
+    """|palm normal . view axis| at ``theta``: 1 palm or back to the camera, 0 edge-on."""
+    return abs(global_rotation(theta)[2, 2])
 
 
-def _dangling(f: Frame) -> Iterator[Candidate]:
+@_proposal("dangling", "a fingertip hangs in empty space: its finger extended, curled, like the others")
+def DANGLING(f: Frame) -> Iterator[Candidate]:
     if f.data.n == 0:
         return
     x = f.fit.x
@@ -220,10 +172,9 @@ def _dangling(f: Frame) -> Iterator[Candidate]:
 
 
 def swap_pair(theta: NDArray[np.float64], limits: tuple[NDArray, NDArray]) -> tuple[int, int] | None:
-    """``(finger, neighbour)`` (chains 1-4) for the swap at ``theta`` (26,), or None: a finger
-    at its abduction limit toward a neighbour curled more (see ``SWAP_*``); of several, the
-    pair with the largest difference in curl."""
-    if not _facing(theta):
+    """``(finger, neighbour)`` (chains 1-4) to swap at ``theta`` (26,), or None: a finger at its
+    abduction limit toward a neighbour curled more (``SWAP_*``), of several the largest gap."""
+    if _view_cos(theta) < FACING_COS:
         return None
     lo, hi = limits
     abd = theta[FINGER_ABD]
@@ -238,15 +189,17 @@ def swap_pair(theta: NDArray[np.float64], limits: tuple[NDArray, NDArray]) -> tu
     return best
 
 
-def _swap(f: Frame) -> Iterator[Candidate]:
+@_proposal("swap", "a finger held at its abduction limit over a more curled neighbour's place: the two swap flexions")
+def SWAP(f: Frame) -> Iterator[Candidate]:
     pair = swap_pair(f.fit.x, f.limits)
     if pair is not None:
         yield Candidate("swap", swapped(f.fit.x, *pair), SWAP_MARGIN)
 
 
-def _curl(f: Frame) -> Iterator[Candidate]:
+@_proposal("curl", "an open finger without a detection of its own: each open finger curled into the palm")
+def CURL(f: Frame) -> Iterator[Candidate]:
     x = f.fit.x
-    if f.det.n == 0 or not _facing(x):
+    if f.det.n == 0 or _view_cos(x) < FACING_COS:
         return
     flex = x[FINGER_MCP] + x[FINGER_PIP] + x[FINGER_DIP]  # index .. little (4,)
     fingers = [c for c in range(1, 5) if flex[c - 1] < CURL_MAX_FLEX_RAD]
@@ -260,13 +213,14 @@ def _curl(f: Frame) -> Iterator[Candidate]:
             yield Candidate("curl", _with_chain(x, c, FINGER_CURLED), CURL_MARGIN)
 
 
-def _shift(f: Frame) -> Iterator[Candidate]:
+@_proposal("shift", "an unexplained detection, or detections a pose with every finger one place over explains better")
+def SHIFT(f: Frame) -> Iterator[Candidate]:
     x = f.fit.x
     margin = SHIFT_MARGIN
     if f.new_track or lonely_detections(f.model, x, f.det).size:
         sides: tuple[int, ...] = (1, -1)
         margin = 0.0
-    elif f.det.n == 0 or abs(global_rotation(x)[2, 2]) < EDGE_ON_PALM_COS:
+    elif f.det.n == 0 or _view_cos(x) < EDGE_ON_PALM_COS:
         return  # no detection says where the fingers are, or they overlap in the image (edge-on)
     elif f.det.n >= 5 and own_detections(f.model, x, f.det).all():
         return  # each fingertip has a detection of its own
@@ -279,9 +233,8 @@ def _shift(f: Frame) -> Iterator[Candidate]:
 
 
 def _joint_targets(model: HandModel, theta: NDArray[np.float64], det: Detections, c: int, s: int) -> TipTargets:
-    """Targets for fingertip ``c`` on detection ``s`` (weight 1) and for the other fingertips
-    at ``theta`` (26,) on the detections the optimal assignment gives them among the others
-    (their confidence; none for a detection seen end-on)."""
+    """Targets: fingertip ``c`` on detection ``s`` (weight 1), the others at ``theta`` (26,) on
+    what the optimal assignment gives them of the rest (their confidence; none seen end-on)."""
     rest = np.ones(det.n, dtype=bool)
     rest[s] = False
     others = np.flatnonzero(np.arange(5) != c)
@@ -295,11 +248,15 @@ def _joint_targets(model: HandModel, theta: NDArray[np.float64], det: Detections
     return TipTargets(points, weights)
 
 
+def pull_objective(obj: Objective) -> Objective:
+    """The frame's objective ``obj`` with the salient weight of a pull (``PULL_WEIGHT``), no targets."""
+    return obj.variant(replace(obj.config, w_sal=max(obj.config.w_sal, 1.0) * PULL_WEIGHT), None)
+
+
 def pull_target(f: Frame) -> int | None:
-    """The detection the detection proposal pulls fingers onto: the most confident one that no
+    """The detection the detection proposal pulls fingers onto, or None: the most confident one no
     fingertip explains, unless its pulls lost on the frame before where it still is (within
-    ``SAME_DETECTION_MM`` of one of ``f.lost_pulls``: the score already preferred the fit
-    there); None when there is none."""
+    ``SAME_DETECTION_MM`` of ``f.lost_pulls``: the score preferred the fit there)."""
     lonely = lonely_detections(f.model, f.fit.x, f.det)
     if lonely.size and f.lost_pulls.shape[0]:
         near = np.sqrt(sq_distances(f.det.points[lonely], f.lost_pulls)).min(axis=1) < SAME_DETECTION_MM
@@ -307,15 +264,14 @@ def pull_target(f: Frame) -> int | None:
     return int(lonely[np.argmax(f.det.confidence[lonely])]) if lonely.size else None
 
 
-def _detection(f: Frame) -> Iterator[Candidate]:
+@_proposal("detection", "a detection no fingertip explains (pulls not lost before): the 2 nearest fingers pulled on it")
+def DETECTION(f: Frame) -> Iterator[Candidate]:
     x, det = f.fit.x, f.det
     s = pull_target(f)
     if s is None:
         return
     dist = np.linalg.norm(det.points[s] - fingertips(f.model, x), axis=1)
-    cfg = f.obj.config
-    margin = EDGE_ON_MARGIN if abs(global_rotation(x)[2, 2]) < EDGE_ON_PALM_COS else 0.0
-    strong = replace(cfg, w_sal=max(cfg.w_sal, 1.0) * PULL_WEIGHT)
+    margin = EDGE_ON_MARGIN if _view_cos(x) < EDGE_ON_PALM_COS else 0.0
     for c in np.argsort(dist)[:2]:
         c = int(c)
         pts, w = np.zeros((5, 3)), np.zeros(5)
@@ -324,13 +280,14 @@ def _detection(f: Frame) -> Iterator[Candidate]:
         finger[chain_slice(c)] = True
         # The finger alone pulled onto it, and the whole pose with every other fingertip
         # pulled onto its own detection (a model finger on its neighbour's data moves back).
-        yield Candidate("detection", x, margin, f.obj.variant(strong, TipTargets(pts, w)), finger)
-        yield Candidate("detection", x, margin, f.obj.variant(strong, _joint_targets(f.model, x, det, c, s)))
+        yield Candidate("detection", x, margin, TipTargets(pts, w), finger)
+        yield Candidate("detection", x, margin, _joint_targets(f.model, x, det, c, s))
         if det.end_on[s] and c > 0:  # a finger seen end-on is curled toward the camera
             yield Candidate("detection", _with_chain(x, c, FINGER_CURLED), margin)
 
 
-def _lateral(f: Frame) -> Iterator[Candidate]:
+@_proposal("lateral", "a new track: the hand moved one finger's spacing sideways, fingers as they are and shifted")
+def LATERAL(f: Frame) -> Iterator[Candidate]:
     if not f.new_track:
         return
     x = f.fit.x
@@ -342,27 +299,6 @@ def _lateral(f: Frame) -> Iterator[Candidate]:
             yield Candidate("lateral", x0, LATERAL_MARGIN)
 
 
-DANGLING = Proposal(
-    "dangling", "a fingertip hangs in empty space: its finger extended, curled, like the others", _dangling
-)
-SWAP = Proposal(
-    "swap", "a finger held at its abduction limit over a more curled neighbour's place: the two swap flexions", _swap
-)
-CURL = Proposal("curl", "an open finger without a detection of its own: each open finger curled into the palm", _curl)
-SHIFT = Proposal(
-    "shift",
-    "an unexplained detection, or detections that a pose with every finger on its neighbour's place explains better",
-    _shift,
-)
-DETECTION = Proposal(
-    "detection",
-    "a detection no fingertip explains (and whose pulls did not lose on the frame before): the two nearest"
-    " fingers pulled onto it",
-    _detection,
-)
-LATERAL = Proposal(
-    "lateral", "a new track: the hand moved one finger's spacing sideways, fingers as they are and shifted", _lateral
-)
 #: The proposals of a tracked frame and of a new track's first frame.
 TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SWAP, CURL, SHIFT, DETECTION)
 NEW_TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SHIFT, LATERAL)

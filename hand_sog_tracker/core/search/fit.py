@@ -7,20 +7,18 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS
+from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS, ImageSoG
 from hand_sog_tracker.core.hand_model import N_PARAMS
 from hand_sog_tracker.core.objective import Objective, TipTargets
 from hand_sog_tracker.core.optimizer import OptimizeResult, maximise_batch
-from hand_sog_tracker.core.search.candidates import Candidate, Frame, Proposal
+from hand_sog_tracker.core.search.candidates import Candidate, Frame, Proposal, pull_objective
 
-__all__ = ["MAX_BATCH", "SEARCH_ITERATIONS", "batch_size", "fit_batch", "search", "with_targets"]
+__all__ = ["MAX_BATCH", "SEARCH_ITERATIONS", "batch_size", "fit_batch", "fit_parts", "part", "search", "with_targets"]
 
 #: Iterations each candidate gets (and each detection pull before it; chosen here, commit f16019d).
 SEARCH_ITERATIONS = 12
 #: Most candidates fitted in one call at the data cap: a batch holds its model x data arrays once
-#: per candidate (a frame with many data Gaussians and 11 candidates peaked 75 MB above steady
-#: tracking); a frame with fewer data Gaussians fits as many more in one call as the same pairs
-#: hold (:func:`batch_size`).
+#: per candidate (memory, issue 50); fewer data Gaussians fit as many more (:func:`batch_size`).
 MAX_BATCH = 4
 
 
@@ -30,12 +28,16 @@ def batch_size(n_data: int) -> int:
     return MAX_BATCH * max(1, MAX_DATA_GAUSSIANS // max(n_data, 1))
 
 
+def part(data: ImageSoG, keep: NDArray[np.bool_]) -> ImageSoG:
+    """The Gaussians of ``data`` where ``keep`` (n,) is True (``data`` itself when all are)."""
+    return data if keep.all() else data.subset(keep)
+
+
 def fit_batch(
     fun_batch: Callable, starts: NDArray[np.float64], n_data: int = MAX_DATA_GAUSSIANS, **kwargs: Any
 ) -> list[OptimizeResult]:
-    """:func:`maximise_batch` of ``starts`` (B, 26) on ``n_data`` data Gaussians, in chunks of
-    at most :func:`batch_size` (a candidate's fit does not depend on its batch).  With
-    ``with_index``, ``fun_batch`` gets the candidates' positions in ``starts``."""
+    """:func:`maximise_batch` of ``starts`` (B, 26) on ``n_data`` data Gaussians in chunks of
+    :func:`batch_size` (a fit does not depend on its batch); ``with_index``: positions in ``starts``."""
     out: list[OptimizeResult] = []
     size = batch_size(n_data)
     for k in range(0, len(starts), size):
@@ -57,39 +59,51 @@ def fit_batch(
 
 
 def with_targets(
-    obj: Objective, targets: Sequence[TipTargets | None], parts: NDArray[np.bool_] | None = None
+    obj: Objective, targets: Sequence[TipTargets | None] | None = None, parts: NDArray[np.bool_] | None = None
 ) -> Callable[..., tuple]:
-    """``obj.batch`` as :func:`maximise_batch` calls it ``with_index``: candidate ``i`` of the
-    batch with ``targets[i]`` (what ``obj.variant(obj.config, targets[i])`` gives it alone),
-    and with ``parts`` (B, n) on its own data subset ``parts[i]``."""
+    """``obj.batch`` as :func:`maximise_batch` calls it ``with_index``: candidate ``i`` with
+    ``targets[i]`` (as ``obj.variant(obj.config, targets[i])`` alone) and on the data ``parts[i]`` (n,)."""
 
     def fun(
         thetas: NDArray[np.float64], gradient: bool = True, index: NDArray[np.int64] | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         assert index is not None
         return obj.batch(
-            thetas, gradient, targets=[targets[i] for i in index.tolist()],
+            thetas, gradient, targets=None if targets is None else [targets[i] for i in index.tolist()],
             parts=None if parts is None else parts[index],
         )
 
     return fun
 
 
-def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult, str | None]:
-    """The frame's answer: its fit or the best of the candidates ``proposals`` make for it.
+def fit_parts(
+    obj: Objective, starts: NDArray[np.float64], parts: NDArray[np.bool_],
+    targets: Sequence[TipTargets | None] | None = None, **kwargs: Any,
+) -> list[OptimizeResult]:
+    """Each of ``starts`` (B, 26) fitted on ``obj`` with only its part ``parts[b]`` (B, n) of the
+    data and, given, ``targets[b]``, as one batch (a lone pose without targets on its part's own
+    objective: the one-pose path)."""
+    if len(starts) == 1 and targets is None:
+        keep = parts[0]
+        if not keep.all():
+            obj = Objective(obj.model, obj.data.subset(keep), obj.config, silhouette=obj.silhouette)
+        return fit_batch(obj.batch, starts, obj.data.n, **kwargs)
+    fun = with_targets(obj, targets, None if parts.all() else parts)
+    return fit_batch(fun, starts, obj.data.n, with_index=True, **kwargs)
 
-    Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain``, all as one batch (a
-    pull first on its own objective); one wins when its :meth:`Frame.score` beats the fit's by
-    the candidate's margin, and of the winners the highest score is the answer.  The fit is a
-    race: a score is the plain value minus an assignment cost (>= 0), so a candidate whose
-    value cannot reach the fit's score plus its margin cannot win and stops early
-    (:func:`maximise_batch`'s ``floor``).  Returns the
-    answer's fit and the name of the proposal it came from (None: the frame's fit).
+
+def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult, str | None]:
+    """The frame's answer and the name of the proposal it came from (None: the frame's fit).
+
+    Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain``, all as one batch (a pull
+    first on its own objective); the highest :meth:`Frame.score` among those that beat the fit's
+    by their margin wins.  A race: a score is the plain value minus a cost >= 0, so a candidate
+    whose value cannot reach the fit's score plus its margin stops early (``floor``).
     """
     candidates = [c for p in proposals for c in p.generate(frame)]
     if not candidates:
         return frame.fit, None
-    starts = _pulled(candidates, frame.limits)
+    starts = _pulled(candidates, frame.obj, frame.limits)
     base = frame.score(frame.fit.x, _plain_value(frame))
     floor = base + np.array([c.margin for c in candidates])
     fits = fit_batch(
@@ -104,46 +118,27 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
 
 
 def _plain_value(frame: Frame) -> float:
-    """``frame.plain`` at the fit's pose, from the fit's own value on ``frame.obj``: its salient
-    term added back (the only term the two differ in; the same value up to rounding, without an
-    evaluation of the data terms)."""
+    """``frame.plain`` at the fit's pose: the fit's value on ``frame.obj`` with its salient term
+    added back (the only term the two differ in), without evaluating the data terms again."""
     if frame.plain is frame.obj:
         return frame.fit.fun
     return frame.fit.fun + frame.obj.config.w_sal * frame.obj.salient(frame.fit.x)
 
 
-def _pulled(candidates: Sequence[Candidate], limits: tuple[NDArray[np.float64], NDArray[np.float64]]) -> NDArray:
-    """The candidates' start poses (B, 26): after its pull for a candidate with one, fitted
-    ``SEARCH_ITERATIONS`` on its own objective with its ``active`` parameters.  The pulls of a
-    frame differ only in their targets (:meth:`Objective.variant` of one objective with one
-    config): they are fitted as one batch on the first, each with its own targets (the same
-    iterates as one by one)."""
+def _pulled(
+    candidates: Sequence[Candidate], obj: Objective, limits: tuple[NDArray[np.float64], NDArray[np.float64]]
+) -> NDArray[np.float64]:
+    """The candidates' start poses (B, 26), a pulled one's after ``SEARCH_ITERATIONS`` on the
+    frame's :func:`pull_objective` of ``obj`` with its own targets and ``active`` parameters (all
+    pulls as one batch: the same iterates as one by one)."""
     starts = np.array([c.x0 for c in candidates])
-    groups: dict[int, list[int]] = {}
-    for i, c in enumerate(candidates):
-        if c.pull is not None:
-            key = next((k for k in groups if _same_pull(candidates[k].pull, c.pull)), i)
-            groups.setdefault(key, []).append(i)
-    for key, ks in groups.items():
-        shared = candidates[key].pull
-        assert shared is not None
-        active = np.ones((len(ks), N_PARAMS), dtype=bool)
-        for row, i in enumerate(ks):
-            if candidates[i].active is not None:
-                active[row] = candidates[i].active
+    ks = [i for i, c in enumerate(candidates) if c.pull is not None]
+    if ks:
+        pull, rows = pull_objective(obj), [candidates[i] for i in ks]
+        active = np.array([np.ones(N_PARAMS, bool) if c.active is None else c.active for c in rows])
         fits = fit_batch(
-            with_targets(shared, [candidates[i].pull.targets for i in ks]),  # type: ignore[union-attr]
-            starts[ks], shared.data.n, iterations=SEARCH_ITERATIONS, active=active, bounds=limits,
-            with_index=True,
+            with_targets(pull, [c.pull for c in rows]), starts[ks], pull.data.n, iterations=SEARCH_ITERATIONS,
+            active=active, bounds=limits, with_index=True,
         )
-        for i, res in zip(ks, fits):
-            starts[i] = res.x
+        starts[ks] = [r.x for r in fits]
     return starts
-
-
-def _same_pull(a: Objective | None, b: Objective) -> bool:
-    """Whether the pull objectives ``a`` and ``b`` differ at most in their targets."""
-    return a is not None and (
-        a.model is b.model and a.data is b.data and a.config == b.config and a.previous is b.previous
-        and a.silhouette is b.silhouette and a.contact is b.contact and a.visible_from is b.visible_from
-    )

@@ -1,13 +1,10 @@
 """The one score that picks a frame's answer among its candidates (seed 001, eq. 11).
 
-``score(theta) = E_plain(theta) - w_sal * cost(theta) / SALIENT_SCALE_MM``: the objective
-without its salient term (which would favour the assignment the frame started with) minus the
-optimal assignment cost of the frame's fingertip detections at ``theta``.  Assigned pairs
-cost their distance, detections left over ``ASSIGN_LAMBDA_MM`` x their confidence, fingertips
-without a detection ``ASSIGN_LAMBDA_MM`` (less for a tip curled against a palm facing the
-camera, :func:`tip_lambdas`, on tracked frames).  A hypothesis whose fingertips are not where
-fingertips are seen (a hand flipped palm-for-back, fingers swapped) scores worse even where the
-depth overlap cannot tell.
+``score(theta) = E_plain(theta) - w_sal * cost(theta) / SALIENT_SCALE_MM``: the objective without
+its salient term (which favours the assignment the frame started with) minus the optimal
+assignment cost of the fingertip detections at ``theta`` (:func:`assignment_cost`).  A pose whose
+fingertips are not where fingertips are seen (flipped palm-for-back, fingers swapped) scores
+worse even where the depth overlap cannot tell.
 """
 
 from __future__ import annotations
@@ -23,40 +20,28 @@ from hand_sog_tracker.core.objective import SALIENT_SCALE_MM, Objective
 from hand_sog_tracker.core.salient import Detections, assign_detections
 
 __all__ = [
-    "ASSIGN_LAMBDA_MM",
-    "assignment_cost",
-    "lonely_detections",
-    "own_detections",
-    "plain",
-    "score",
-    "sq_distances",
+    "ASSIGN_LAMBDA_MM", "assignment_cost", "lonely_detections", "own_detections", "plain", "score", "sq_distances",
     "tip_lambdas",
 ]
 
-#: Cost (mm) of a fingertip without a detection (seed 001's lambda, eq. 11, in mm; chosen here).
-ASSIGN_LAMBDA_MM = 30.0
-#: A curled tip against a palm facing the camera (palm normal within acos(0.5) of the view
-#: axis) costs ``HIDDEN_TIP_LAMBDA`` x lambda from PIP + DIP = ``CURLED_TIP_RAD``, linearly
-#: from ``OPEN_TIP_RAD`` (rad; chosen here, issue 11: the detector cannot see such a tip).
+ASSIGN_LAMBDA_MM = 30.0  #: cost (mm) of a fingertip without a detection (seed 001's lambda, eq. 11)
+#: A tip curled against a palm facing the camera (normal within acos(``HIDDEN_PALM_COS``) of the
+#: view) costs less, down to ``HIDDEN_TIP_LAMBDA`` x lambda from PIP + DIP ``OPEN_TIP_RAD`` to
+#: ``CURLED_TIP_RAD`` (rad; issue 11: the detector cannot see such a tip).
 HIDDEN_TIP_LAMBDA = 0.0
 HIDDEN_PALM_COS = 0.5
 OPEN_TIP_RAD = 1.0
 CURLED_TIP_RAD = 2.0
-#: A confident (>= 0.5) detection this far (mm) from every fingertip is a finger the model
-#: missed (about the spacing of neighbouring MCPs; chosen here) ...
-UNEXPLAINED_DETECTION_MM = 20.0
-UNEXPLAINED_CONFIDENCE = 0.5
-#: ... and a less confident (>= 0.3) one this far: no neighbour's partly seen tip (issue 11).
-FAR_UNEXPLAINED_MM = 40.0
-FAR_UNEXPLAINED_CONFIDENCE = 0.3
-#: A fingertip has a detection of its own when the optimal assignment gives it one this near
-#: (mm; chosen here, issue 14).
-OWN_DETECTION_MM = 10.0
+UNEXPLAINED_DETECTION_MM = 20.0  #: a detection this far (mm, the MCPs' spacing) from every fingertip ...
+UNEXPLAINED_CONFIDENCE = 0.5  #: ... this confident, is a finger the model missed ...
+FAR_UNEXPLAINED_MM = 40.0  #: ... and one this far ...
+FAR_UNEXPLAINED_CONFIDENCE = 0.3  #: ... this confident (no neighbour's partly seen tip; issue 11)
+OWN_DETECTION_MM = 10.0  #: a tip's own detection: the optimal assignment gives it one this near (mm)
 
 
 def sq_distances(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Squared distances (k, l) between the points ``a`` (k, 3) and ``b`` (l, 3) (the sums of
-    ``((a[:, None] - b[None]) ** 2).sum(-1)``, bit for bit, without a reduction call)."""
+    """Squared distances (k, l) between the points ``a`` (k, 3) and ``b`` (l, 3) (bit for bit
+    ``((a[:, None] - b[None]) ** 2).sum(-1)``, without a reduction call)."""
     diff = a[:, None, :] - b[None, :, :]
     sq = np.multiply(diff, diff, out=diff)
     d2 = sq[..., 0] + sq[..., 1]
@@ -76,12 +61,10 @@ def tip_lambdas(theta: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def assignment_cost(model: HandModel, theta: NDArray[np.float64], det: Detections, hidden_tips: bool) -> float:
-    """Seed 001's assignment cost (eq. 11) at ``theta`` (26,), in units of ``SALIENT_SCALE_MM``.
-
-    ``hidden_tips``: curled tips against a palm facing the camera cost less (tracked frames);
-    a new track scores without (while the palm's side is open, the discount favours a palm
-    turned to the camera with curled fingers).
-    """
+    """Seed 001's assignment cost (eq. 11) at ``theta`` (26,) per ``SALIENT_SCALE_MM``: assigned
+    pairs cost their distance, detections left over lambda x their confidence, fingertips
+    without one lambda, less with ``hidden_tips`` (:func:`tip_lambdas`; tracked frames: while the
+    palm's side is open the discount favours a palm turned to the camera with curled fingers)."""
     if det.n == 0:
         return 0.0
     tips = fingertips(model, theta)
@@ -110,17 +93,15 @@ def score(
     hidden_tips: bool,
     value: float | None = None,
 ) -> float:
-    """The score of ``theta`` (26,): ``plain_obj`` (a :func:`plain` objective) there minus
-    ``w_sal`` x the assignment cost of ``det``; ``value``: ``plain_obj`` at ``theta`` when
-    already known (a fit returns it)."""
+    """``plain_obj`` (a :func:`plain` objective) at ``theta`` (26,; ``value`` when known) minus
+    ``w_sal`` x the assignment cost of ``det``."""
     if value is None:
         value = plain_obj(theta, gradient=False)[0]
     return value - w_sal * assignment_cost(plain_obj.model, theta, det, hidden_tips)
 
 
 def lonely_detections(model: HandModel, theta: NDArray[np.float64], det: Detections) -> NDArray[np.int64]:
-    """Indices of the detections no fingertip at ``theta`` (26,) explains (see
-    ``UNEXPLAINED_DETECTION_MM`` and ``FAR_UNEXPLAINED_MM``)."""
+    """Indices of the detections no fingertip at ``theta`` (26,) explains (``*UNEXPLAINED*``)."""
     if det.n == 0:
         return np.zeros(0, dtype=np.int64)
     dist = np.sqrt(sq_distances(det.points, fingertips(model, theta))).min(axis=1)
@@ -132,8 +113,8 @@ def lonely_detections(model: HandModel, theta: NDArray[np.float64], det: Detecti
 
 
 def own_detections(model: HandModel, theta: NDArray[np.float64], det: Detections) -> NDArray[np.bool_]:
-    """Per fingertip at ``theta`` (26,), thumb .. little (5,): whether the optimal assignment
-    gives it a detection within ``OWN_DETECTION_MM``."""
+    """Whether the optimal assignment gives each fingertip (5,) at ``theta`` (26,) a detection
+    within ``OWN_DETECTION_MM``."""
     tips = fingertips(model, theta)
     assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
     own = assigned >= 0
