@@ -281,7 +281,6 @@ class DataTerms:
         L = self._one if lay is None else lay
         rows = L.rows
         uv, dp, sp_sq, sp = rows[3:5], rows[5], rows[6], rows[10]
-        u, v = uv
         np.add(proj, self._cxy, out=uv)  # u = fx x / z + cx, v = fy y / z + cy
         np.subtract(z, L.sigmas, out=dp)
         np.divide(L.shf, z, out=sp)
@@ -345,11 +344,6 @@ class DataTerms:
             sim: float | NDArray[np.float64] = _sum((k * sat).reshape(L.B, n), axis=1) * (-SIM_GAIN * inv_norm)
         else:
             sim = float(_sum(k * sat) * (-SIM_GAIN * inv_norm))
-        sat += 1.0  # exp(-S_q / k_q): dE_sim/dS_q in units of G / norm
-        if parts is not None:  # (the gradient's weights per image Gaussian carry their pose's 1 / norm)
-            sat_b = sat.reshape(L.B, n)
-            sat_b *= inv_norm[:, None]
-            inv_norm = 1.0
         # Dangling Gaussians (eq. 7): distance from each model Gaussian to the data,
         # occlusion-aware (see the module docstring), dmin its minimum over the data:
         # ``dist^2 = lat^2 scale^2 + beh^2`` with ``lat = max(sqrt(r2) - half, 0)`` and
@@ -420,6 +414,11 @@ class DataTerms:
                 dan = float(_sum(wdang_r * per_row_dan))
         if g3 is None and later is None:
             return sim, dan
+        sat += 1.0  # exp(-S_q / k_q): dE_sim/dS_q in units of G / norm
+        if parts is not None:  # (the gradient's weights per image Gaussian carry their pose's 1 / norm)
+            sat_b = sat.reshape(L.B, n)
+            sat_b *= inv_norm[:, None]
+            inv_norm = 1.0
 
         def backward(g3: NDArray[np.float64]) -> None:
             """Add the data terms' ``dE/dP`` into ``g3`` (m, 3) (only reads this evaluation's

@@ -142,6 +142,17 @@ class EnergyTerms:
 
 
 
+def _batch_total(sim: NDArray[np.float64] | float, terms: tuple) -> NDArray[np.float64] | float:
+    """``sim - w_1 v_1 - w_2 v_2 - ...`` of a batch, in this order, for ``terms`` ``(w, v)``: a
+    term whose value is the scalar 0 (0 at every pose) or whose weight is 0 is left out (it
+    would subtract zeros: the same bits, one NumPy call per term fewer)."""
+    total = sim
+    for w, v in terms:
+        if w != 0.0 and (np.ndim(v) or v != 0.0):
+            total = total - w * v
+    return total
+
+
 class _BatchState:
     """The batch layouts of one model, data and visibility weights (see
     :meth:`Objective._layout`): ``layouts`` by batch size, the capacity ``cap`` (poses) of the
@@ -280,6 +291,10 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         self._support_key = b""
         self._evaluations = 0  # (counts evaluations: a deferred gradient checks it is current)
         self._support_src: tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64]] | None = None
+        # The fingertips as a slice or indices (the batches' targets), and the last batch's
+        # parts with what the data terms need of them (see _batch_parts); made when first used.
+        self._tips: slice | NDArray[np.int64] | None = None
+        self._parts: tuple[bytes, tuple[int, ...], tuple[NDArray[np.float64], ...]] | None = None
 
     def __call__(
         self, theta: NDArray[np.float64], gradient: bool = True
@@ -323,7 +338,12 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         if B == 1 and targets is None and parts is None:  # (one pose: the one-pose path, faster, the same bits)
             value, grad = self(thetas[0], gradient)
             return np.array([value]), None if grad is None else grad[None]
-        each = _UNSET if targets is None else _stacked_targets(targets, _as_slice(self.model.tip_index))
+        if targets is None:
+            each = _UNSET
+        else:
+            if self._tips is None:
+                self._tips = _as_slice(self.model.tip_index)
+            each = _stacked_targets(targets, self._tips)
         values, grads = self._evaluate(
             thetas, gradient, False, targets_each=each, parts=None if parts is None else self._batch_parts(parts)
         )
@@ -331,7 +351,18 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
 
     def _batch_parts(self, parts: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
         """What the data terms need of the poses' parts (B, n): 0 or +inf per pose and data
-        Gaussian (B, n), each part's ``1 / norm`` (B,) and size (B,), the parts as 0 / 1 (B, n)."""
+        Gaussian (B, n), each part's ``1 / norm`` (B,) and size (B,), the parts as 0 / 1 (B, n)
+        (kept for the last parts: a batch fit passes the same parts, or fewer, every call)."""
+        key = parts.tobytes()
+        hit = self._parts
+        if hit is not None and hit[0] == key and hit[1] == parts.shape:
+            return hit[2]
+        made = self._make_parts(parts)
+        self._parts = (key, parts.shape, made)
+        return made
+
+    def _make_parts(self, parts: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
+        """:meth:`_batch_parts` of ``parts``, computed."""
         keep = np.asarray(parts, dtype=np.float64)
         sizes = keep.sum(axis=1)
         if not (sizes > 0).all():
@@ -524,22 +555,28 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
             sil = silhouette_term(
                 self.silhouette, P, g3, cfg.w_sil, (z, proj) if self._sil_shares_projection else None, later
             )
-        total = (
-            sim
-            - cfg.w_col * col
-            - cfg.w_dan * dan
-            - cfg.w_lim * lim
-            - cfg.w_smo * smo
-            - cfg.w_ord * ordv
-            - cfg.w_cpl * cpl
-            - cfg.w_curl * curl
-            - cfg.w_sal * sal
-            - cfg.w_sil * sil
-        )
+        if batch:
+            total = _batch_total(sim, (
+                (cfg.w_col, col), (cfg.w_dan, dan), (cfg.w_lim, lim), (cfg.w_smo, smo), (cfg.w_ord, ordv),
+                (cfg.w_cpl, cpl), (cfg.w_curl, curl), (cfg.w_sal, sal), (cfg.w_sil, sil),
+            ))
+        else:
+            total = (
+                sim
+                - cfg.w_col * col
+                - cfg.w_dan * dan
+                - cfg.w_lim * lim
+                - cfg.w_smo * smo
+                - cfg.w_ord * ordv
+                - cfg.w_cpl * cpl
+                - cfg.w_curl * curl
+                - cfg.w_sal * sal
+                - cfg.w_sil * sil
+            )
         if self.interhand is not None:  # (two hands only: one hand's total is unchanged)
             total = total - self.interhand.term(P, self.model.g_sigmas, g3, later)
-        if batch:  # (every term 0: a scalar total)
-            total = np.broadcast_to(total, theta.shape[:1]).copy()
+        if batch and np.ndim(total) == 0:  # (every term 0: a scalar total)
+            total = np.full(theta.shape[0], total)
         values = (total, sim, col, dan, lim, smo, ordv, sal, sil, cpl, curl)
         if later is not None:
             stamp = self._evaluations
