@@ -148,7 +148,7 @@ def _batch_total(sim: NDArray[np.float64] | float, terms: tuple) -> NDArray[np.f
     would subtract zeros: the same bits, one NumPy call per term fewer)."""
     total = sim
     for w, v in terms:
-        if w != 0.0 and (np.ndim(v) or v != 0.0):
+        if w != 0.0 and (type(v) is not float or v != 0.0):  # (the terms' zeros are the float 0.0)
             total = total - w * v
     return total
 
