@@ -299,10 +299,11 @@ class DataTerms:
         tests = np.matmul(rows[:6].T, self._cand, out=L.tests)  # (2, m, n): < 0: pass
         # Both tests pass (< 0) exactly when the larger does: one comparison of (m, n) values.
         worst = np.maximum(tests[0], tests[1], out=tests[0])
-        if parts is not None:  # (+inf for the pairs with the Gaussians outside a pose's part)
-            worst3 = worst.reshape(L.B, m // L.B, n)
-            np.add(worst3, parts[0][:, None, :], out=worst3)
-        flat = np.less(worst, 0.0, out=L.neg).ravel().nonzero()[0]
+        passed = np.less(worst, 0.0, out=L.neg)
+        if parts is not None:  # (the pairs with the Gaussians outside a pose's part fail)
+            passed3 = passed.reshape(L.B, m // L.B, n)
+            np.logical_and(passed3, parts[4][:, None, :], out=passed3)
+        flat = passed.ravel().nonzero()[0]
         # Pairs per model Gaussian (the pairs come sorted by it): where each row's run starts.
         bounds = flat.searchsorted(L.row_starts)
         per_row = bounds[1:] - bounds[:-1]

@@ -352,6 +352,7 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
     def _batch_parts(self, parts: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
         """What the data terms need of the poses' parts (B, n): 0 or +inf per pose and data
         Gaussian (B, n), each part's ``1 / norm`` (B,) and size (B,), the parts as 0 / 1 (B, n)
+        and as bool (B, n)
         (kept for the last parts: a batch fit passes the same parts, or fewer, every call)."""
         key = parts.tobytes()
         hit = self._parts
@@ -368,7 +369,7 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         if not (sizes > 0).all():
             raise InputError("parts: every pose needs at least one data Gaussian")
         norm = (2.0 * np.pi**2) * (keep @ (self.data.sigma * self.data.sigma))  # (as ImageSoG.subset's)
-        return np.where(parts, 0.0, np.inf), 1.0 / norm, sizes, keep
+        return np.where(parts, 0.0, np.inf), 1.0 / norm, sizes, keep, np.array(parts, dtype=bool)
 
     def value_then_gradient(
         self, theta: NDArray[np.float64]
