@@ -298,7 +298,7 @@ class _ModelKinematics:
     # groups[4 c + j, i] = 1 when joint j of chain c moves Gaussian i (joint columns of J).
     groups: NDArray[np.float64]  # (20, m)
     pivot: NDArray[np.int64]  # (20,) index into origins (20, 3) of each joint's pivot
-    axis_row: NDArray[np.int64]  # (20,) row of each joint's axis in the axis table (bx, -by, by, bz) of _centres_flat
+    axis_row: NDArray[np.int64]  # (20,) row of each joint's axis in the axis table of _centres_flat
     M: NDArray[np.float64]  # (3,) diagonal of the mirror (see _MIRROR)
     right: bool
     one: _FlatTables  # the index tables of _centres_flat
@@ -646,8 +646,9 @@ def centres_with_pullback(
 
 class _Posed:
     """The model at one pose: centres (m, 3) mm (read-only), centres in the hand frame (m, 3),
-    joint origins (20, 3) mm, the axis table (20, 3) of :func:`_centres_flat`, ``G`` (3, 3) and, once asked for, the
-    :class:`CentresPullback` (a plain class with slots: built on every evaluation)."""
+    joint origins (20, 3) mm, the axis table (20, 3) of :func:`_centres_flat`, ``G`` (3, 3) and,
+    once asked for, the :class:`CentresPullback` (a plain class with slots: built on every
+    evaluation)."""
 
     __slots__ = ("mk", "key", "pts", "p_hand", "org20", "table", "G", "pullback")
 

@@ -294,7 +294,7 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         # The fingertips as a slice or indices (the batches' targets), and the last batch's
         # parts with what the data terms need of them (see _batch_parts); made when first used.
         self._tips: slice | NDArray[np.int64] | None = None
-        self._parts: tuple[bytes, tuple[int, ...], tuple[NDArray[np.float64], ...]] | None = None
+        self._parts: tuple[tuple, tuple[NDArray, ...]] | None = None
 
     def __call__(
         self, theta: NDArray[np.float64], gradient: bool = True
@@ -352,24 +352,19 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
     def _batch_parts(self, parts: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
         """What the data terms need of the poses' parts (B, n): 0 or +inf per pose and data
         Gaussian (B, n), each part's ``1 / norm`` (B,) and size (B,), the parts as 0 / 1 (B, n)
-        and as bool (B, n)
-        (kept for the last parts: a batch fit passes the same parts, or fewer, every call)."""
-        key = parts.tobytes()
-        hit = self._parts
-        if hit is not None and hit[0] == key and hit[1] == parts.shape:
-            return hit[2]
-        made = self._make_parts(parts)
-        self._parts = (key, parts.shape, made)
-        return made
-
-    def _make_parts(self, parts: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
-        """:meth:`_batch_parts` of ``parts``, computed."""
+        and as bool (B, n).  Kept for the last parts: a batch fit passes the same parts (or
+        those of the candidates still running) every iteration."""
+        key = (parts.dtype.str, parts.shape, parts.tobytes())
+        if self._parts is not None and self._parts[0] == key:
+            return self._parts[1]
         keep = np.asarray(parts, dtype=np.float64)
         sizes = keep.sum(axis=1)
         if not (sizes > 0).all():
             raise InputError("parts: every pose needs at least one data Gaussian")
         norm = (2.0 * np.pi**2) * (keep @ (self.data.sigma * self.data.sigma))  # (as ImageSoG.subset's)
-        return np.where(parts, 0.0, np.inf), 1.0 / norm, sizes, keep, np.array(parts, dtype=bool)
+        made = np.where(parts, 0.0, np.inf), 1.0 / norm, sizes, keep, np.array(parts, dtype=bool)
+        self._parts = (key, made)
+        return made
 
     def value_then_gradient(
         self, theta: NDArray[np.float64]
