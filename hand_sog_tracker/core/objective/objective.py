@@ -186,6 +186,65 @@ def _batch_state(model: HandModel, data: ImageSoG, visibility: NDArray[np.float6
     states.append(st)
     return st
 
+#: The pair buffers of this thread by ``(m, n)`` (see :func:`_pair_buffers`), the latest few.
+_PAIR_BUFFERS = threading.local()
+_PAIR_BUFFERS_SIZE = 4
+
+
+def _pair_buffers(cap: int, m: int, n: int) -> tuple[NDArray, ...]:
+    """The batch layouts' buffers that depend on the shapes alone, for at least ``cap`` poses
+    of ``m`` model and ``n`` data Gaussians: the candidate tests (2 cap m n,) and their outcome
+    (cap m n,) (scratch), each row's first flat pair index (cap m + 1,) and each flat index's
+    image Gaussian in its pose's block (cap m n,) (read-only).  Shared by every layout of this
+    thread with these shapes (a frame's and a new track's stages make several data of one
+    size): a new layout's first touch of fresh buffers of megabytes costs as much as a batch.
+    Grown (made anew) when a layout needs more poses."""
+    cache: dict | None = getattr(_PAIR_BUFFERS, "by_shape", None)
+    if cache is None:
+        cache = _PAIR_BUFFERS.by_shape = {}
+    hit = cache.get((m, n))
+    if hit is None or hit[0] < cap:
+        col_of = np.empty((cap, m, n), dtype=np.int64)
+        col_of[:] = (n * np.arange(cap))[:, None, None] + np.arange(n)
+        row_starts = np.arange(cap * m + 1) * n
+        for arr in (col_of, row_starts):
+            arr.setflags(write=False)
+        hit = (cap, np.empty(2 * cap * m * n), np.empty(cap * m * n, dtype=bool), row_starts, col_of.reshape(-1))
+        cache.pop((m, n), None)
+        if len(cache) >= _PAIR_BUFFERS_SIZE:
+            del cache[next(iter(cache))]
+        cache[(m, n)] = hit
+    return hit[1:]
+
+
+def _tile(x: NDArray[np.float64], cap: int) -> NDArray[np.float64]:
+    """``np.tile(x, cap)`` of a 1-D ``x`` (its values ``cap`` times over, (cap k,)), without the
+    Python layer of ``np.tile``."""
+    out = np.empty((cap, x.size))
+    out[:] = x
+    return out.reshape(-1)
+
+
+#: The collision gradient's scatter of a batch by model constants (with them, which keeps the
+#: ids valid): for the most poses asked for so far; fewer poses read its first part.
+_SCATTERS: dict[int, tuple[object, int, NDArray[np.int64]]] = {}
+
+
+def _collision_scatter(c, cap: int, m: int) -> NDArray[np.int64]:
+    """The flat indices into (cap m 3,) of the collision gradient's weights, pose after pose
+    (each pose's i's, then its j's), for the model constants ``c`` and at least ``cap`` poses
+    (read-only; cached per model constants)."""
+    hit = _SCATTERS.get(id(c))
+    if hit is None or hit[0] is not c or hit[1] < cap:
+        offsets = 3 * m * np.arange(cap)[:, None, None, None]
+        scatter = (np.stack([c.gather_i, c.gather_j]) + offsets).reshape(-1)
+        scatter.setflags(write=False)
+        if len(_SCATTERS) >= 16:
+            _SCATTERS.clear()
+        hit = _SCATTERS[id(c)] = (c, cap, scatter)
+    return hit[2]
+
+
 class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
     """The objective ``E(theta)`` for one frame, at one pose (:meth:`__call__`) or at a batch
     of poses in one evaluation (:meth:`batch`).
@@ -439,6 +498,9 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         the same model, data and visibility weights (a frame's objective, its variants and
         its pulls; a new track's stages): their buffers are scratch that each batch
         evaluation writes before it reads them, and the rest is the model's and the data's.
+        The pair buffers and index tables that depend on the shapes alone are shared further,
+        by every layout of this thread with the same m and n (:func:`_pair_buffers`), and the
+        collision scatter by every layout of the model (:func:`_collision_scatter`).
         """
         state = self._batch_state
         if state is None or state.visibility is not self._visibility:
@@ -451,21 +513,18 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         if B > cap:
             state.layouts.clear()
             cap = B
-            col_of = np.empty((cap, m, n), dtype=np.int64)
-            col_of[:] = (n * np.arange(cap))[:, None, None] + np.arange(n)
+            tests, neg, row_starts, col_of = _pair_buffers(cap, m, n)
             rows = np.empty((11, cap * m))
             rows[2] = 1.0
-            rows[8] = np.tile(self._two_sh, cap)
-            c = self._const
-            # The collision gradient's scatter, pose after pose (each pose's i's, then its j's).
-            offsets = 3 * m * np.arange(cap)[:, None, None, None]
-            scatter = (np.stack([c.gather_i, c.gather_j]) + offsets).reshape(-1)
-            vis = None if self._visibility is None else np.tile(self._visibility, cap)
+            two_sh = _tile(self._two_sh, cap)
+            rows[8] = two_sh
+            vis = None if self._visibility is None else _tile(self._visibility, cap)
+            per_q = np.empty((self._per_q.shape[0], cap, n))
+            per_q[:] = self._per_q[:, None, :]
             full = (
-                rows, np.empty(2 * cap * m * n), np.empty(cap * m * n, dtype=bool), np.arange(cap * m + 1) * n,
-                col_of.reshape(-1), np.tile(self._per_q, (1, cap)), np.tile(self._sat, cap),
-                np.tile(self.model.g_sigmas, cap), np.tile(self._shf, cap), np.tile(self._two_sh, cap),
-                np.tile(self._four_sh2, cap), vis, scatter,
+                rows, tests, neg, row_starts, col_of, per_q.reshape(-1, cap * n), _tile(self._sat, cap),
+                _tile(self.model.g_sigmas, cap), _tile(self._shf, cap), two_sh, _tile(self._four_sh2, cap), vis,
+                _collision_scatter(self._const, cap, m),
             )
             state.cap, state.buffers = cap, full
         rows, tests, neg, row_starts, col_of, per_q, sat_k, sigmas, shf, two_sh, four_sh2, vis, scatter = full
@@ -473,7 +532,7 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         lay = state.layouts[B] = _Rows(
             B, True, rows[:, :k], tests[: 2 * k * n].reshape(2, k, n), neg[: k * n].reshape(k, n),
             row_starts[: k + 1], col_of[: k * n], per_q[:, : B * n], sat_k[: B * n], sigmas[:k], shf[:k],
-            two_sh[:k], four_sh2[:k], None if vis is None else vis[:k], scatter[: scatter.size // cap * B],
+            two_sh[:k], four_sh2[:k], None if vis is None else vis[:k], scatter[: 2 * self._const.gather_i.size * B],
         )
         return lay
 
