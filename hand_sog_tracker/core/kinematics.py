@@ -298,7 +298,7 @@ class _ModelKinematics:
     # groups[4 c + j, i] = 1 when joint j of chain c moves Gaussian i (joint columns of J).
     groups: NDArray[np.float64]  # (20, m)
     pivot: NDArray[np.int64]  # (20,) index into origins (20, 3) of each joint's pivot
-    axis_row: NDArray[np.int64]  # (20,) row of each joint's axis in concatenate((bx, bz))
+    axis_row: NDArray[np.int64]  # (20,) row of each joint's axis in the axis table of _centres_flat
     M: NDArray[np.float64]  # (3,) diagonal of the mirror (see _MIRROR)
     right: bool
     one: _FlatTables  # the index tables of _centres_flat
@@ -373,7 +373,7 @@ def _layout_kinematics(model: HandModel) -> dict[str, NDArray]:
         "g_finger": finger[:, None],
         "groups": groups,
         "pivot": (4 * np.arange(5)[:, None] + first_seg[None, :]).ravel(),
-        "axis_row": (np.arange(5)[:, None] + np.array([0, 5, 0, 0])[None, :]).ravel(),
+        "axis_row": (np.arange(5)[:, None] + np.array([0, 15, 0, 0])[None, :]).ravel(),
     }
     for arr in layout.values():
         arr.setflags(write=False)
@@ -619,7 +619,7 @@ def centres_batch(
     values up to rounding; nothing cached: a batch's poses are new poses).
     """
     mk = _model_kinematics(model)
-    p_hand, org20, bx = _centres_flat(mk, thetas)
+    p_hand, org20, table = _centres_flat(mk, thetas)
     R, dR = global_rotation(thetas, derivatives=True)
     G = R if mk.right else R * mk.M
     P = np.matmul(p_hand, np.swapaxes(G, -1, -2))
@@ -627,7 +627,7 @@ def centres_batch(
     if not pullback:
         return P, None
     pm = p_hand if mk.right else p_hand * mk.M
-    axes = np.concatenate((bx, np.broadcast_to(mk.r0z, bx.shape)), axis=-2).take(mk.axis_row, axis=-2)
+    axes = table.take(mk.axis_row, axis=-2)
     return P, CentresPullback(mk, p_hand, pm, G, dR, org20, axes)
 
 
@@ -646,14 +646,15 @@ def centres_with_pullback(
 
 class _Posed:
     """The model at one pose: centres (m, 3) mm (read-only), centres in the hand frame (m, 3),
-    joint origins (20, 3) mm, flexion axes (5, 3), ``G`` (3, 3) and, once asked for, the
-    :class:`CentresPullback` (a plain class with slots: built on every evaluation)."""
+    joint origins (20, 3) mm, the axis table (20, 3) of :func:`_centres_flat`, ``G`` (3, 3) and,
+    once asked for, the :class:`CentresPullback` (a plain class with slots: built on every
+    evaluation)."""
 
-    __slots__ = ("mk", "key", "pts", "p_hand", "org20", "bx", "G", "pullback")
+    __slots__ = ("mk", "key", "pts", "p_hand", "org20", "table", "G", "pullback")
 
     def __init__(self, mk: _ModelKinematics, key: bytes, theta: NDArray[np.float64], pullback: bool) -> None:
         self.mk, self.key = mk, key
-        self.p_hand, self.org20, self.bx = _hand_frame(mk, key, theta)
+        self.p_hand, self.org20, self.table = _hand_frame(mk, key, theta)
         if pullback:
             R, dR = global_rotation(theta, derivatives=True)
         else:
@@ -669,7 +670,7 @@ class _Posed:
         mk = self.mk
         pm = self.p_hand if mk.right else self.p_hand * mk.M
         # Joint axes (20, 3): flexions about the chain's bx, abductions about its (fixed) bz.
-        axes = np.concatenate((self.bx, mk.r0z)).take(mk.axis_row, axis=0)
+        axes = self.table.take(mk.axis_row, axis=0)
         self.pullback = CentresPullback(mk, self.p_hand, pm, self.G, dR, self.org20, axes)
 
 
@@ -801,7 +802,12 @@ def _centres_flat(
     and sums as :func:`_frames` and the centres there, on flat arrays gathered by the model's
     tables (:class:`_FlatTables`) instead of broadcasts over four or five axes (a NumPy call on a
     1-D array of 20-180 entries costs a fraction of one that broadcasts such shapes).  The
-    per-evaluation path of the objective."""
+    per-evaluation path of the objective.
+
+    Returns the centres (..., m, 3) and joint origins (..., 20, 3) of :func:`_centres_hand`, and
+    in place of its flexion axes the axis table (..., 20, 3): per chain ``bx`` (rows 0-4),
+    ``-by``, ``by`` and ``bz`` (rows 15-19), from which the joint axes are one gather
+    (``axis_row``)."""
     t = mk.one
     lead = theta.shape[:-1]
     ang = theta.take(t.ang, axis=-1)  # (..., 20): per chain abduction, f1, f2, f3
@@ -830,12 +836,11 @@ def _centres_flat(
     org20 = o.reshape(lead + (20, 3))
     L = W.take(t.local_idx, axis=-1)
     L *= t.local_off
-    L3 = L.reshape(lead + (3, -1))
-    local = L3[..., 0, :] + L3[..., 1, :]
-    local += L3[..., 2, :]  # the sum over the axes in the einsum's order (_centres_hand)
+    # The sum over the axes in the einsum's order (_centres_hand): (L0 + L1) + L2.
+    local = np.add.reduce(L.reshape(lead + (3, -1)), axis=-2)
     local += o.reshape(lead + (60,)).take(t.org_idx, axis=-1)
     local = local.reshape(lead + (-1, 3))
-    return np.where(mk.g_finger, local, mk.g_offsets), org20, W[..., :15].reshape(lead + (5, 3))
+    return np.where(mk.g_finger, local, mk.g_offsets), org20, W[..., :60].reshape(lead + (20, 3))
 
 
 def _centres_hand(

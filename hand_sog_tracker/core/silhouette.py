@@ -211,7 +211,7 @@ def _term_constants(sil: Silhouette) -> tuple:
     cell's flat index is its column plus ``w`` times its row) and the map as float64, flat:
     until a cell off the hand is
     read, 0 on the hand and -1 off it (:func:`silhouette_term` then fills in the distance
-    map; at once when no cell is on the hand)."""
+    map; at once when no cell is on the hand), and ``[filled]``: whether it holds the distances."""
     hit = _TERM_CACHE[0]
     if hit[0] is sil:
         return hit[1]
@@ -220,8 +220,10 @@ def _term_constants(sil: Silhouette) -> tuple:
     if not sil.has_distance() and sil.hand.any():
         flat_map = sil.hand.reshape(-1).astype(np.float64)
         flat_map -= 1.0  # (hand: 1 - 1 = 0; off the hand -1, not computed)
+        filled = [False]
     else:
         flat_map = sil.distance.astype(np.float64).reshape(-1)
+        filled = [True]
     half = 0.5 * (sil.cell - 1)
     const = (
         np.array((intr.fx, intr.fy)),
@@ -230,6 +232,7 @@ def _term_constants(sil: Silhouette) -> tuple:
         np.array((0, 1, w, w + 1)),
         float(w),
         flat_map,
+        filled,
     )
     _TERM_CACHE[0] = (sil, const)
     return const
@@ -271,7 +274,7 @@ def silhouette_term(
     if poses:
         P = P.reshape(-1, 3)
     intr = sil.intrinsics
-    k_fxy, k_off, top, corners, row_len, flat_map = _term_constants(sil)
+    k_fxy, k_off, top, corners, row_len, flat_map, filled = _term_constants(sil)
     # Map coordinates (cells, from the first cell's centre), u and v as the columns of one
     # (m, 2) array: every step below does both at once (the per-call cost of NumPy dominates).
     cell = sil.cell
@@ -299,13 +302,16 @@ def silhouette_term(
         # Every corner on the hand (distance 0; typical while tracking): D = 0 at every
         # Gaussian, nothing beyond the margin, E_sil = 0 exactly and no gradient.
         return 0.0
-    if np.minimum.reduce(d, axis=None) < 0.0:  # a cell off the hand: the distances needed
+    if not filled[0] and np.minimum.reduce(d, axis=None) < 0.0:  # a cell off the hand: the distances needed
         np.copyto(flat_map, sil.distance.reshape(-1), casting="safe")
+        filled[0] = True
         d = flat_map.take(corner)
     d = d.reshape(-1, 2, 2)
     # Both rows interpolated along u, then along v.
     along_u = one_ab[:, :1] * d[:, :, 0] + ab[:, :1] * d[:, :, 1]  # (m, 2)
     D = one_ab[:, 1] * along_u[:, 0] + ab[:, 1] * along_u[:, 1]
+    if not poses and np.maximum.reduce(D) <= SILHOUETTE_MARGIN_PX:
+        return 0.0  # (nothing beyond the margin: E_sil = 0 exactly, no gradient, as below)
     over = np.maximum(D - SILHOUETTE_MARGIN_PX, 0.0)
     f = math.sqrt(intr.fx * intr.fy)
     k = 1.0 / (f * SILHOUETTE_SCALE_MM)

@@ -281,7 +281,6 @@ class DataTerms:
         L = self._one if lay is None else lay
         rows = L.rows
         uv, dp, sp_sq, sp = rows[3:5], rows[5], rows[6], rows[10]
-        u, v = uv
         np.add(proj, self._cxy, out=uv)  # u = fx x / z + cx, v = fy y / z + cy
         np.subtract(z, L.sigmas, out=dp)
         np.divide(L.shf, z, out=sp)
@@ -300,10 +299,11 @@ class DataTerms:
         tests = np.matmul(rows[:6].T, self._cand, out=L.tests)  # (2, m, n): < 0: pass
         # Both tests pass (< 0) exactly when the larger does: one comparison of (m, n) values.
         worst = np.maximum(tests[0], tests[1], out=tests[0])
-        if parts is not None:  # (+inf for the pairs with the Gaussians outside a pose's part)
-            worst3 = worst.reshape(L.B, m // L.B, n)
-            np.add(worst3, parts[0][:, None, :], out=worst3)
-        flat = np.less(worst, 0.0, out=L.neg).ravel().nonzero()[0]
+        passed = np.less(worst, 0.0, out=L.neg)
+        if parts is not None:  # (the pairs with the Gaussians outside a pose's part fail)
+            passed3 = passed.reshape(L.B, m // L.B, n)
+            np.logical_and(passed3, parts[4][:, None, :], out=passed3)
+        flat = passed.ravel().nonzero()[0]
         # Pairs per model Gaussian (the pairs come sorted by it): where each row's run starts.
         bounds = flat.searchsorted(L.row_starts)
         per_row = bounds[1:] - bounds[:-1]
@@ -345,11 +345,6 @@ class DataTerms:
             sim: float | NDArray[np.float64] = _sum((k * sat).reshape(L.B, n), axis=1) * (-SIM_GAIN * inv_norm)
         else:
             sim = float(_sum(k * sat) * (-SIM_GAIN * inv_norm))
-        sat += 1.0  # exp(-S_q / k_q): dE_sim/dS_q in units of G / norm
-        if parts is not None:  # (the gradient's weights per image Gaussian carry their pose's 1 / norm)
-            sat_b = sat.reshape(L.B, n)
-            sat_b *= inv_norm[:, None]
-            inv_norm = 1.0
         # Dangling Gaussians (eq. 7): distance from each model Gaussian to the data,
         # occlusion-aware (see the module docstring), dmin its minimum over the data:
         # ``dist^2 = lat^2 scale^2 + beh^2`` with ``lat = max(sqrt(r2) - half, 0)`` and
@@ -420,6 +415,11 @@ class DataTerms:
                 dan = float(_sum(wdang_r * per_row_dan))
         if g3 is None and later is None:
             return sim, dan
+        sat += 1.0  # exp(-S_q / k_q): dE_sim/dS_q in units of G / norm
+        if parts is not None:  # (the gradient's weights per image Gaussian carry their pose's 1 / norm)
+            sat_b = sat.reshape(L.B, n)
+            sat_b *= inv_norm[:, None]
+            inv_norm = 1.0
 
         def backward(g3: NDArray[np.float64]) -> None:
             """Add the data terms' ``dE/dP`` into ``g3`` (m, 3) (only reads this evaluation's

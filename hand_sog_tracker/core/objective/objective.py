@@ -142,6 +142,17 @@ class EnergyTerms:
 
 
 
+def _batch_total(sim: NDArray[np.float64] | float, terms: tuple) -> NDArray[np.float64] | float:
+    """``sim - w_1 v_1 - w_2 v_2 - ...`` of a batch, in this order, for ``terms`` ``(w, v)``: a
+    term whose value is the scalar 0 (0 at every pose) or whose weight is 0 is left out (it
+    would subtract zeros: the same bits, one NumPy call per term fewer)."""
+    total = sim
+    for w, v in terms:
+        if w != 0.0 and (type(v) is not float or v != 0.0):  # (the terms' zeros are the float 0.0)
+            total = total - w * v
+    return total
+
+
 class _BatchState:
     """The batch layouts of one model, data and visibility weights (see
     :meth:`Objective._layout`): ``layouts`` by batch size, the capacity ``cap`` (poses) of the
@@ -174,6 +185,65 @@ def _batch_state(model: HandModel, data: ImageSoG, visibility: NDArray[np.float6
         del states[0]
     states.append(st)
     return st
+
+#: The pair buffers of this thread by ``(m, n)`` (see :func:`_pair_buffers`), the latest few.
+_PAIR_BUFFERS = threading.local()
+_PAIR_BUFFERS_SIZE = 4
+
+
+def _pair_buffers(cap: int, m: int, n: int) -> tuple[NDArray, ...]:
+    """The batch layouts' buffers that depend on the shapes alone, for at least ``cap`` poses
+    of ``m`` model and ``n`` data Gaussians: the candidate tests (2 cap m n,) and their outcome
+    (cap m n,) (scratch), each row's first flat pair index (cap m + 1,) and each flat index's
+    image Gaussian in its pose's block (cap m n,) (read-only).  Shared by every layout of this
+    thread with these shapes (a frame's and a new track's stages make several data of one
+    size): a new layout's first touch of fresh buffers of megabytes costs as much as a batch.
+    Grown (made anew) when a layout needs more poses."""
+    cache: dict | None = getattr(_PAIR_BUFFERS, "by_shape", None)
+    if cache is None:
+        cache = _PAIR_BUFFERS.by_shape = {}
+    hit = cache.get((m, n))
+    if hit is None or hit[0] < cap:
+        col_of = np.empty((cap, m, n), dtype=np.int64)
+        col_of[:] = (n * np.arange(cap))[:, None, None] + np.arange(n)
+        row_starts = np.arange(cap * m + 1) * n
+        for arr in (col_of, row_starts):
+            arr.setflags(write=False)
+        hit = (cap, np.empty(2 * cap * m * n), np.empty(cap * m * n, dtype=bool), row_starts, col_of.reshape(-1))
+        cache.pop((m, n), None)
+        if len(cache) >= _PAIR_BUFFERS_SIZE:
+            del cache[next(iter(cache))]
+        cache[(m, n)] = hit
+    return hit[1:]
+
+
+def _tile(x: NDArray[np.float64], cap: int) -> NDArray[np.float64]:
+    """``np.tile(x, cap)`` of a 1-D ``x`` (its values ``cap`` times over, (cap k,)), without the
+    Python layer of ``np.tile``."""
+    out = np.empty((cap, x.size))
+    out[:] = x
+    return out.reshape(-1)
+
+
+#: The collision gradient's scatter of a batch by model constants (with them, which keeps the
+#: ids valid): for the most poses asked for so far; fewer poses read its first part.
+_SCATTERS: dict[int, tuple[object, int, NDArray[np.int64]]] = {}
+
+
+def _collision_scatter(c, cap: int, m: int) -> NDArray[np.int64]:
+    """The flat indices into (cap m 3,) of the collision gradient's weights, pose after pose
+    (each pose's i's, then its j's), for the model constants ``c`` and at least ``cap`` poses
+    (read-only; cached per model constants)."""
+    hit = _SCATTERS.get(id(c))
+    if hit is None or hit[0] is not c or hit[1] < cap:
+        offsets = 3 * m * np.arange(cap)[:, None, None, None]
+        scatter = (np.stack([c.gather_i, c.gather_j]) + offsets).reshape(-1)
+        scatter.setflags(write=False)
+        if len(_SCATTERS) >= 16:
+            _SCATTERS.clear()
+        hit = _SCATTERS[id(c)] = (c, cap, scatter)
+    return hit[2]
+
 
 class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
     """The objective ``E(theta)`` for one frame, at one pose (:meth:`__call__`) or at a batch
@@ -280,6 +350,10 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         self._support_key = b""
         self._evaluations = 0  # (counts evaluations: a deferred gradient checks it is current)
         self._support_src: tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64]] | None = None
+        # The fingertips as a slice or indices (the batches' targets), and the last batch's
+        # parts with what the data terms need of them (see _batch_parts); made when first used.
+        self._tips: slice | NDArray[np.int64] | None = None
+        self._parts: tuple[tuple, tuple[NDArray, ...]] | None = None
 
     def __call__(
         self, theta: NDArray[np.float64], gradient: bool = True
@@ -323,7 +397,12 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         if B == 1 and targets is None and parts is None:  # (one pose: the one-pose path, faster, the same bits)
             value, grad = self(thetas[0], gradient)
             return np.array([value]), None if grad is None else grad[None]
-        each = _UNSET if targets is None else _stacked_targets(targets, _as_slice(self.model.tip_index))
+        if targets is None:
+            each = _UNSET
+        else:
+            if self._tips is None:
+                self._tips = _as_slice(self.model.tip_index)
+            each = _stacked_targets(targets, self._tips)
         values, grads = self._evaluate(
             thetas, gradient, False, targets_each=each, parts=None if parts is None else self._batch_parts(parts)
         )
@@ -331,13 +410,20 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
 
     def _batch_parts(self, parts: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
         """What the data terms need of the poses' parts (B, n): 0 or +inf per pose and data
-        Gaussian (B, n), each part's ``1 / norm`` (B,) and size (B,), the parts as 0 / 1 (B, n)."""
+        Gaussian (B, n), each part's ``1 / norm`` (B,) and size (B,), the parts as 0 / 1 (B, n)
+        and as bool (B, n).  Kept for the last parts: a batch fit passes the same parts (or
+        those of the candidates still running) every iteration."""
+        key = (parts.dtype.str, parts.shape, parts.tobytes())
+        if self._parts is not None and self._parts[0] == key:
+            return self._parts[1]
         keep = np.asarray(parts, dtype=np.float64)
         sizes = keep.sum(axis=1)
         if not (sizes > 0).all():
             raise InputError("parts: every pose needs at least one data Gaussian")
         norm = (2.0 * np.pi**2) * (keep @ (self.data.sigma * self.data.sigma))  # (as ImageSoG.subset's)
-        return np.where(parts, 0.0, np.inf), 1.0 / norm, sizes, keep
+        made = np.where(parts, 0.0, np.inf), 1.0 / norm, sizes, keep, np.array(parts, dtype=bool)
+        self._parts = (key, made)
+        return made
 
     def value_then_gradient(
         self, theta: NDArray[np.float64]
@@ -412,6 +498,9 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         the same model, data and visibility weights (a frame's objective, its variants and
         its pulls; a new track's stages): their buffers are scratch that each batch
         evaluation writes before it reads them, and the rest is the model's and the data's.
+        The pair buffers and index tables that depend on the shapes alone are shared further,
+        by every layout of this thread with the same m and n (:func:`_pair_buffers`), and the
+        collision scatter by every layout of the model (:func:`_collision_scatter`).
         """
         state = self._batch_state
         if state is None or state.visibility is not self._visibility:
@@ -424,21 +513,18 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         if B > cap:
             state.layouts.clear()
             cap = B
-            col_of = np.empty((cap, m, n), dtype=np.int64)
-            col_of[:] = (n * np.arange(cap))[:, None, None] + np.arange(n)
+            tests, neg, row_starts, col_of = _pair_buffers(cap, m, n)
             rows = np.empty((11, cap * m))
             rows[2] = 1.0
-            rows[8] = np.tile(self._two_sh, cap)
-            c = self._const
-            # The collision gradient's scatter, pose after pose (each pose's i's, then its j's).
-            offsets = 3 * m * np.arange(cap)[:, None, None, None]
-            scatter = (np.stack([c.gather_i, c.gather_j]) + offsets).reshape(-1)
-            vis = None if self._visibility is None else np.tile(self._visibility, cap)
+            two_sh = _tile(self._two_sh, cap)
+            rows[8] = two_sh
+            vis = None if self._visibility is None else _tile(self._visibility, cap)
+            per_q = np.empty((self._per_q.shape[0], cap, n))
+            per_q[:] = self._per_q[:, None, :]
             full = (
-                rows, np.empty(2 * cap * m * n), np.empty(cap * m * n, dtype=bool), np.arange(cap * m + 1) * n,
-                col_of.reshape(-1), np.tile(self._per_q, (1, cap)), np.tile(self._sat, cap),
-                np.tile(self.model.g_sigmas, cap), np.tile(self._shf, cap), np.tile(self._two_sh, cap),
-                np.tile(self._four_sh2, cap), vis, scatter,
+                rows, tests, neg, row_starts, col_of, per_q.reshape(-1, cap * n), _tile(self._sat, cap),
+                _tile(self.model.g_sigmas, cap), _tile(self._shf, cap), two_sh, _tile(self._four_sh2, cap), vis,
+                _collision_scatter(self._const, cap, m),
             )
             state.cap, state.buffers = cap, full
         rows, tests, neg, row_starts, col_of, per_q, sat_k, sigmas, shf, two_sh, four_sh2, vis, scatter = full
@@ -446,7 +532,7 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         lay = state.layouts[B] = _Rows(
             B, True, rows[:, :k], tests[: 2 * k * n].reshape(2, k, n), neg[: k * n].reshape(k, n),
             row_starts[: k + 1], col_of[: k * n], per_q[:, : B * n], sat_k[: B * n], sigmas[:k], shf[:k],
-            two_sh[:k], four_sh2[:k], None if vis is None else vis[:k], scatter[: scatter.size // cap * B],
+            two_sh[:k], four_sh2[:k], None if vis is None else vis[:k], scatter[: 2 * self._const.gather_i.size * B],
         )
         return lay
 
@@ -524,22 +610,28 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
             sil = silhouette_term(
                 self.silhouette, P, g3, cfg.w_sil, (z, proj) if self._sil_shares_projection else None, later
             )
-        total = (
-            sim
-            - cfg.w_col * col
-            - cfg.w_dan * dan
-            - cfg.w_lim * lim
-            - cfg.w_smo * smo
-            - cfg.w_ord * ordv
-            - cfg.w_cpl * cpl
-            - cfg.w_curl * curl
-            - cfg.w_sal * sal
-            - cfg.w_sil * sil
-        )
+        if batch:
+            total = _batch_total(sim, (
+                (cfg.w_col, col), (cfg.w_dan, dan), (cfg.w_lim, lim), (cfg.w_smo, smo), (cfg.w_ord, ordv),
+                (cfg.w_cpl, cpl), (cfg.w_curl, curl), (cfg.w_sal, sal), (cfg.w_sil, sil),
+            ))
+        else:
+            total = (
+                sim
+                - cfg.w_col * col
+                - cfg.w_dan * dan
+                - cfg.w_lim * lim
+                - cfg.w_smo * smo
+                - cfg.w_ord * ordv
+                - cfg.w_cpl * cpl
+                - cfg.w_curl * curl
+                - cfg.w_sal * sal
+                - cfg.w_sil * sil
+            )
         if self.interhand is not None:  # (two hands only: one hand's total is unchanged)
             total = total - self.interhand.term(P, self.model.g_sigmas, g3, later)
-        if batch:  # (every term 0: a scalar total)
-            total = np.broadcast_to(total, theta.shape[:1]).copy()
+        if batch and np.ndim(total) == 0:  # (every term 0: a scalar total)
+            total = np.full(theta.shape[0], total)
         values = (total, sim, col, dan, lim, smo, ordv, sal, sil, cpl, curl)
         if later is not None:
             stamp = self._evaluations
