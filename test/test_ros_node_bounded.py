@@ -173,17 +173,44 @@ class Outcome:
     cut: int = 0
 
 
-class Bench:
-    """The node under test (one per module), its inputs and what it publishes."""
+class CleanFrames:
+    """What the kinds take from a bench besides :meth:`send`: the clean sequence's frames and
+    strictly increasing stamps."""
 
-    def __init__(self, ctx: Context, tmp: Path) -> None:
-        self.rig = Rig(ctx, tmp, frame_budget_ms=DEFAULTS["frame_budget_ms"])
-        self.node: TrackerNode = self.rig.node
+    def __init__(self) -> None:
         self.out = Outcome()
-        self.frame_ms: list[float] = []
         self._seq = 0
         self._stamp = time.time_ns()
         self.clean = [(_render(_pose(i), INTR, i), fingertips(MODEL, _pose(i))) for i in range(12)]
+
+    def stamp(self) -> int:
+        """The next stamp: the node's clock, strictly increasing."""
+        self._stamp = max(self._stamp + 1_000_000, time.time_ns())
+        return self._stamp
+
+    def frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """The next clean frame: depth (mm) and its true fingertips (mm)."""
+        self._seq += 1
+        return self.clean[self._seq % len(self.clean)]
+
+    def send(self, msg: Image | CompressedImage) -> int:
+        """Give ``msg`` to the node; its stamp."""
+        raise NotImplementedError
+
+    def good(self, encoding: str = "16UC1") -> tuple[int, np.ndarray]:
+        """The next clean frame sent: its stamp and true fingertips (mm)."""
+        depth, tips = self.frame()
+        return self.send(image(depth, self.stamp(), encoding)), tips
+
+
+class Bench(CleanFrames):
+    """The node under test (one per module), its inputs and what it publishes."""
+
+    def __init__(self, ctx: Context, tmp: Path) -> None:
+        super().__init__()
+        self.rig = Rig(ctx, tmp, frame_budget_ms=DEFAULTS["frame_budget_ms"])
+        self.node: TrackerNode = self.rig.node
+        self.frame_ms: list[float] = []
         node = self.node
         warn, process = node._warn, node._process_pending
 
@@ -226,16 +253,6 @@ class Bench:
         self.out.joints.add(stamp_to_ns(msg.header.stamp))
 
     # -- inputs ---------------------------------------------------------------------------
-    def stamp(self) -> int:
-        """The next stamp: the node's clock, strictly increasing."""
-        self._stamp = max(self._stamp + 1_000_000, time.time_ns())
-        return self._stamp
-
-    def frame(self) -> tuple[np.ndarray, np.ndarray]:
-        """The next clean frame: depth (mm) and its true fingertips (mm)."""
-        self._seq += 1
-        return self.clean[self._seq % len(self.clean)]
-
     def send(self, msg: Image | CompressedImage) -> int:
         """Into the image callback, as the executor would; returns the stamp."""
         before = self.node.stats.rejected
@@ -249,10 +266,6 @@ class Bench:
 
     def send_info(self, msg: CameraInfo) -> None:
         self.node._on_camera_info(msg)
-
-    def good(self, encoding: str = "16UC1") -> tuple[int, np.ndarray]:
-        depth, tips = self.frame()
-        return self.send(image(depth, self.stamp(), encoding)), tips
 
     def set(self, **values) -> list[str]:
         """Set parameters; the reasons of those refused."""

@@ -95,7 +95,7 @@ class PeakSampler:
         self._thread.join()
 
 
-class DdsBench:
+class DdsBench(battery.CleanFrames):
     """What the battery's kinds use of :class:`test_ros_node_bounded.Bench` (frames, stamps,
     parameters), for a node in its own process: messages go over DDS, and each image waits
     for the node's answer (``hand/confidence``, on every processed frame) or ``ANSWER_S``."""
@@ -103,14 +103,8 @@ class DdsBench:
     def __init__(self, harness: NodeHarness) -> None:
         from rclpy.parameter_client import AsyncParameterClient
 
+        super().__init__()
         self.h = harness
-        self.out = battery.Outcome()
-        self._seq = 0
-        self._stamp = time.time_ns()
-        self.clean = [
-            (battery._render(battery._pose(i), battery.INTR, i), battery.fingertips(battery.MODEL, battery._pose(i)))
-            for i in range(12)
-        ]
         self._answered: set[int] = set()
         self._changed: set[str] = set()  # parameters set since the last recover()
         self._lock = threading.Lock()
@@ -122,14 +116,6 @@ class DdsBench:
     def _on_answer(self, msg: JointState) -> None:
         with self._lock:
             self._answered.add(stamp_to_ns(msg.header.stamp))
-
-    def stamp(self) -> int:
-        self._stamp = max(self._stamp + 1_000_000, time.time_ns())
-        return self._stamp
-
-    def frame(self) -> tuple[np.ndarray, np.ndarray]:
-        self._seq += 1
-        return self.clean[self._seq % len(self.clean)]
 
     def send(self, msg: Image) -> int:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -146,10 +132,6 @@ class DdsBench:
     def send_info(self, msg: CameraInfo) -> None:
         self.h.publish("info", msg)
         time.sleep(0.03)  # (before the next image: the two topics are not ordered)
-
-    def good(self, encoding: str = "16UC1") -> tuple[int, np.ndarray]:
-        depth, tips = self.frame()
-        return self.send(battery.image(depth, self.stamp(), encoding)), tips
 
     def set(self, **values) -> list[str]:
         self._changed |= set(values)
