@@ -51,3 +51,19 @@ def test_without_proc_it_does_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(heap, "_STATM", "/nonexistent/statm")
     trim = HeapTrim()
     assert resident_mb() is None and not trim.enabled and not trim.after_frame()
+
+
+def test_trim_gives_back_what_was_freed_outside_a_frame() -> None:
+    trim = HeapTrim(growth_mb=1e9, interval_s=3600.0)  # (never after a frame)
+    if not trim.enabled:
+        pytest.skip("no glibc malloc_trim or /proc here")
+    import hand_sog_tracker.core.depth_sog  # noqa: F401 - raises the thresholds, as in the node
+
+    blocks = [np.ones(20_000) for _ in range(500)]  # 80 MB in the heap, every second one held
+    held = blocks[1::2]
+    del blocks
+    before = resident_mb()
+    assert not trim.after_frame()
+    assert trim.trim() and trim.trims == 1
+    assert resident_mb() < before - 25.0
+    del held

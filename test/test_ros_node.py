@@ -304,6 +304,29 @@ def test_resolution_change_needs_a_matching_camera_info(rig: Rig) -> None:
     assert len(js.position) == 20 and rig.node.stats.rejected == 1
 
 
+def test_an_image_beyond_max_image_pixels_makes_the_image_subscription_anew(rig: Rig) -> None:
+    """The middleware kept a buffer of the rejected image's size for the subscription's life
+    (test_ros_node_memory); made anew, the subscription receives again."""
+    rig.send_info()
+    theta = hand_poses(1)[0]
+    rig.send(image_msg(hand_depth(theta, seed=1), T0_NS))
+    rig.wait_joint(T0_NS)
+    big = image_msg(np.zeros((1, 1)), T0_NS + 10**8)
+    big.width, big.height, big.step = 2000, 2000, 4000
+    big.data = bytes(2000 * 4000)
+    rig.send(big)
+    assert "more than max_image_pixels" in rig.node.stats.last_problem
+    assert rig.spin_until(lambda: rig.node.renewals == 1, 5.0)
+    # (Images published before the new subscription matched are lost: publish until one is tracked.)
+    stamps = [T0_NS + (2 + k) * 10**8 for k in range(50)]
+    for stamp in stamps:
+        rig.image_pub.publish(image_msg(hand_depth(theta, seed=2), stamp))
+        if rig.spin_until(lambda: any(stamp_to_ns(m.header.stamp) in stamps for m, _ in rig.joints), 0.2):
+            break
+    assert any(stamp_to_ns(m.header.stamp) in stamps for m, _ in rig.joints), "nothing tracked after the renewal"
+    assert rig.node.renewals == 1  # (a resolution change or a clean image renews nothing)
+
+
 def test_runtime_parameter_changes_reach_the_tracker(rig: Rig) -> None:
     bad = rig.node.set_parameters([Parameter("far_mm", value=100.0)])[0]
     assert not bad.successful and "near_mm < far_mm" in bad.reason

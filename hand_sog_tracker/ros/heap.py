@@ -78,6 +78,18 @@ class HeapTrim:
         """Whether trimming works here (glibc and ``/proc/self/statm``)."""
         return self._level is not None
 
+    def trim(self) -> bool:
+        """Trim now (after memory was freed outside a frame); whether it could."""
+        if self._level is None or self._trim is None:
+            return False
+        self._trim(0)
+        self.trims += 1
+        self._last = time.monotonic()
+        after = resident_mb()
+        if after is not None:
+            self._level = after
+        return True
+
     def after_frame(self) -> bool:
         """Trim when the resident set grew ``growth_mb`` over its level; whether it trimmed."""
         if self._level is None or self._trim is None:

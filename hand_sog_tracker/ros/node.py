@@ -54,7 +54,9 @@ the core clips its search to the image and caps its data, BLAS runs on one threa
 (:func:`~hand_sog_tracker.ros.blas.limit_blas_threads`), and a frame over ``frame_budget_ms``
 is warned about and counted (``frames_cut``, ``worst_frame_ms`` in /diagnostics; its search is
 never cut, issue 45).  After a frame that grew the process the free heap is given back
-(:class:`~hand_sog_tracker.ros.heap.HeapTrim`).
+(:class:`~hand_sog_tracker.ros.heap.HeapTrim`); after a rejected image beyond
+``max_image_pixels``, the image subscription is made anew, which gives back the buffer of its
+size the middleware keeps (:meth:`TrackerNode._renew_image_subscription`).
 An image without ``frame_id`` is tracked in :data:`DEFAULT_FRAME_ID` (with a warning); stamps
 more than :data:`STAMP_SKEW_S` from the node's clock are warned about and left out of
 ``latency_ms``.
@@ -319,6 +321,13 @@ class TrackerNode(CalibrationService, Node):
             sensor_qos,
             qos_overriding_options=overrides,
         )
+        # Bytes of the largest image processed so far: what the middleware's buffers hold for
+        # the stream (_renew_image_subscription).
+        self._largest_taken = 0
+        self._oversized = 0  # bytes of the rejected image that calls for a new subscription
+        self._renew_wake = self.create_guard_condition(self._renew_image_subscription)
+        #: Times the image subscription was made anew.
+        self.renewals = 0
         self._info_sub = self.create_subscription(
             CameraInfo,
             INFO_TOPIC,
@@ -579,6 +588,11 @@ class TrackerNode(CalibrationService, Node):
         try:
             with self._tracker_lock:
                 answered_at = self._process(msg, intr, intr_problem)
+            if answered_at is None and self._beyond_bounds(msg):
+                self._oversized = len(msg.data)
+                self._renew_wake.trigger()
+            elif answered_at is not None:
+                self._largest_taken = max(self._largest_taken, len(msg.data))
             if answered_at is not None:
                 ms = (time.perf_counter() - t0) * 1e3
                 self._window.proc_ms += ms
@@ -608,6 +622,44 @@ class TrackerNode(CalibrationService, Node):
         finally:
             if self._heap.after_frame():
                 self.get_logger().debug(f"gave free heap back to the system ({self._heap.trims} times)")
+
+    def _beyond_bounds(self, msg: Image | CompressedImage) -> bool:
+        """Whether a rejected image left the middleware a buffer larger than the node takes:
+        larger than every image processed so far, and of more pixels than ``max_image_pixels``
+        (a raw image's declared size) or more bytes than a 32FC1 image of that many pixels (4
+        bytes a pixel, the widest encoding the node reads).  (A larger image within the bound,
+        as after a resolution change, is not: the node may take the like of it next.)"""
+        n = len(msg.data)
+        if n <= self._largest_taken:
+            return False
+        limit = self._settings.max_image_pixels
+        declared = msg.width * msg.height if isinstance(msg, Image) else 0
+        return declared > limit or n > 4 * limit
+
+    def _renew_image_subscription(self) -> None:
+        """Make the image subscription anew after a rejected image beyond the node's bounds
+        (:meth:`_beyond_bounds`), and give the freed memory back to the system.
+
+        The middleware (rmw_fastrtps: history memory ``PREALLOCATED_WITH_REALLOC``) keeps each
+        buffer of the subscription's history as large as the largest message it held, for the
+        subscription's life: one 8 MB image left the node 7.6 MB larger for good, up to the
+        history's depth of such buffers.  Destroying the subscription frees them (Fast DDS
+        shares them among the subscriptions of one topic, so the old one goes first); images
+        waiting in it are lost, and the new one receives once the publisher has matched it.
+        """
+        old = self._image_sub
+        msg_type, qos = old.msg_type, old.qos_profile
+        topic = COMPRESSED_TOPIC if msg_type is CompressedImage else IMAGE_TOPIC
+        self.destroy_subscription(old)
+        # (The QoS as resolved at start-up, overrides included: they are declared only once.)
+        self._image_sub = self.create_subscription(msg_type, topic, self._on_image_message, qos)
+        self._heap.trim()
+        self.renewals += 1
+        self._warn(
+            f"an image of {self._oversized} bytes beyond max_image_pixels = {self._settings.max_image_pixels} "
+            "was rejected: the image subscription was made anew to give back the middleware's buffer "
+            "of its size (images waiting in it were lost)"
+        )
 
     def _warn(self, text: str) -> None:
         """Per-frame warning, throttled per kind of problem (the text with its numbers masked).
