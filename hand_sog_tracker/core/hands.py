@@ -221,7 +221,8 @@ class _Slot:
     """A live track: its tracker, label, id and result of the current frame; during its trial
     (:data:`TRIAL_FRAMES`) also the tracker of the other label, its result, the summed energy
     (confidence) lead of ``tracker`` over it and the frames tracked so far; the track's hand
-    gate (whichever label leads) and whether it reset the track (``dropped``)."""
+    gate (whichever label leads), whether it reset the track (``dropped``) and whether its
+    last decision was a hand (``present``)."""
 
     tracker: Tracker
     side: str
@@ -233,6 +234,7 @@ class _Slot:
     age: int = 0
     gate: HandGate = field(default_factory=HandGate)
     dropped: bool = False
+    present: bool = False  # the gate's last decision: a hand
 
     def reset(self) -> None:
         """The gate's reset of the track: drop it (:meth:`MultiHandTracker._gate`)."""
@@ -391,16 +393,20 @@ class MultiHandTracker:
         """(slot, its result after its hand gate) of every live track with a pose (trials too:
         the gate's state is the track's), as :meth:`Tracker.process` gates its frame, on the
         data that no other hand explains (:func:`_theirs`, the split of the data; their pixels
-        count neither way in the check); the tracks the gate resets are dropped, and the next
-        frame searches for a new hand."""
+        count neither way in the check).  Only a track that was a hand on its last frame
+        explains data so: two tracks on one forearm or head must not vouch for each other.
+        The tracks the gate resets are dropped, and the next frame searches for a new hand."""
+        vouched = [s.present for s in self._slots]  # (the last frame's: in no order of the slots)
         out = []
         for s in self._slots:
             if s.result is None or s.result.pose is None:
                 continue
-            poses = [(o.tracker.model, self._pose(o)) for o in self._slots if o is not s]
+            poses = [(o.tracker.model, self._pose(o)) for o, ok in zip(self._slots, vouched) if o is not s and ok]
             poses = [(m, x) for m, x in poses if x is not None]
             theirs = _theirs(s.tracker.model, s.result.pose, poses) if poses else None
-            out.append((s, s.gate.gate(s, depth_mm, intrinsics, s.tracker.model, s.result, theirs=theirs)))
+            answer = s.gate.gate(s, depth_mm, intrinsics, s.tracker.model, s.result, theirs=theirs)
+            s.present = answer.hand is not None and answer.hand.present
+            out.append((s, answer))
         if any(s.dropped for s in self._slots):
             self._slots = [s for s in self._slots if not s.dropped]
             self._searched = self._frame + 1 - SEARCH_EVERY
