@@ -48,7 +48,10 @@ from hand_sog_tracker.tools.bagset import read_sidecar
 from hand_sog_tracker.tools.make_scene_bags import read_scene_truth
 from hand_sog_tracker.tools.tracker_params import parse_set, tracker_config
 
-__all__ = ["evaluate_scene_core", "evaluate_scene_hands", "evaluate_scene_node", "longest_wrong", "summarise", "roc_auc", "main"]
+__all__ = [
+    "evaluate_scene_core", "evaluate_scene_hands", "evaluate_scene_node", "longest_wrong", "summarise", "roc_auc",
+    "main",
+]
 
 PALM_ROWS = (0, 5, 9, 13, 17)
 GOOD_MM, BAD_MM, PALM_MM = 20.0, 40.0, 15.0
@@ -63,7 +66,9 @@ def _errors(joints_gt: np.ndarray | None, skel: np.ndarray | None) -> tuple[floa
     return float(tip.mean()), float(tip.max()), float(palm.mean())
 
 
-def evaluate_scene_core(bag: str | Path, gate: bool = True, config: TrackerConfig | None = None) -> list[dict[str, Any]]:
+def evaluate_scene_core(
+    bag: str | Path, gate: bool = True, config: TrackerConfig | None = None
+) -> list[dict[str, Any]]:
     """Per-frame records of ``bag`` tracked in core mode: the tracker's own hand decisions (as
     the node publishes them); ``gate`` False keeps every fitted pose and track (the evidence of
     the raw fit).  The errors are those of the frame's fit, also on frames it withheld (for the
@@ -98,7 +103,9 @@ def evaluate_scene_core(bag: str | Path, gate: bool = True, config: TrackerConfi
     return out
 
 
-def evaluate_scene_hands(bag: str | Path, config: TrackerConfig | None = None, max_hands: int = 2) -> list[dict[str, Any]]:
+def evaluate_scene_hands(
+    bag: str | Path, config: TrackerConfig | None = None, max_hands: int = 2
+) -> list[dict[str, Any]]:
     """Per-frame records of ``bag`` tracked by :class:`MultiHandTracker` (``max_hands``), with
     the keys of :func:`evaluate_scene_core` that apply: ``reported`` when any hand is
     reported, ``hands`` how many; the errors and confidence are those of the reported hand
