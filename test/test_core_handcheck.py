@@ -271,3 +271,25 @@ def test_grid_depth_takes_each_blocks_first_valid_pixel(s: int) -> None:
             block = ok[gv * s : (gv + 1) * s, gu * s : (gu + 1) * s].ravel()
             first = block[block > 0][:1]
             assert grid[gv, gu] == (first[0] if first.size else 0.0)
+
+
+def test_data_another_hand_explains_count_neither_way() -> None:
+    """A forearm-sized cylinder lying across the hand's side at its depth (another hand's, as
+    the multi-hand tracker's split says): it leaves data to explain and hides the outline, so
+    the check doubts the hand; given as ``theirs`` it counts neither way and the hand passes."""
+    rng = np.random.default_rng(3)
+    hand = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), rng)
+    centre = THETA[:3] + np.array([75.0, 0.0, 10.0])
+    other = _mesh_depth(_cylinder(centre, 25.0, 300.0, np.eye(3)))
+    depth = np.where((other > 0) & ((hand == 0) | (other < hand)), other, hand).astype(np.float32)
+    res = _result(THETA)
+
+    def theirs(points: np.ndarray) -> np.ndarray:
+        d = np.linalg.norm((points - centre)[:, [0, 2]], axis=1)  # (the cylinder's axis is y)
+        return d < 25.0 + 12.0
+
+    doubted = check_hand(depth, INTR, MODEL, res)
+    given = check_hand(depth, INTR, MODEL, res, theirs)
+    clean = check_hand(hand, INTR, MODEL, res)
+    assert doubted.confidence < 0.8 * clean.confidence, doubted.evidence
+    assert given.confidence >= clean.confidence - 0.05, (given.evidence, clean.evidence)

@@ -186,3 +186,16 @@ def test_two_trials_are_decided_together_once_the_pairs_preference_leads_by_pair
     mt = trials(0.01, 0.01 + 0.5 * PAIR_LEAD)
     mt._decide()
     assert all(s.alt is not None for s in mt._slots)
+
+
+@pytest.mark.parametrize("kind", ["nohand_head", "nohand_objects"])
+def test_no_hand_is_reported_on_a_scene_without_a_hand(kind: str) -> None:
+    """The hand decision gates every hand of the multi-hand tracker as it gates the one-hand
+    tracker: a head and torso, or cups and a bottle, are not reported as hands."""
+    from hand_sog_tracker.synth.scenes import scene_frames
+    from hand_sog_tracker.synth.sequence import default_intrinsics
+
+    intr = default_intrinsics()
+    mt = MultiHandTracker(TrackerConfig(), max_hands=2)
+    reported = [len(mt.process(f.depth_mm, intr).hands) for f in scene_frames(kind, 8, intr, seed=2)]
+    assert reported == [0] * 8

@@ -103,3 +103,17 @@ def test_scene_metrics_auc_refind_and_no_hand_share() -> None:
     assert s["auc"] == 1.0 and s["auc_frames"] == (2, 2)  # good: 0.9, 0.8; bad: 0.4 (no hand), 0.1
     assert refind_frames(recs) == [2]  # back in full view at frame 3, all tips < 20 mm at frame 5
     assert s["longest_wrong"] == 2  # (a hand on the no-hand frame 2, then 50 mm off on frame 3)
+
+
+def test_scene_eval_sets_tracker_parameters(tmp_path: Path) -> None:
+    """``scene_eval --set max_hands=2`` scores the multi-hand tracker (core mode); a bad name fails."""
+    import json
+
+    from hand_sog_tracker.tools.scene_eval import main
+
+    spec = scene_set("scenes_dev", frames=3)[SCENE_TYPES.index("nohand_objects")]
+    write_scene_bag(tmp_path / "b", spec)
+    assert main([str(tmp_path / "b"), "--set", "max_hands=2", "--json", str(tmp_path / "o.json")]) == 0
+    recs = json.loads((tmp_path / "o.json").read_text())["b"]["records"]
+    assert len(recs) == 3 and all("hands" in r for r in recs)
+    assert main([str(tmp_path / "b"), "--set", "no_such_parameter=1"]) == 2

@@ -70,7 +70,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Final, Protocol
+from typing import Callable, Final, Protocol
 
 import cv2
 import numpy as np
@@ -119,6 +119,8 @@ ENDS_CONFIRM: Final = 0.5
 #: outright: the model is on something else).
 RESET_BELOW: Final = 0.05
 _GRID_WIDTH = 160  #: the check's pixel grid is about this wide
+#: ``points (n, 3) mm -> (n,) bool``: which data another hand explains (see :func:`check_hand`).
+Theirs = Callable[[NDArray[np.float64]], NDArray[np.bool_]]
 
 
 def _ramp(x: float, lo: float, hi: float) -> float:
@@ -130,6 +132,7 @@ def check_hand(
     intr: Intrinsics,
     model: HandModel,
     result: TrackResult,
+    theirs: Theirs | None = None,
 ) -> HandDecision:
     """Check that the tracked model of ``result`` sits on a hand in ``depth_mm``.
 
@@ -142,6 +145,10 @@ def check_hand(
         The model ``result`` was tracked with (its ``g_chain`` orders ``result.gaussians_mm``).
     result : TrackResult
         The tracker's result; without a pose the decision is "no hand", confidence 0.
+    theirs : callable, optional
+        ``points (n, 3) mm -> (n,) bool``: the data that another hand explains (the multi-hand
+        tracker's split, :mod:`.hands`).  Their pixels count neither way (as occluded ones):
+        not on or off the model, not foreground to explain, not outline, no finger end.
 
     Returns
     -------
@@ -189,6 +196,10 @@ def check_hand(
     diff = np.where(valid_f, data_f - np.where(on_model, front, 0.0), np.inf)
     on = core & valid_f & (np.abs(diff) <= DEPTH_TOL_MM)
     occluded = core & valid_f & (diff < -DEPTH_TOL_MM)
+    other = None if theirs is None else _theirs_grid(theirs, data_f, valid_f, (uu, vv), (fx, fy, cx, cy))
+    if other is not None:
+        on &= ~other
+        occluded |= core & other
     off = core & ~on & ~occluded
     n_on, n_off = int(np.count_nonzero(on)), int(np.count_nonzero(off))
     on_share = n_on / max(n_on + n_off, 1)
@@ -204,15 +215,17 @@ def check_hand(
     along = (px - result.pose[0]) * axis[0] + (py - result.pose[1]) * axis[1] + (zs - result.pose[2]) * axis[2]
     fg = valid & np.isfinite(near_front) & (data <= near_front + DEPTH_TOL_MM)
     fg &= (data >= near_front - 3.0 * MARGIN_MM) & (along > -WRIST_MARGIN_MM)
+    if other is not None:
+        fg &= ~other
     covered = cv2.dilate(on_model.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     n_fg = int(np.count_nonzero(fg))
     explained = float(np.count_nonzero(fg & covered)) / max(n_fg, 1) if n_fg else 0.0
 
     own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
     outline, finger_edges, steep = _outline(
-        data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis
+        data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis, other
     )
-    ends = _finger_ends(full, s, result, model, (fx, fy, cx, cy), on_model, (u0, v0))
+    ends = _finger_ends(full, s, result, model, (fx, fy, cx, cy), on_model, (u0, v0), other)
     fingers = np.zeros(5)  # per finger: on / all (occluded counts against: not shown)
     visible_on = np.zeros(5)  # per finger: on / (on + off)
     for c in range(5):
@@ -324,13 +337,15 @@ def _outline(
     k: tuple[float, float, float, float],
     theta: NDArray[np.float64],
     axis: NDArray[np.float64],
+    other: NDArray[np.bool_] | None = None,
 ) -> tuple[float, float, float]:
     """Share of the outline ring (``OUTLINE_RING_PX`` outside the silhouette) that is a depth
     edge: no data, or data more than ``EDGE_MM`` behind the data of the nearest model pixel;
     the same share over the ring pixels whose nearest model pixel is a finger's
     (``own_chain``: the chain of each box pixel's front Gaussian, 0-4 the fingers; NaN: none);
     and the share of those edges that are steps, not a surface curving away (see
-    :class:`~hand_sog_tracker.core.types.HandEvidence`; NaN: no edge)."""
+    :class:`~hand_sog_tracker.core.types.HandEvidence`; NaN: no edge).  ``other``: the box
+    pixels another hand explains (not counted)."""
     if not on_model.any():
         return 0.0, math.nan, math.nan
     dist, labels = cv2.distanceTransformWithLabels(
@@ -359,6 +374,8 @@ def _outline(
     edge = ~has | (d > inner + EDGE_MM)
     occluder = has & (d < inner - DEPTH_TOL_MM)
     count = hand_side & ~occluder
+    if other is not None:
+        count &= ~other.ravel()[ring_idx]
     n = int(np.count_nonzero(count))
     finger = count & (own_chain.ravel()[near] >= 0) & (own_chain.ravel()[near] < 5)
     n_f = int(np.count_nonzero(finger))
@@ -390,10 +407,12 @@ def _finger_ends(
     k: tuple[float, float, float, float],
     on_model: NDArray[np.bool_],
     origin: tuple[int, int],
+    other: NDArray[np.bool_] | None = None,
 ) -> float:
     """Share of the extended fingers seen from the side whose data end past the tip (NaN:
     none checked).  ``full``: the depth image (mm), read on the grid of every ``s``-th pixel;
-    ``on_model``: the model's silhouette on the grid box at ``origin`` (u0, v0)."""
+    ``on_model``: the model's silhouette on the grid box at ``origin`` (u0, v0); ``other``:
+    the box pixels another hand explains (cannot tell)."""
     fx, fy, cx, cy = k
     assert result.pose is not None and result.fingertips_mm is not None
     sk = skeleton_points(model, result.pose)  # (the kinematic joints: the fingers' bones)
@@ -422,6 +441,8 @@ def _finger_ends(
             bu, bv = iu - origin[0], iv - origin[1]
             if 0 <= bu < bw and 0 <= bv < bh and on_model[bv, bu]:
                 continue  # another part of the model lies there (a crossing thumb)
+            if other is not None and 0 <= bu < bw and 0 <= bv < bh and other[bv, bu]:
+                continue  # another hand lies there (touching fingertips): cannot tell
             dz = float(np.float32(full[iv * s, iu * s]))  # (the grid's pixel: 0 without data)
             dz = dz if math.isfinite(dz) and dz > 0 else 0.0
             surface = tip[2] - float(model.tip_radii[c])
@@ -434,6 +455,27 @@ def _finger_ends(
         checked += 1
         ended += fg == 0
     return ended / checked if checked else math.nan
+
+
+def _theirs_grid(
+    theirs: Theirs,
+    data: NDArray[np.float32],
+    valid: NDArray[np.bool_],
+    grid: tuple[NDArray[np.float64], NDArray[np.float64]],
+    k: tuple[float, float, float, float],
+) -> NDArray[np.bool_]:
+    """The grid box pixels (``data`` (bh, bw) mm, ``valid``) whose data ``theirs`` gives to
+    another hand (bh, bw) bool; ``grid``: the box's u (bw,) and v (bh,), ``k`` the grid's
+    intrinsics."""
+    uu, vv = grid
+    fx, fy, cx, cy = k
+    out = np.zeros(data.shape, dtype=bool)
+    rows, cols = np.nonzero(valid)
+    if rows.size:
+        z = data[rows, cols].astype(np.float64)
+        pts = np.stack([(uu[cols] - cx) / fx * z, (vv[rows] - cy) / fy * z, z], 1)
+        out[rows, cols] = theirs(pts)
+    return out
 
 
 class _Resettable(Protocol):
@@ -482,10 +524,16 @@ class HandGate:
         model: HandModel,
         result: TrackResult,
         checked: HandDecision | None = None,
+        theirs: Theirs | None = None,
     ) -> HandDecision:
-        """The decision of ``result`` (see :func:`check_hand`; ``checked``: its check when
-        already made); resets ``tracker`` as the class docstring says."""
-        dec = check_hand(depth_mm, intr, model, result) if checked is None else checked
+        """The decision of ``result`` (see :func:`check_hand`, ``theirs`` too; ``checked``: its
+        check when already made); resets ``tracker`` as the class docstring says."""
+        if checked is not None:
+            dec = checked
+        elif theirs is None:
+            dec = check_hand(depth_mm, intr, model, result)
+        else:
+            dec = check_hand(depth_mm, intr, model, result, theirs)
         if result.pose is None:
             self._low = 0
             self._confirmed = False
@@ -522,11 +570,12 @@ class HandGate:
         result: TrackResult,
         withhold: bool = True,
         checked: HandDecision | None = None,
+        theirs: Theirs | None = None,
     ) -> TrackResult:
         """``result`` with its :meth:`decide` decision as ``hand``; with ``withhold``, a frame
         that is no hand comes back with status ``NO_HAND`` and no pose (False: the pose is
         kept, for the evidence of the raw track)."""
-        dec = self.decide(tracker, depth_mm, intrinsics, model, result, checked)
+        dec = self.decide(tracker, depth_mm, intrinsics, model, result, checked, theirs)
         if result.pose is not None and not dec.present and withhold:
             return replace(
                 result, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, skeleton_mm=None,

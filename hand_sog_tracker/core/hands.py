@@ -33,6 +33,10 @@ Per frame the depth is preprocessed once and shared:
   in its trial is not reported.
 * A new track that lands on a tracked hand (palms closer than :data:`SAME_HAND_MM`) is
   dropped; two tracks that converge on one hand keep the older.
+* **Is it a hand?**  Every track's frame ends with the hand decision of the one-hand tracker
+  (its own :class:`~.handcheck.HandGate` on the frame's depth, issue 46): a frame that is no
+  hand is not reported, and a track the gate would reset is dropped, and the next frame
+  searches for a new hand.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess
 from hand_sog_tracker.core.hand_model import HandModel, chain_slice
+from hand_sog_tracker.core.handcheck import HandGate, Theirs
 from hand_sog_tracker.core.kinematics import global_rotation, posed_centres
 from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.region import hand_roi
@@ -201,7 +206,7 @@ class HandTrack:
 class HandsResult:
     """Output of :meth:`MultiHandTracker.process`: the hands tracked in this frame (those whose
     status is TRACKING), in track order (oldest first), and the frame's wall times (ms:
-    ``preprocess``, ``track``, ``search``, ``total``)."""
+    ``preprocess``, ``track``, ``search``, ``check`` (the hand gates), ``total``)."""
 
     hands: tuple[HandTrack, ...]
     timings_ms: dict[str, float] = field(default_factory=dict)
@@ -215,7 +220,9 @@ class HandsResult:
 class _Slot:
     """A live track: its tracker, label, id and result of the current frame; during its trial
     (:data:`TRIAL_FRAMES`) also the tracker of the other label, its result, the summed energy
-    (confidence) lead of ``tracker`` over it and the frames tracked so far."""
+    (confidence) lead of ``tracker`` over it and the frames tracked so far; the track's hand
+    gate (whichever label leads), whether it reset the track (``dropped``) and whether its
+    last decision was a hand (``present``)."""
 
     tracker: Tracker
     side: str
@@ -225,6 +232,13 @@ class _Slot:
     alt_result: TrackResult | None = None
     lead: float = 0.0
     age: int = 0
+    gate: HandGate = field(default_factory=HandGate)
+    dropped: bool = False
+    present: bool = False  # the gate's last decision: a hand
+
+    def reset(self) -> None:
+        """The gate's reset of the track: drop it (:meth:`MultiHandTracker._gate`)."""
+        self.dropped = True
 
     def swap(self) -> None:
         """Make the other label's tracker the track's (during the trial)."""
@@ -233,6 +247,24 @@ class _Slot:
         self.result, self.alt_result = self.alt_result, self.result
         self.side = "left" if self.side == "right" else "right"
         self.lead = -self.lead
+
+
+def _theirs(
+    model: HandModel, theta: NDArray[np.float64], others: Sequence[tuple[HandModel, NDArray[np.float64]]]
+) -> Theirs:
+    """``points (n, 3) mm -> (n,) bool``: the points another hand of ``others`` ((model, pose
+    (26,)) each) explains beside the hand ``model`` at ``theta`` (26,): within
+    :data:`OWN_MARGIN_MM` of its skin and nearer to it than to this hand's."""
+
+    def theirs(points: NDArray[np.float64]) -> NDArray[np.bool_]:
+        own = skin_distance(model, theta, points)
+        out = np.zeros(points.shape[0], dtype=bool)
+        for m, x in others:
+            d = skin_distance(m, x, points)
+            out |= (d < OWN_MARGIN_MM) & (d < own)
+        return out
+
+    return theirs
 
 
 def _palm(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -312,14 +344,17 @@ class MultiHandTracker:
             self._search(pre)
         self._decide()
         t3 = time.perf_counter()
+        answers = self._gate(depth_mm, intrinsics)
+        t4 = time.perf_counter()
         self._frame += 1
         hands = tuple(
-            HandTrack(s.side, s.track_id, s.result, s.tracker.model)
-            for s in self._slots
-            if s.alt is None and s.result is not None and s.result.status is TrackerStatus.TRACKING
+            HandTrack(s.side, s.track_id, a, s.tracker.model)
+            for s, a in answers
+            if s.alt is None and a.status is TrackerStatus.TRACKING
         )
         ms = {"preprocess": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3}
-        ms["total"] = (t3 - t0) * 1e3
+        ms["check"] = (t4 - t3) * 1e3
+        ms["total"] = (t4 - t0) * 1e3
         return HandsResult(hands, ms)
 
     # -- internals -----------------------------------------------------------
@@ -353,6 +388,29 @@ class MultiHandTracker:
             if not any(self._same_hand(s, k) for k in kept):
                 kept.append(s)
         self._slots = kept
+
+    def _gate(self, depth_mm: NDArray, intrinsics: Intrinsics) -> list[tuple[_Slot, TrackResult]]:
+        """(slot, its result after its hand gate) of every live track with a pose (trials too:
+        the gate's state is the track's), as :meth:`Tracker.process` gates its frame, on the
+        data that no other hand explains (:func:`_theirs`, the split of the data; their pixels
+        count neither way in the check).  Only a track that was a hand on its last frame
+        explains data so: two tracks on one forearm or head must not vouch for each other.
+        The tracks the gate resets are dropped, and the next frame searches for a new hand."""
+        vouched = [s.present for s in self._slots]  # (the last frame's: in no order of the slots)
+        out = []
+        for s in self._slots:
+            if s.result is None or s.result.pose is None:
+                continue
+            poses = [(o.tracker.model, self._pose(o)) for o, ok in zip(self._slots, vouched) if o is not s and ok]
+            poses = [(m, x) for m, x in poses if x is not None]
+            theirs = _theirs(s.tracker.model, s.result.pose, poses) if poses else None
+            answer = s.gate.gate(s, depth_mm, intrinsics, s.tracker.model, s.result, theirs=theirs)
+            s.present = answer.hand is not None and answer.hand.present
+            out.append((s, answer))
+        if any(s.dropped for s in self._slots):
+            self._slots = [s for s in self._slots if not s.dropped]
+            self._searched = self._frame + 1 - SEARCH_EVERY
+        return out
 
     def _judge(self, slot: _Slot) -> None:
         """One frame of ``slot``'s trial: its confidence lead summed, its leader the track's
@@ -414,14 +472,7 @@ class MultiHandTracker:
         model = tracker.model
 
         def filt(data: ImageSoG, det: Detections, theta: NDArray[np.float64]) -> tuple[ImageSoG, Detections]:
-            def theirs(points: NDArray[np.float64]) -> NDArray[np.bool_]:
-                own = skin_distance(model, theta, points)
-                out = np.zeros(points.shape[0], dtype=bool)
-                for m, x in poses:
-                    d = skin_distance(m, x, points)
-                    out |= (d < OWN_MARGIN_MM) & (d < own)
-                return out
-
+            theirs = _theirs(model, theta, poses)
             if data.n:
                 drop = theirs(data.points)
                 if drop.any() and KEEP_OCCLUDERS:

@@ -126,8 +126,8 @@ class HandTopics:
         out.description.publish(String(data=text))
 
     def publish(self, header: Header, hands: HandsResult, depth_mm: NDArray, intr: Intrinsics) -> dict[str, Any]:
-        """Publish one frame's hands; returns ``side -> HandDecision`` of the tracked hands
-        (:func:`~hand_sog_tracker.core.handcheck.check_hand`)."""
+        """Publish one frame's hands; returns ``side -> HandDecision`` of the reported hands
+        (their hand gate's, :mod:`hand_sog_tracker.core.hands`)."""
         decisions: dict[str, Any] = {}
         for side, out in self._sides.items():
             track = hands.hand(side)
@@ -140,7 +140,8 @@ class HandTopics:
                     out.markers_shown = False
                 continue
             assert track is not None
-            dec = check_hand(depth_mm, intr, track.model, res)
+            # (the hand gate's decision, made on the data no other hand explains; else checked here)
+            dec = res.hand if res.hand is not None else check_hand(depth_mm, intr, track.model, res)
             decisions[side] = dec
             if out.confidence.get_subscription_count():
                 out.confidence.publish(confidence_msg(header, dec.present, dec.confidence, dec.fingers))

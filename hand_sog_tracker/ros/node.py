@@ -836,7 +836,7 @@ class TrackerNode(CalibrationService, Node):
     def _process_hands(self, header: Header, depth: NDArray[np.float32], intr: Intrinsics) -> TrackResult:
         """max_hands 2: track and publish every hand on its topics; the result (with its hand
         decision) for the one-hand topics is that of the hand labelled ``handedness`` ("no hand"
-        without it; no hand gate: the multi-hand tracker's own tracks decide)."""
+        without it; each hand passed its own hand gate in the multi-hand tracker)."""
         assert self._hands is not None and self._hand_topics is not None
         if self._settings.tracker != self._hands.config:
             self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)

@@ -5,14 +5,18 @@ the per-frame records and the per-scene metrics are one definition.
 
 Usage::
 
-    scene_eval bags/scenes_dev [--through-node --domain-id 169] [--json out.json]
+    scene_eval bags/scenes_dev [--through-node --domain-id 169] [--set max_hands=2] [--json out.json]
 
 Per frame it records the visibility (``scene_truth.json``), whether a hand was reported,
 its confidence, the mean fingertip error and the mean error of the palm keypoints (wrist and
 the four finger MCPs).  Core mode runs :class:`~hand_sog_tracker.core.tracker.Tracker` and
 its hand decisions (:class:`~hand_sog_tracker.core.handcheck.HandGate`), as the node does; ``--through-node`` replays
 each bag at its rate to ``tracker_node`` and listens to ``hand/confidence`` and
-``hand/keypoints``.  Metrics (:func:`summarise`):
+``hand/keypoints``.  ``--set NAME=VALUE`` sets a tracker parameter (the node's names, as
+``evaluate_bag --set``); with ``max_hands`` 2 core mode runs
+:class:`~hand_sog_tracker.core.hands.MultiHandTracker` and a frame reports a hand when it
+reports any (the one nearest the truth is scored), and the node's one-hand topics carry the
+hand labelled ``handedness``.  Metrics (:func:`summarise`):
 
 * ``no_hand_reported``: share of the frames without any joint in view that report a hand;
 * ``full_ok``: share of the fully visible frames with a hand reported within 20 mm mean tip error;
@@ -34,14 +38,20 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from hand_sog_tracker.core.hands import MultiHandTracker
 from hand_sog_tracker.core.tracker import Tracker
+from hand_sog_tracker.core.types import TrackerConfig
 from hand_sog_tracker.errors import HandSogError
 from hand_sog_tracker.synth.scenes import ABSENT, FULL, scene_group
 from hand_sog_tracker.tools.bagio import DepthBagReader
 from hand_sog_tracker.tools.bagset import read_sidecar
 from hand_sog_tracker.tools.make_scene_bags import read_scene_truth
+from hand_sog_tracker.tools.tracker_params import parse_set, tracker_config
 
-__all__ = ["evaluate_scene_core", "evaluate_scene_node", "longest_wrong", "summarise", "roc_auc", "main"]
+__all__ = [
+    "evaluate_scene_core", "evaluate_scene_hands", "evaluate_scene_node", "longest_wrong", "summarise", "roc_auc",
+    "main",
+]
 
 PALM_ROWS = (0, 5, 9, 13, 17)
 GOOD_MM, BAD_MM, PALM_MM = 20.0, 40.0, 15.0
@@ -56,13 +66,15 @@ def _errors(joints_gt: np.ndarray | None, skel: np.ndarray | None) -> tuple[floa
     return float(tip.mean()), float(tip.max()), float(palm.mean())
 
 
-def evaluate_scene_core(bag: str | Path, gate: bool = True) -> list[dict[str, Any]]:
+def evaluate_scene_core(
+    bag: str | Path, gate: bool = True, config: TrackerConfig | None = None
+) -> list[dict[str, Any]]:
     """Per-frame records of ``bag`` tracked in core mode: the tracker's own hand decisions (as
     the node publishes them); ``gate`` False keeps every fitted pose and track (the evidence of
     the raw fit).  The errors are those of the frame's fit, also on frames it withheld (for the
     AUC); ``reported`` says whether the pose was given."""
     truth = read_scene_truth(bag)
-    tracker = Tracker(withhold=gate)
+    tracker = Tracker(config, withhold=gate)
     out = []
     with DepthBagReader(bag, require_truth=False) as reader:
         for f in reader.frames():
@@ -87,6 +99,40 @@ def evaluate_scene_core(bag: str | Path, gate: bool = True) -> list[dict[str, An
                 "pose": None if res.pose is None else np.round(res.pose, 5).tolist(),
                 "model_length": float(model.shape.length),
                 "proposal": tracker.last_proposal,
+            })
+    return out
+
+
+def evaluate_scene_hands(
+    bag: str | Path, config: TrackerConfig | None = None, max_hands: int = 2
+) -> list[dict[str, Any]]:
+    """Per-frame records of ``bag`` tracked by :class:`MultiHandTracker` (``max_hands``), with
+    the keys of :func:`evaluate_scene_core` that apply: ``reported`` when any hand is
+    reported, ``hands`` how many; the errors and confidence are those of the reported hand
+    nearest the truth (the most confident one on a frame without a hand; NaN without any)."""
+    truth = read_scene_truth(bag)
+    tracker = MultiHandTracker(config, max_hands=max_hands)
+    out = []
+    with DepthBagReader(bag, require_truth=False) as reader:
+        for f in reader.frames():
+            vis, joints = truth[f.stamp_ns]
+            hands = tracker.process(f.depth_mm, f.intrinsics).hands
+            errs = [_errors(joints, _keypoints(h.result)) for h in hands]
+            if not hands:
+                pick = None
+            elif joints is None:
+                pick = max(range(len(hands)), key=lambda k: hands[k].result.confidence)
+            else:
+                pick = min(range(len(hands)), key=lambda k: errs[k][0])
+            tip, tip_max, palm = (math.nan,) * 3 if pick is None else errs[pick]
+            res = None if pick is None else hands[pick].result
+            dec = None if res is None else res.hand
+            out.append({
+                "index": f.index, "visibility": vis, "posed": res is not None, "reported": res is not None,
+                "hands": len(hands), "labels": [h.handedness for h in hands],
+                "confidence": 0.0 if res is None else float(res.confidence if dec is None else dec.confidence),
+                "tip_mm": tip, "tip_max_mm": tip_max, "palm_mm": palm,
+                "pose": None if res is None else np.round(res.pose, 5).tolist(),
             })
     return out
 
@@ -210,11 +256,14 @@ def write_overlays(bag: str | Path, records: list[dict[str, Any]], out_dir: str 
     return written
 
 
-def evaluate_scene_node(bag: str | Path, domain_id: int, rate_hz: float = 30.0) -> list[dict[str, Any]]:
-    """Per-frame records of ``bag`` replayed to ``tracker_node`` at ``rate_hz`` (the bags: 30 Hz)."""
+def evaluate_scene_node(
+    bag: str | Path, domain_id: int, rate_hz: float = 30.0, params: dict[str, Any] | None = None
+) -> list[dict[str, Any]]:
+    """Per-frame records of ``bag`` replayed to ``tracker_node`` (node ``params``) at ``rate_hz``
+    (the bags: 30 Hz)."""
     from hand_sog_tracker.tools.scene_node import replay_scene
 
-    return replay_scene(bag, domain_id, rate_hz)
+    return replay_scene(bag, domain_id, rate_hz, params=params)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -225,6 +274,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--domain-id", type=int, default=91)
     p.add_argument("--rate-hz", type=float, default=30.0, help="--through-node: publishing rate (default 30)")
     p.add_argument("--no-gate", action="store_true", help="core mode without the hand gate (evidence only)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="one tracker parameter (repeatable), e.g. --set max_hands=2")
     p.add_argument("--json", default=None, help="write the per-frame records and summaries here")
     p.add_argument("--overlays", default=None, metavar="DIR", help="core mode: overlays of the 2 worst frames per bag")
     args = p.parse_args(argv)
@@ -234,12 +285,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         bags += [pa] if (pa / "metadata.yaml").is_file() else sorted(q.parent for q in pa.glob("*/scene_truth.json"))
     results: dict[str, Any] = {}
     try:
+        values = parse_set(args.set)
+        config = tracker_config(values)
+        hands = int(values.get("max_hands", 1))
+        if hands > 1 and (args.no_gate or args.overlays) and not args.through_node:
+            print("error: --no-gate and --overlays need max_hands 1", file=sys.stderr)
+            return 2
         for bag in bags:
             kind = read_sidecar(bag).get("scene", bag.name)
             if args.through_node:
-                recs = evaluate_scene_node(bag, args.domain_id, args.rate_hz)
+                recs = evaluate_scene_node(bag, args.domain_id, args.rate_hz, values or None)
+            elif hands > 1:
+                recs = evaluate_scene_hands(bag, config, hands)
             else:
-                recs = evaluate_scene_core(bag, gate=not args.no_gate)
+                recs = evaluate_scene_core(bag, gate=not args.no_gate, config=config)
             s = summarise(recs)
             s["refind"] = refind_frames(recs)
             if args.overlays and not args.through_node:

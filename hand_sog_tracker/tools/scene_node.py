@@ -32,9 +32,10 @@ _RUN = [0]
 
 
 def replay_scene(
-    bag: str | Path, domain_id: int, rate_hz: float = 30.0, drain_s: float = 3.0
+    bag: str | Path, domain_id: int, rate_hz: float = 30.0, drain_s: float = 3.0, params: dict[str, Any] | None = None
 ) -> list[dict[str, Any]]:
-    """Per-frame records (as :func:`scene_eval.evaluate_scene_core`'s) of ``bag`` through the node."""
+    """Per-frame records (as :func:`scene_eval.evaluate_scene_core`'s) of ``bag`` through the node
+    (its parameters ``params``, node names)."""
     from geometry_msgs.msg import PoseArray
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
@@ -59,7 +60,7 @@ def replay_scene(
     ns = f"/scene_eval_{os.getpid()}_{_RUN[0]}"
     with DepthBagReader(bag, require_truth=False) as reader:
         frames = list(reader.frames())
-    with NodeHarness(domain_id, namespace=ns) as h:
+    with NodeHarness(domain_id, namespace=ns, params=params) as h:
         qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
         h.node.create_subscription(JointState, h.topic(CONFIDENCE_TOPIC), on_conf, qos)
         h.node.create_subscription(PoseArray, h.topic(KEYPOINTS_TOPIC), on_kp, qos)
