@@ -34,7 +34,7 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -66,6 +66,15 @@ def _errors(joints_gt: np.ndarray | None, skel: np.ndarray | None) -> tuple[floa
     return float(tip.mean()), float(tip.max()), float(palm.mean())
 
 
+def _scene_frames(bag: str | Path) -> Iterator[tuple[Any, Any, np.ndarray | None]]:
+    """``bag``'s frames with their ground truth: (frame, visibility, joints (21, 3) mm or None)."""
+    truth = read_scene_truth(bag)
+    with DepthBagReader(bag, require_truth=False) as reader:
+        for f in reader.frames():
+            vis, joints = truth[f.stamp_ns]
+            yield f, vis, joints
+
+
 def evaluate_scene_core(
     bag: str | Path, gate: bool = True, config: TrackerConfig | None = None
 ) -> list[dict[str, Any]]:
@@ -73,33 +82,30 @@ def evaluate_scene_core(
     the node publishes them); ``gate`` False keeps every fitted pose and track (the evidence of
     the raw fit).  The errors are those of the frame's fit, also on frames it withheld (for the
     AUC); ``reported`` says whether the pose was given."""
-    truth = read_scene_truth(bag)
     tracker = Tracker(config, withhold=gate)
     out = []
-    with DepthBagReader(bag, require_truth=False) as reader:
-        for f in reader.frames():
-            vis, joints = truth[f.stamp_ns]
-            answer = tracker.process(f.depth_mm, f.intrinsics)
-            res = tracker.last_fit if tracker.last_fit is not None else answer
-            dec = answer.hand
-            assert dec is not None
-            model = tracker.model
-            tip, tip_max, palm = _errors(joints, _keypoints(res))
-            ev = dec.evidence
-            out.append({
-                "index": f.index, "visibility": vis, "posed": res.pose is not None,
-                "reported": bool(dec.present) if gate else res.pose is not None,
-                "confidence": dec.confidence, "fingers": dec.fingers.round(3).tolist(),
-                "tip_mm": tip, "tip_max_mm": tip_max, "palm_mm": palm,
-                "reported_skeleton": answer.pose is not None,
-                "evidence": None if ev is None else [
-                    ev.on, ev.explained, ev.fingers_on, ev.ends, ev.in_view, ev.outline, ev.finger_edges, ev.steep
-                ],
-                "check_ms": answer.timings_ms.get("check", math.nan),
-                "pose": None if res.pose is None else np.round(res.pose, 5).tolist(),
-                "model_length": float(model.shape.length),
-                "proposal": tracker.last_proposal,
-            })
+    for f, vis, joints in _scene_frames(bag):
+        answer = tracker.process(f.depth_mm, f.intrinsics)
+        res = tracker.last_fit if tracker.last_fit is not None else answer
+        dec = answer.hand
+        assert dec is not None
+        model = tracker.model
+        tip, tip_max, palm = _errors(joints, _keypoints(res))
+        ev = dec.evidence
+        out.append({
+            "index": f.index, "visibility": vis, "posed": res.pose is not None,
+            "reported": bool(dec.present) if gate else res.pose is not None,
+            "confidence": dec.confidence, "fingers": dec.fingers.round(3).tolist(),
+            "tip_mm": tip, "tip_max_mm": tip_max, "palm_mm": palm,
+            "reported_skeleton": answer.pose is not None,
+            "evidence": None if ev is None else [
+                ev.on, ev.explained, ev.fingers_on, ev.ends, ev.in_view, ev.outline, ev.finger_edges, ev.steep
+            ],
+            "check_ms": answer.timings_ms.get("check", math.nan),
+            "pose": None if res.pose is None else np.round(res.pose, 5).tolist(),
+            "model_length": float(model.shape.length),
+            "proposal": tracker.last_proposal,
+        })
     return out
 
 
@@ -110,30 +116,27 @@ def evaluate_scene_hands(
     the keys of :func:`evaluate_scene_core` that apply: ``reported`` when any hand is
     reported, ``hands`` how many; the errors and confidence are those of the reported hand
     nearest the truth (the most confident one on a frame without a hand; NaN without any)."""
-    truth = read_scene_truth(bag)
     tracker = MultiHandTracker(config, max_hands=max_hands)
     out = []
-    with DepthBagReader(bag, require_truth=False) as reader:
-        for f in reader.frames():
-            vis, joints = truth[f.stamp_ns]
-            hands = tracker.process(f.depth_mm, f.intrinsics).hands
-            errs = [_errors(joints, _keypoints(h.result)) for h in hands]
-            if not hands:
-                pick = None
-            elif joints is None:
-                pick = max(range(len(hands)), key=lambda k: hands[k].result.confidence)
-            else:
-                pick = min(range(len(hands)), key=lambda k: errs[k][0])
-            tip, tip_max, palm = (math.nan,) * 3 if pick is None else errs[pick]
-            res = None if pick is None else hands[pick].result
-            dec = None if res is None else res.hand
-            out.append({
-                "index": f.index, "visibility": vis, "posed": res is not None, "reported": res is not None,
-                "hands": len(hands), "labels": [h.handedness for h in hands],
-                "confidence": 0.0 if res is None else float(res.confidence if dec is None else dec.confidence),
-                "tip_mm": tip, "tip_max_mm": tip_max, "palm_mm": palm,
-                "pose": None if res is None else np.round(res.pose, 5).tolist(),
-            })
+    for f, vis, joints in _scene_frames(bag):
+        hands = tracker.process(f.depth_mm, f.intrinsics).hands
+        errs = [_errors(joints, _keypoints(h.result)) for h in hands]
+        if not hands:
+            pick = None
+        elif joints is None:
+            pick = max(range(len(hands)), key=lambda k: hands[k].result.confidence)
+        else:
+            pick = min(range(len(hands)), key=lambda k: errs[k][0])
+        tip, tip_max, palm = (math.nan,) * 3 if pick is None else errs[pick]
+        res = None if pick is None else hands[pick].result
+        dec = None if res is None else res.hand
+        out.append({
+            "index": f.index, "visibility": vis, "posed": res is not None, "reported": res is not None,
+            "hands": len(hands), "labels": [h.handedness for h in hands],
+            "confidence": 0.0 if res is None else float(res.confidence if dec is None else dec.confidence),
+            "tip_mm": tip, "tip_max_mm": tip_max, "palm_mm": palm,
+            "pose": None if res is None else np.round(res.pose, 5).tolist(),
+        })
     return out
 
 
