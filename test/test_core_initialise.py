@@ -11,16 +11,14 @@ from hand_sog_tracker.core import tracker as tracker_module
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED, OPEN
 from hand_sog_tracker.core.depth_sog import preprocess
 from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model
-from hand_sog_tracker.core.initialise import (
+from hand_sog_tracker.core.handfind import (
     DETECTION_DIRECTION_MIN_DEG,
-    INIT_SEARCH,
     HandBlob,
     _nearest_blob,
-    best_combination,
     detection_direction,
     find_hand,
-    finger_combinations,
 )
+from hand_sog_tracker.core.initialise import INIT_SEARCH, best_combination, finger_combinations
 from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
 from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.search import SEARCH_ITERATIONS as RESTART_ITERATIONS
@@ -343,7 +341,7 @@ def test_a_scene_under_a_focal_length_10x_too_large_is_no_hand_and_costs_no_sear
     blob, no data, no pose.  (Without the check the whole view was the blob, the search ran on
     1,100-1,500 data Gaussians at 1-4 s a frame.)  With the true intrinsics the hand is found."""
     from hand_sog_tracker.core.hand_model import rest_pose
-    from hand_sog_tracker.core.initialise import MAX_VIEW_SHARE
+    from hand_sog_tracker.core.handfind import MAX_VIEW_SHARE
     from hand_sog_tracker.synth.render import RenderOptions, render_depth
 
     model = default_hand_model()

@@ -711,7 +711,7 @@ kind("camera_info", "distortion with NaN (ignored)", "track")(_with_info(lambda:
 kind("camera_info", "principal point 1 px off every frame", "track")(
     _with_info(lambda: info(k=_k(F, cx=INTR.cx + 1.0))))
 # fx 10x: the clean frame's wall then measures a hand's area in mm but fills the view: no hand,
-# without a search (initialise.MAX_VIEW_SHARE; before, 1-6 s on data at the cap).
+# without a search (handfind.MAX_VIEW_SHARE; before, 1-6 s on data at the cap).
 kind("camera_info", "fx 10x too large (plausible)", "no_pose")(_info_kind(lambda: info(k=_k(10 * F))))
 kind("camera_info", "fx 2x too large (plausible)", "bounded")(_info_kind(lambda: info(k=_k(2 * F))))
 kind("camera_info", "fx 3x too small (plausible)", "bounded")(_info_kind(lambda: info(k=_k(F / 3))))

@@ -20,14 +20,8 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS, ImageSoG, Preprocessed, leaf_px, quadtree_sog
 from hand_sog_tracker.core.hand_model import HandModel
-from hand_sog_tracker.core.initialise import (
-    INIT_SEARCH,
-    HandBlob,
-    best_combination,
-    detection_direction,
-    find_hand,
-    initial_hypotheses,
-)
+from hand_sog_tracker.core.handfind import HandBlob, detection_direction, find_hand
+from hand_sog_tracker.core.initialise import INIT_SEARCH, best_combination, initial_hypotheses
 from hand_sog_tracker.core.kinematics import global_rotation
 from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.optimizer import OptimizeResult
