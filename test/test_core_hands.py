@@ -199,3 +199,31 @@ def test_no_hand_is_reported_on_a_scene_without_a_hand(kind: str) -> None:
     mt = MultiHandTracker(TrackerConfig(), max_hands=2)
     reported = [len(mt.process(f.depth_mm, intr).hands) for f in scene_frames(kind, 8, intr, seed=2)]
     assert reported == [0] * 8
+
+
+def test_a_withheld_hand_keeps_its_decision(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A labelled track that its hand gate withholds is not among the hands, and its gate's
+    decision is in ``withheld`` under its label (the node publishes its confidence)."""
+    from dataclasses import replace
+
+    from hand_sog_tracker.core.handcheck import HandGate
+    from hand_sog_tracker.core.types import HandDecision
+
+    mt = MultiHandTracker(TrackerConfig(), max_hands=2)
+    frames = list(_frames(9))
+    for depth, intr, _ in frames[:8]:
+        out = mt.process(depth, intr)
+    assert {h.handedness for h in out.hands} == {"left", "right"}
+    doubt = HandDecision(False, 0.07, np.full(5, 0.2), None)
+    gate = HandGate.gate
+
+    def withhold_right(self, tracker, depth_mm, intrinsics, model, result, **kw):  # type: ignore[no-untyped-def]
+        answer = gate(self, tracker, depth_mm, intrinsics, model, result, **kw)
+        if tracker.side != "right":
+            return answer
+        return replace(answer, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, hand=doubt)
+
+    monkeypatch.setattr(HandGate, "gate", withhold_right)
+    out = mt.process(*frames[8][:2])
+    assert [h.handedness for h in out.hands] == ["left"]
+    assert out.withheld == {"right": doubt}

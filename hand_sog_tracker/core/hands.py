@@ -56,7 +56,7 @@ from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import RING_RADIUS_MM, TIP_DEPTH_OFFSET_MM, Detections
 from hand_sog_tracker.core.support import without_support
 from hand_sog_tracker.core.tracker import Tracker
-from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus, TrackResult
+from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
 from hand_sog_tracker.errors import InputError
 
 __all__ = [
@@ -206,10 +206,13 @@ class HandTrack:
 class HandsResult:
     """Output of :meth:`MultiHandTracker.process`: the hands tracked in this frame (those whose
     status is TRACKING), in track order (oldest first), and the frame's wall times (ms:
-    ``preprocess``, ``track``, ``search``, ``check`` (the hand gates), ``total``)."""
+    ``preprocess``, ``track``, ``search``, ``check`` (the hand gates), ``total``).
+    ``withheld`` holds, per label, the hand gate's decision on a labelled track that it
+    withheld this frame (its confidence is published, as the one-hand node does)."""
 
     hands: tuple[HandTrack, ...]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    withheld: dict[str, HandDecision] = field(default_factory=dict)
 
     def hand(self, side: str) -> HandTrack | None:
         """The tracked hand labelled ``side``, or None."""
@@ -352,10 +355,15 @@ class MultiHandTracker:
             for s, a in answers
             if s.alt is None and a.status is TrackerStatus.TRACKING
         )
+        withheld = {
+            s.side: a.hand
+            for s, a in answers
+            if s.alt is None and a.status is not TrackerStatus.TRACKING and a.hand is not None
+        }
         ms = {"preprocess": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3}
         ms["check"] = (t4 - t3) * 1e3
         ms["total"] = (t4 - t0) * 1e3
-        return HandsResult(hands, ms)
+        return HandsResult(hands, ms, withheld)
 
     # -- internals -----------------------------------------------------------
     def _pose(self, slot: _Slot) -> NDArray[np.float64] | None:

@@ -134,7 +134,9 @@ class HandTopics:
             res = None if track is None else track.result
             if res is None or res.pose is None or res.fingertips_mm is None:
                 if out.confidence.get_subscription_count():
-                    out.confidence.publish(confidence_msg(header, False, 0.0, [0.0] * 5))
+                    held = hands.withheld.get(side)  # (a track its hand gate withheld: its check's values)
+                    values = (False, 0.0, [0.0] * 5) if held is None else (held.present, held.confidence, held.fingers)
+                    out.confidence.publish(confidence_msg(header, *values))
                 if out.markers_shown:
                     out.markers.publish(delete_all_markers(header))
                     out.markers_shown = False
