@@ -86,7 +86,6 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.context import Context
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -273,7 +272,7 @@ class TrackerNode(CalibrationService, Node):
         self._heap = HeapTrim()  # free heap back to the system after a frame that grew the process
         # One BLAS thread: a product split over busy cores waits for the slowest (ros/blas.py).
         self._blas_threads = limit_blas_threads(1)
-        self._warn_loggers: dict[str, RcutilsLogger] = {}
+        self._warned_at: dict[str, float] = {}  # kind of warning -> time.monotonic() it was last logged
         self._stats = NodeStats()
         self._window = _Window()
         self._backlog = Backlog()
@@ -662,18 +661,24 @@ class TrackerNode(CalibrationService, Node):
         )
 
     def _warn(self, text: str) -> None:
-        """Per-frame warning, throttled per kind of problem (the text with its numbers masked).
+        """Per-frame warning, throttled per kind of problem (the text with its numbers masked):
+        at most one of a kind every ``WARN_THROTTLE_S``, so different problems do not hide
+        each other.
 
-        rclpy throttles per call site and logger object; one logger object (same name, so the
-        output and /rosout look the same) per kind keeps different problems from hiding each other.
+        The throttle is the node's own (a clock read and a dict look-up): rclpy's
+        ``throttle_duration_sec`` inspects the caller's source frame on every call, about
+        0.5 ms for a warning it then drops, which a replay without ``use_sim_time`` (a stamp
+        warning on every frame) paid per frame.
         """
         kind = _NUMBERS.sub("#", text)
-        logger = self._warn_loggers.get(kind)
-        if logger is None:
-            if len(self._warn_loggers) > 64:
-                self._warn_loggers.clear()
-            logger = self._warn_loggers[kind] = get_logger(self.get_logger().name)
-        logger.warning(text, throttle_duration_sec=WARN_THROTTLE_S)
+        now = time.monotonic()
+        last = self._warned_at.get(kind)
+        if last is not None and now - last < WARN_THROTTLE_S:
+            return
+        if len(self._warned_at) > 64:
+            self._warned_at.clear()
+        self._warned_at[kind] = now
+        self.get_logger().warning(text)
 
     def _reject(self, problem: str) -> None:
         self._stats = replace(self._stats, rejected=self._stats.rejected + 1, last_problem=problem)
