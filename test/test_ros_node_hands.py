@@ -11,11 +11,12 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, JointState
-from std_msgs.msg import String
+from std_msgs.msg import Header, String
 from visualization_msgs.msg import MarkerArray
 
 from hand_sog_tracker.core.hand_model import JOINT_NAMES
-from hand_sog_tracker.core.hands import HANDS
+from hand_sog_tracker.core.hands import HANDS, HandsResult
+from hand_sog_tracker.core.types import HandDecision, Intrinsics
 from hand_sog_tracker.core.urdf import urdf_joints
 from hand_sog_tracker.ros.conversions import stamp_to_ns
 from hand_sog_tracker.ros.hand_topics import per_hand_topic
@@ -111,3 +112,23 @@ def test_two_hands_are_published_per_hand_with_prefixed_names(ros_context, tmp_p
         executor.shutdown()
         node.destroy_node()
         io.destroy_node()
+
+
+def test_the_one_hand_confidence_of_a_withheld_hand_is_its_checks(ros_context, tmp_path: Path) -> None:
+    """max_hands 2: when the gate withholds the hand labelled ``handedness``, the one-hand result
+    (what ``hand/confidence`` publishes) carries that check's decision, not a zero."""
+    overrides = [Parameter("user_model_path", value=str(tmp_path / "hand_model.yaml"))]
+    overrides += [Parameter("max_hands", value=2), Parameter("auto_calibrate", value=False)]
+    node = TrackerNode(context=ros_context, namespace=f"/t{uuid.uuid4().hex[:10]}", parameter_overrides=overrides)
+    try:
+        held = HandDecision(False, 0.13, np.array([0.1, 0.2, 0.3, 0.4, 0.5]), None)
+        assert node._hands is not None
+        node._hands.process = lambda depth, intr: HandsResult((), {"total": 1.0}, {"right": held})  # type: ignore[method-assign]
+        intr = Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
+        result = node._process_hands(Header(frame_id=FRAME), np.zeros((240, 320), np.float32), intr)
+        assert result.pose is None and result.hand is held
+        node._hands.process = lambda depth, intr: HandsResult((), {"total": 1.0}, {"left": held})  # type: ignore[method-assign]
+        result = node._process_hands(Header(frame_id=FRAME), np.zeros((240, 320), np.float32), intr)
+        assert result.hand is not None and result.hand.confidence == 0.0 and not result.hand.present
+    finally:
+        node.destroy_node()

@@ -360,9 +360,9 @@ class Tracker:
             obj.interhand = self.interhand(start_centres, self._model.g_sigmas)
         held = None if self.held is None else self.held(x0)
         start = _INITIAL_STEPS if self._steps is None else _warm(self._steps)
-        fit = self._maximise(
+        fit = maximise(
             obj, x0, iterations=cfg.iterations, initial_steps=start, extra_iterations=EXTRA_ITERATIONS,
-            extra_gain=EXTRA_GAIN, active=None if held is None or not held.any() else ~held,
+            extra_gain=EXTRA_GAIN, active=None if held is None or not held.any() else ~held, bounds=self._limits(),
         )
         self._steps = fit.steps
         frame = Frame(
@@ -412,16 +412,11 @@ class Tracker:
         steps = _warm(res.steps)
         x0 = x
         if last is not None and last[0] is p1:
-            lo, hi = self._limits()
-            x0 = np.minimum(np.maximum(x + (last[1] - last[0]), lo), hi)
+            x0 = np.clip(x + (last[1] - last[0]), *self._limits())
             steps *= REFINE_WARM_STEPS
-        fit = self._maximise(refine, x0, iterations=iterations, initial_steps=steps)
+        fit = maximise(refine, x0, bounds=self._limits(), iterations=iterations, initial_steps=steps)
         self._refine_last = (x, fit.x)
         return fit.x
-
-    def _maximise(self, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> OptimizeResult:
-        """:func:`maximise` with the joint angles projected into the model's limits."""
-        return maximise(obj, x0, bounds=self._limits(), **kwargs)  # type: ignore[arg-type]
 
     def _limits(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The model's joint limits as bounds (low, high) (26,) each, read-only (+-inf: the wrist)."""
@@ -504,7 +499,6 @@ class Tracker:
         for (k, _, obj), fit, value in zip(items, results, values.tolist()):
             frame = Frame(self._model, fit, obj, plain(obj), obj.data, det, self._limits(), new_track=True)
             fits.append((k, (frame.score(fit.x, value), frame)))
-        fits.sort(key=lambda f: f[0])
         fits.sort(key=lambda f: f[1][0], reverse=True)  # (stable: the earlier first on a tie)
         return fits
 

@@ -840,8 +840,8 @@ class TrackerNode(CalibrationService, Node):
 
     def _process_hands(self, header: Header, depth: NDArray[np.float32], intr: Intrinsics) -> TrackResult:
         """max_hands 2: track and publish every hand on its topics; the result (with its hand
-        decision) for the one-hand topics is that of the hand labelled ``handedness`` ("no hand"
-        without it; each hand passed its own hand gate in the multi-hand tracker)."""
+        decision) for the one-hand topics is that of the hand labelled ``handedness`` (without it
+        "no hand", with the confidence of its withheld track; each hand passed its own hand gate)."""
         assert self._hands is not None and self._hand_topics is not None
         if self._settings.tracker != self._hands.config:
             self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
@@ -851,9 +851,8 @@ class TrackerNode(CalibrationService, Node):
         mine = hands.hand(side)
         if mine is None or side not in decisions:
             total = hands.timings_ms.get("total", 0.0)
-            return TrackResult(
-                TrackerStatus.NO_HAND, None, None, None, 0.0, 0.0, 0, {"total": total}, hand=HandDecision(False, 0.0)
-            )
+            held = hands.withheld.get(side, HandDecision(False, 0.0))  # (as on /hand/<side>/confidence)
+            return TrackResult(TrackerStatus.NO_HAND, None, None, None, 0.0, 0.0, 0, {"total": total}, hand=held)
         return replace(mine.result, hand=decisions[side])
 
     def _reset_track(self, header: Header) -> None:
