@@ -227,3 +227,75 @@ def test_a_withheld_hand_keeps_its_decision(monkeypatch: pytest.MonkeyPatch) -> 
     out = mt.process(*frames[8][:2])
     assert [h.handedness for h in out.hands] == ["left"]
     assert out.withheld == {"right": doubt}
+
+
+def _count_start_searches(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """A list to which every new track's search (``Tracker._initialise``) adds 1 at its end."""
+    calls = [0]
+    initialise = Tracker._initialise
+
+    def counted(self, pre):  # type: ignore[no-untyped-def]
+        calls[0] += 1
+        return initialise(self, pre)
+
+    monkeypatch.setattr(Tracker, "_initialise", counted)
+    return calls
+
+
+def test_a_frame_without_a_hand_costs_one_start_search(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With two hands to find and none in view, a frame runs one new track's search, as the
+    one-hand tracker does: the gate rejects the head found, which ends the frame's search
+    (before issue 47 a second search ran on the image without the head, every frame)."""
+    from hand_sog_tracker.synth.scenes import scene_frames
+    from hand_sog_tracker.synth.sequence import default_intrinsics
+
+    intr = default_intrinsics()
+    calls = _count_start_searches(monkeypatch)
+    mt, one = MultiHandTracker(TrackerConfig(), max_hands=2), Tracker(TrackerConfig())
+    per_frame = {"two": [], "one": []}
+    for f in scene_frames("nohand_head", 3, intr, seed=2):
+        for name, process in (("two", mt.process), ("one", one.process)):
+            calls[0] = 0
+            process(f.depth_mm, intr)
+            per_frame[name].append(calls[0])
+    assert per_frame == {"two": [1, 1, 1], "one": [1, 1, 1]}
+    assert mt.tracks == ()
+
+
+def test_a_rejected_new_track_is_not_searched_for_again_at_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A tracked hand the gate drops is searched for on the next frame; a new track the gate
+    rejects as it starts is a search that found no hand: beside a live track the next search
+    waits ``SEARCH_EVERY`` frames (before issue 47 it ran on every frame)."""
+    from dataclasses import replace
+
+    from hand_sog_tracker.core.handcheck import HandGate
+    from hand_sog_tracker.core.hands import SEARCH_EVERY
+    from hand_sog_tracker.core.types import HandDecision
+
+    mt = MultiHandTracker(TrackerConfig(), max_hands=2)
+    frames = list(_frames(10 + SEARCH_EVERY))  # (frames 8 .. 9 + SEARCH_EVERY)
+    for depth, intr, _ in frames[:8]:
+        out = mt.process(depth, intr)
+    assert {h.handedness for h in out.hands} == {"left", "right"}
+    gate = HandGate.gate
+
+    def no_left_hand(self, tracker, depth_mm, intrinsics, model, result, **kw):  # type: ignore[no-untyped-def]
+        answer = gate(self, tracker, depth_mm, intrinsics, model, result, **kw)
+        if tracker.side != "left":
+            return answer
+        tracker.reset()
+        no = HandDecision(False, 0.0, np.zeros(5), None)
+        return replace(answer, status=TrackerStatus.NO_HAND, pose=None, fingertips_mm=None, hand=no)
+
+    monkeypatch.setattr(HandGate, "gate", no_left_hand)
+    calls = _count_start_searches(monkeypatch)
+    per_frame, tracks = [], []
+    for depth, intr, _ in frames[8:]:
+        calls[0] = 0
+        mt.process(depth, intr)
+        per_frame.append(calls[0])
+        tracks.append([side for side, _ in mt.tracks])
+    # Frame 8 drops the left hand, frame 9 finds it again and the gate rejects the new track at
+    # once; the next search is frame 9 + SEARCH_EVERY's.
+    assert per_frame == [0, 1] + [0] * (SEARCH_EVERY - 1) + [1]
+    assert tracks == [["right"]] * len(per_frame)

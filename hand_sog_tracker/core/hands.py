@@ -36,7 +36,11 @@ Per frame the depth is preprocessed once and shared:
 * **Is it a hand?**  Every track's frame ends with the hand decision of the one-hand tracker
   (its own :class:`~.handcheck.HandGate` on the frame's depth, issue 46): a frame that is no
   hand is not reported, and a track the gate would reset is dropped, and the next frame
-  searches for a new hand.
+  searches for a new hand.  A new track is gated as its search starts it: one the gate drops
+  is a search that found no hand, which ends the frame's search (a frame without a hand runs
+  one search, as the one-hand tracker's does) and keeps the search's schedule (issue 47:
+  beside a tracked hand, a head or a side-view hand rejected on every frame was searched for
+  on every frame).
 """
 
 from __future__ import annotations
@@ -224,8 +228,10 @@ class _Slot:
     """A live track: its tracker, label, id and result of the current frame; during its trial
     (:data:`TRIAL_FRAMES`) also the tracker of the other label, its result, the summed energy
     (confidence) lead of ``tracker`` over it and the frames tracked so far; the track's hand
-    gate (whichever label leads), whether it reset the track (``dropped``) and whether its
-    last decision was a hand (``present``)."""
+    gate (whichever label leads), whether it reset the track (``dropped``), whether its
+    last decision was a hand (``present``), that of the frame before (``vouches``, for the
+    others' checks), whether any was (``shown``) and, for a track started this frame, its
+    gated result (``answer``)."""
 
     tracker: Tracker
     side: str
