@@ -36,11 +36,7 @@ Per frame the depth is preprocessed once and shared:
 * **Is it a hand?**  Every track's frame ends with the hand decision of the one-hand tracker
   (its own :class:`~.handcheck.HandGate` on the frame's depth, issue 46): a frame that is no
   hand is not reported, and a track the gate would reset is dropped, and the next frame
-  searches for a new hand.  A new track is gated as its search starts it: one the gate drops
-  is a search that found no hand, which ends the frame's search (a frame without a hand runs
-  one search, as the one-hand tracker's does) and keeps the search's schedule (issue 47:
-  beside a tracked hand, a head or a side-view hand rejected on every frame was searched for
-  on every frame).
+  searches for a new hand.
 """
 
 from __future__ import annotations
@@ -228,10 +224,8 @@ class _Slot:
     """A live track: its tracker, label, id and result of the current frame; during its trial
     (:data:`TRIAL_FRAMES`) also the tracker of the other label, its result, the summed energy
     (confidence) lead of ``tracker`` over it and the frames tracked so far; the track's hand
-    gate (whichever label leads), whether it reset the track (``dropped``), whether its
-    last decision was a hand (``present``), that of the frame before (``vouches``, for the
-    others' checks), whether any was (``shown``) and, for a track started this frame, its
-    gated result (``answer``)."""
+    gate (whichever label leads), whether it reset the track (``dropped``) and whether its
+    last decision was a hand (``present``)."""
 
     tracker: Tracker
     side: str
@@ -244,10 +238,6 @@ class _Slot:
     gate: HandGate = field(default_factory=HandGate)
     dropped: bool = False
     present: bool = False  # the gate's last decision: a hand
-    vouches: bool = False  # the gate's decision of the frame before: a hand (see _gate)
-    shown: bool = False  # the gate decided a hand on some frame of the track
-    #: This frame's gated result, when the frame's search gated the track as it started it.
-    answer: TrackResult | None = None
 
     def reset(self) -> None:
         """The gate's reset of the track: drop it (:meth:`MultiHandTracker._gate`)."""
@@ -311,7 +301,6 @@ class MultiHandTracker:
         self._next_id = 0
         self._frame = 0
         self._searched = -SEARCH_EVERY  # frame of the last search for a new hand
-        self._started: list[_Slot] = []  # the tracks this frame's search started
 
     @property
     def config(self) -> TrackerConfig:
@@ -351,14 +340,11 @@ class MultiHandTracker:
         t1 = time.perf_counter()
         self._track(pre)
         t2 = time.perf_counter()
-        for s in self._slots:
-            s.vouches = s.present  # (the last frame's decision, whatever the order of the gates)
-        self._started = []
         if len(self._slots) < self.max_hands and (
             not self._slots or self._frame - self._searched >= SEARCH_EVERY
         ):
             self._searched = self._frame
-            self._search(pre, depth_mm, intrinsics)
+            self._search(pre)
         self._decide()
         t3 = time.perf_counter()
         answers = self._gate(depth_mm, intrinsics)
@@ -417,38 +403,22 @@ class MultiHandTracker:
         data that no other hand explains (:func:`_theirs`, the split of the data; their pixels
         count neither way in the check).  Only a track that was a hand on its last frame
         explains data so: two tracks on one forearm or head must not vouch for each other.
-        The tracks the gate resets are dropped, and the next frame searches for a new hand
-        when one of them had been a hand (:meth:`_lost`).  The tracks this frame's search
-        started were gated by it (:meth:`_gate_one`), those it dropped come last."""
+        The tracks the gate resets are dropped, and the next frame searches for a new hand."""
+        vouched = [s.present for s in self._slots]  # (the last frame's: in no order of the slots)
         out = []
-        for s in [*self._slots, *(t for t in self._started if t.dropped)]:
-            if s.answer is not None:
-                out.append((s, s.answer))
-                s.answer = None
-                continue
+        for s in self._slots:
             if s.result is None or s.result.pose is None:
                 continue
-            out.append((s, self._gate_one(s, depth_mm, intrinsics)))
-        self._lost([s for s, _ in out if s.dropped])
-        return out
-
-    def _gate_one(self, s: _Slot, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
-        """``s``'s result after its hand gate (see :meth:`_gate`)."""
-        poses = [(o.tracker.model, self._pose(o)) for o in self._slots if o is not s and o.vouches]
-        poses = [(m, x) for m, x in poses if x is not None]
-        theirs = _theirs(s.tracker.model, s.result.pose, poses) if poses else None
-        answer = s.gate.gate(s, depth_mm, intrinsics, s.tracker.model, s.result, theirs=theirs)
-        s.present = answer.hand is not None and answer.hand.present
-        s.shown |= s.present
-        return answer
-
-    def _lost(self, dropped: Sequence[_Slot]) -> None:
-        """Drop the tracks the gate reset; the next frame searches for the hand of one that had
-        been a hand (a new track the gate rejects is a search that found none)."""
-        if dropped:
+            poses = [(o.tracker.model, self._pose(o)) for o, ok in zip(self._slots, vouched) if o is not s and ok]
+            poses = [(m, x) for m, x in poses if x is not None]
+            theirs = _theirs(s.tracker.model, s.result.pose, poses) if poses else None
+            answer = s.gate.gate(s, depth_mm, intrinsics, s.tracker.model, s.result, theirs=theirs)
+            s.present = answer.hand is not None and answer.hand.present
+            out.append((s, answer))
+        if any(s.dropped for s in self._slots):
             self._slots = [s for s in self._slots if not s.dropped]
-            if any(s.shown for s in dropped):
-                self._searched = self._frame + 1 - SEARCH_EVERY
+            self._searched = self._frame + 1 - SEARCH_EVERY
+        return out
 
     def _judge(self, slot: _Slot) -> None:
         """One frame of ``slot``'s trial: its confidence lead summed, its leader the track's
@@ -610,10 +580,8 @@ class MultiHandTracker:
         cfg = replace(self._config, right_hand=side == "right")
         return Tracker(cfg, self._models[side])
 
-    def _search(self, pre: Preprocessed, depth_mm: NDArray, intrinsics: Intrinsics) -> None:
-        """Start tracks on the hands that no live track holds, until ``max_hands``; each new
-        track is decided (:meth:`_decide`) and gated at once (:meth:`_gate_one`): one the gate
-        drops ends the frame's search (it found no hand; the next search is the next frame's)."""
+    def _search(self, pre: Preprocessed) -> None:
+        """Start tracks on the hands that no live track holds, until ``max_hands``."""
         while len(self._slots) < self.max_hands:
             masked = self._masked(pre) if self._slots else pre
             free = [s for s in HANDS if s not in {t.side for t in self._slots if t.alt is None}]
@@ -646,9 +614,3 @@ class MultiHandTracker:
                 return
             self._next_id += 1
             self._slots.append(slot)
-            self._started.append(slot)
-            self._decide()
-            slot.answer = self._gate_one(slot, depth_mm, intrinsics)
-            if slot.dropped:
-                self._slots.remove(slot)
-                return
