@@ -9,7 +9,7 @@ import pytest
 
 from hand_sog_tracker.core.articulations import FINGER_CURLED
 from hand_sog_tracker.core.hand_model import chain_slice, rest_pose
-from hand_sog_tracker.core.kinematics import fingertips
+from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.salient import Detections, assign_detections
 from hand_sog_tracker.core.search import candidates, score
@@ -58,10 +58,19 @@ def test_curled_fingers_facing_the_camera_cost_no_missing_detection() -> None:
     curled = _curled_middle_ring(open_hand)
     expected = [lam, lam, score.HIDDEN_TIP_LAMBDA * lam, score.HIDDEN_TIP_LAMBDA * lam, lam]
     np.testing.assert_allclose(score.tip_lambdas(curled), expected)
-    # The back of the hand toward the camera: curled tips are not known to be hidden there.
+    # The back of the hand toward the camera: a curled tip lies under the hand, hidden too
+    # (issue 46); an open one is not.
     back = curled.copy()
     back[3:6] = 0.0  # identity rotation: the palm faces away from the camera
-    np.testing.assert_array_equal(score.tip_lambdas(back), [lam] * 5)
+    np.testing.assert_allclose(score.tip_lambdas(back), expected)
+    back_open = open_hand.copy()
+    back_open[3:6] = 0.0
+    np.testing.assert_array_equal(score.tip_lambdas(back_open), [lam] * 5)
+    # Edge-on (the palm normal across the view): no discount.
+    edge = curled.copy()
+    edge[3:6] = (0.0, np.pi / 2, 0.0)
+    assert abs(global_rotation(edge)[2, 2]) < score.HIDDEN_PALM_COS
+    np.testing.assert_array_equal(score.tip_lambdas(edge), [lam] * 5)
 
 
 def test_two_model_tips_on_one_seen_tip_score_worse_than_a_curled_finger() -> None:
