@@ -7,13 +7,19 @@ import itertools
 import numpy as np
 import pytest
 
-from hand_sog_tracker.core.articulations import FINGER_CURLED
-from hand_sog_tracker.core.hand_model import chain_slice, rest_pose
-from hand_sog_tracker.core.kinematics import fingertips
-from hand_sog_tracker.core.optimizer import OptimizeResult
+from hand_sog_tracker.core.articulations import CLOSED, FINGER_CURLED
+from hand_sog_tracker.core.depth_sog import preprocess
+from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
+from hand_sog_tracker.core.kinematics import fingertips, global_rotation
+from hand_sog_tracker.core.objective import Objective
+from hand_sog_tracker.core.optimizer import OptimizeResult, maximise
+from hand_sog_tracker.core.rotations import euler_from_matrix, rot_x
 from hand_sog_tracker.core.salient import Detections, assign_detections
-from hand_sog_tracker.core.search import candidates, score
+from hand_sog_tracker.core.search import Frame, candidates, plain, score
 from hand_sog_tracker.core.tracker import Tracker
+from hand_sog_tracker.core.types import TrackerConfig
+from hand_sog_tracker.synth.render import RenderOptions, render_depth
+from hand_sog_tracker.synth.sequence import default_intrinsics
 
 
 def _brute_force(tips: np.ndarray, det: Detections, lam: float, tip_lam: np.ndarray) -> float:
@@ -58,10 +64,19 @@ def test_curled_fingers_facing_the_camera_cost_no_missing_detection() -> None:
     curled = _curled_middle_ring(open_hand)
     expected = [lam, lam, score.HIDDEN_TIP_LAMBDA * lam, score.HIDDEN_TIP_LAMBDA * lam, lam]
     np.testing.assert_allclose(score.tip_lambdas(curled), expected)
-    # The back of the hand toward the camera: curled tips are not known to be hidden there.
+    # The back of the hand toward the camera: a curled tip lies under the hand, hidden too
+    # (issue 46); an open one is not.
     back = curled.copy()
     back[3:6] = 0.0  # identity rotation: the palm faces away from the camera
-    np.testing.assert_array_equal(score.tip_lambdas(back), [lam] * 5)
+    np.testing.assert_allclose(score.tip_lambdas(back), expected)
+    back_open = open_hand.copy()
+    back_open[3:6] = 0.0
+    np.testing.assert_array_equal(score.tip_lambdas(back_open), [lam] * 5)
+    # Edge-on (the palm normal across the view): no discount.
+    edge = curled.copy()
+    edge[3:6] = (0.0, np.pi / 2, 0.0)
+    assert abs(global_rotation(edge)[2, 2]) < score.HIDDEN_PALM_COS
+    np.testing.assert_array_equal(score.tip_lambdas(edge), [lam] * 5)
 
 
 def test_two_model_tips_on_one_seen_tip_score_worse_than_a_curled_finger() -> None:
@@ -108,3 +123,29 @@ def test_the_shift_goes_to_the_side_the_detections_point_to(side: int) -> None:
     det = Detections(fingertips(tracker.model, truth)[seen], np.zeros((n, 2)), np.ones(n), np.zeros(n, bool))
     assert side in _shift_sides(tracker, fit, det)  # (both when a detection is unexplained)
     assert _shift_sides(tracker, fit, Detections.empty()) == []
+
+
+@pytest.mark.parametrize("tilt", [0.3, 0.45])
+def test_a_fist_seen_from_the_back_scores_above_its_fingers_pointing_away(tilt: float) -> None:
+    """Issue 46: from the back (the camera above and behind the hand, tilted by ``tilt`` rad) a
+    fist's fingers and fingers bent at the knuckles only, pointing away, hide behind the same
+    knuckles: the depth gives both about the same value.  The fist's tips lie under the hand,
+    where the detector cannot see them, so they cost no missing detection; the straight fingers'
+    tips do, and the fist scores higher (by more than a curl's margin)."""
+    truth = rest_pose()
+    truth[3:6] = euler_from_matrix(rot_x(tilt))  # the back of the hand toward the camera
+    truth[6:] = CLOSED
+    away = truth.copy()
+    for c in range(1, 5):
+        away[chain_slice(c)] = (1.4, 0.0, 0.0, 0.0)  # bent at the MCP, straight beyond
+    tracker = Tracker(TrackerConfig())
+    intr = default_intrinsics()
+    pre = preprocess(render_depth(default_hand_model(), truth, intr, RenderOptions()), intr, tracker.config)
+    data, det, sil = tracker._data_near(pre, truth)
+    obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(truth, det), silhouette=sil)
+    bounds = tracker._limits()
+    fist, wrong = (maximise(obj, x, iterations=7, bounds=bounds) for x in (truth, away))
+    frame = Frame(tracker.model, wrong, obj, plain(obj), data, det, bounds)
+    off = np.linalg.norm(fingertips(tracker.model, wrong.x) - fingertips(tracker.model, truth), axis=1)
+    assert global_rotation(truth)[2, 2] > score.HIDDEN_PALM_COS and det.n > 0 and off[2:4].min() > 40.0
+    assert frame.score(fist.x) > frame.score(wrong.x) + candidates.CURL_MARGIN

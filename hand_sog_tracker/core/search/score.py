@@ -25,9 +25,12 @@ __all__ = [
 ]
 
 ASSIGN_LAMBDA_MM = 30.0  #: cost (mm) of a fingertip without a detection (seed 001's lambda, eq. 11)
-#: A tip curled against a palm facing the camera (normal within acos(``HIDDEN_PALM_COS``) of the
-#: view) costs less, down to ``HIDDEN_TIP_LAMBDA`` x lambda from PIP + DIP ``OPEN_TIP_RAD`` to
-#: ``CURLED_TIP_RAD`` (rad; issue 11: the detector cannot see such a tip).
+#: A curled tip with the palm or the back of the hand to the camera (its normal within
+#: acos(``HIDDEN_PALM_COS``) of the view) costs less, down to ``HIDDEN_TIP_LAMBDA`` x lambda from
+#: PIP + DIP ``OPEN_TIP_RAD`` to ``CURLED_TIP_RAD`` (rad): the detector cannot see such a tip,
+#: against the palm (issue 11) or under the hand (issue 46: from the back a fist's tips are
+#: hidden too; with the full cost there the score preferred fingers pointing away behind their
+#: knuckles, ``doc/design/hand_check.md``).
 HIDDEN_TIP_LAMBDA = 0.0
 HIDDEN_PALM_COS = 0.5
 OPEN_TIP_RAD = 1.0
@@ -51,9 +54,9 @@ def sq_distances(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.f
 
 def tip_lambdas(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     """Cost (mm) of leaving each fingertip (5,) at ``theta`` (26,) without a detection:
-    ``ASSIGN_LAMBDA_MM``, falling for a tip curled against a palm that faces the camera."""
+    ``ASSIGN_LAMBDA_MM``, falling for a curled tip while the palm or the back faces the camera."""
     lam = np.full(5, ASSIGN_LAMBDA_MM)
-    if HIDDEN_TIP_LAMBDA != 1.0 and -global_rotation(theta)[2, 2] > HIDDEN_PALM_COS:
+    if HIDDEN_TIP_LAMBDA != 1.0 and abs(global_rotation(theta)[2, 2]) > HIDDEN_PALM_COS:
         curl = theta[FINGER_PIP] + theta[FINGER_DIP]  # index .. little, rad
         share = np.clip((curl - OPEN_TIP_RAD) / (CURLED_TIP_RAD - OPEN_TIP_RAD), 0.0, 1.0)
         lam[1:] *= 1.0 - (1.0 - HIDDEN_TIP_LAMBDA) * share
@@ -63,8 +66,8 @@ def tip_lambdas(theta: NDArray[np.float64]) -> NDArray[np.float64]:
 def assignment_cost(model: HandModel, theta: NDArray[np.float64], det: Detections, hidden_tips: bool) -> float:
     """Seed 001's assignment cost (eq. 11) at ``theta`` (26,) per ``SALIENT_SCALE_MM``: assigned
     pairs cost their distance, detections left over lambda x their confidence, fingertips
-    without one lambda, less with ``hidden_tips`` (:func:`tip_lambdas`; tracked frames: while the
-    palm's side is open the discount favours a palm turned to the camera with curled fingers)."""
+    without one lambda, less with ``hidden_tips`` (:func:`tip_lambdas`; tracked frames: a curled
+    tip the detector cannot see, the palm or the back to the camera)."""
     if det.n == 0:
         return 0.0
     tips = fingertips(model, theta)
