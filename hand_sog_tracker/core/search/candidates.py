@@ -35,7 +35,7 @@ from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.salient import Detections, assign_detections
 from hand_sog_tracker.core.search.score import (
     ASSIGN_LAMBDA_MM,
-    assignment_cost,
+    assignment_costs,
     lonely_detections,
     own_detections,
     plain,
@@ -262,7 +262,8 @@ def SHIFT(f: Frame) -> Iterator[Candidate]:
         return  # each fingertip has a detection of its own
     else:
         # The side whose shifted pose the detections explain better than the fit, if any.
-        cost = {s: assignment_cost(f.model, shifted(x, s), f.det, True) for s in (0, 1, -1)}
+        poses = np.array([shifted(x, s) for s in (0, 1, -1)])  # (their fingertips as one batch)
+        cost = dict(zip((0, 1, -1), assignment_costs(f.model, poses, f.det, True)))
         sides = tuple(s for s in (1, -1) if cost[s] < cost[0] and cost[s] <= cost[-s])
     for side in sides:
         yield Candidate("shift", shifted(x, side), margin)

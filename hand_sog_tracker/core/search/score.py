@@ -15,13 +15,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.hand_model import FINGER_DIP, FINGER_PIP, HandModel
-from hand_sog_tracker.core.kinematics import fingertips, global_rotation
+from hand_sog_tracker.core.kinematics import centres_batch, fingertips, global_rotation
 from hand_sog_tracker.core.objective import SALIENT_SCALE_MM, Objective
 from hand_sog_tracker.core.salient import Detections, assign_detections
 
 __all__ = [
-    "ASSIGN_LAMBDA_MM", "assignment_cost", "lonely_detections", "own_detections", "plain", "score", "sq_distances",
-    "tip_lambdas",
+    "ASSIGN_LAMBDA_MM", "assignment_cost", "assignment_costs", "lonely_detections", "own_detections", "plain", "score",
+    "sq_distances", "tip_lambdas",
 ]
 
 ASSIGN_LAMBDA_MM = 30.0  #: cost (mm) of a fingertip without a detection (seed 001's lambda, eq. 11)
@@ -67,7 +67,22 @@ def assignment_cost(model: HandModel, theta: NDArray[np.float64], det: Detection
     palm's side is open the discount favours a palm turned to the camera with curled fingers)."""
     if det.n == 0:
         return 0.0
-    tips = fingertips(model, theta)
+    return _tips_cost(fingertips(model, theta), theta, det, hidden_tips)
+
+
+def assignment_costs(
+    model: HandModel, thetas: NDArray[np.float64], det: Detections, hidden_tips: bool
+) -> list[float]:
+    """:func:`assignment_cost` of each pose of ``thetas`` (B, 26), the fingertips of all from one
+    batch of the kinematics (:func:`~.kinematics.centres_batch`: the same bits as pose by pose)."""
+    if det.n == 0:
+        return [0.0] * len(thetas)
+    tips = centres_batch(model, thetas, pullback=False)[0].take(model.tip_index, axis=1)
+    return [_tips_cost(t, theta, det, hidden_tips) for t, theta in zip(tips, thetas)]
+
+
+def _tips_cost(tips: NDArray[np.float64], theta: NDArray[np.float64], det: Detections, hidden_tips: bool) -> float:
+    """:func:`assignment_cost` at ``theta`` (26,) with its fingertips ``tips`` (5, 3) mm (``det.n`` > 0)."""
     lam = tip_lambdas(theta) if hidden_tips else np.full(5, ASSIGN_LAMBDA_MM)
     assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM, lam)
     has = assigned >= 0
