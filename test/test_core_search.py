@@ -249,3 +249,18 @@ def test_the_batched_assignment_costs_are_those_pose_by_pose() -> None:
             # (Equal bit for bit: the search decides on differences of these costs.)
             one_by_one = [assignment_cost(model, p, det, hidden) for p in poses]
             assert assignment_costs(model, poses, det, hidden) == one_by_one
+
+
+def test_the_batched_assignment_is_the_one_pose_assignment() -> None:
+    from hand_sog_tracker.core.salient import Detections, assign_detections, assign_detections_batch
+
+    rng = np.random.default_rng(6)
+    for n in (1, 3, 5, 8):
+        for _ in range(20):
+            # (Points on a coarse lattice: equal costs, whose ties the first minimum breaks.)
+            points = np.round(rng.normal(0.0, 2.0, (n, 3))) * 10.0
+            det = Detections(points, points[:, :2], rng.choice([0.5, 1.0], n), np.zeros(n, bool))
+            tips = np.round(rng.normal(0.0, 2.0, (4, 5, 3))) * 10.0
+            lam = rng.choice([10.0, 30.0], (4, 5))
+            one = [assign_detections(t, det, 30.0, lam_t) for t, lam_t in zip(tips, lam)]
+            assert np.array_equal(assign_detections_batch(tips, det, 30.0, lam), np.array(one))

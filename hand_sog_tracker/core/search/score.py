@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.hand_model import FINGER_DIP, FINGER_PIP, HandModel
 from hand_sog_tracker.core.kinematics import centres_batch, fingertips, global_rotation
 from hand_sog_tracker.core.objective import SALIENT_SCALE_MM, Objective
-from hand_sog_tracker.core.salient import Detections, assign_detections
+from hand_sog_tracker.core.salient import Detections, assign_detections, assign_detections_batch
 
 __all__ = [
     "ASSIGN_LAMBDA_MM", "assignment_cost", "assignment_costs", "lonely_detections", "own_detections", "plain", "score",
@@ -67,7 +67,9 @@ def assignment_cost(model: HandModel, theta: NDArray[np.float64], det: Detection
     palm's side is open the discount favours a palm turned to the camera with curled fingers)."""
     if det.n == 0:
         return 0.0
-    return _tips_cost(fingertips(model, theta), theta, det, hidden_tips)
+    tips = fingertips(model, theta)
+    lam = tip_lambdas(theta) if hidden_tips else np.full(5, ASSIGN_LAMBDA_MM)
+    return _tips_cost(tips, lam, assign_detections(tips, det, ASSIGN_LAMBDA_MM, lam), det)
 
 
 def assignment_costs(
@@ -78,13 +80,16 @@ def assignment_costs(
     if det.n == 0:
         return [0.0] * len(thetas)
     tips = centres_batch(model, thetas, pullback=False)[0].take(model.tip_index, axis=1)
-    return [_tips_cost(t, theta, det, hidden_tips) for t, theta in zip(tips, thetas)]
+    lams = np.array([tip_lambdas(theta) if hidden_tips else np.full(5, ASSIGN_LAMBDA_MM) for theta in thetas])
+    assigned = assign_detections_batch(tips, det, ASSIGN_LAMBDA_MM, lams)
+    return [_tips_cost(*each, det) for each in zip(tips, lams, assigned)]
 
 
-def _tips_cost(tips: NDArray[np.float64], theta: NDArray[np.float64], det: Detections, hidden_tips: bool) -> float:
-    """:func:`assignment_cost` at ``theta`` (26,) with its fingertips ``tips`` (5, 3) mm (``det.n`` > 0)."""
-    lam = tip_lambdas(theta) if hidden_tips else np.full(5, ASSIGN_LAMBDA_MM)
-    assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM, lam)
+def _tips_cost(
+    tips: NDArray[np.float64], lam: NDArray[np.float64], assigned: NDArray[np.int64], det: Detections
+) -> float:
+    """:func:`assignment_cost` of the fingertips ``tips`` (5, 3) mm with their costs ``lam`` (5,)
+    mm and detections ``assigned`` (5,) of ``det`` (-1: none)."""
     has = assigned >= 0
     d = np.linalg.norm(tips[has] - det.points[assigned[has]], axis=1).sum()
     unused = np.ones(det.n, bool)
