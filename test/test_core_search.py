@@ -264,3 +264,10 @@ def test_the_batched_assignment_is_the_one_pose_assignment() -> None:
             lam = rng.choice([10.0, 30.0], (4, 5))
             one = [assign_detections(t, det, 30.0, lam_t) for t, lam_t in zip(tips, lam)]
             assert np.array_equal(assign_detections_batch(tips, det, 30.0, lam), np.array(one))
+
+
+def test_the_scores_norms_are_numpys() -> None:
+    from hand_sog_tracker.core.search.score import _norms
+
+    v = np.random.default_rng(7).normal(0.0, 50.0, (200, 3))
+    assert np.array_equal(_norms(v), np.linalg.norm(v, axis=1))

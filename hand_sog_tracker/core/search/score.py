@@ -49,6 +49,11 @@ def sq_distances(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.f
     return d2
 
 
+def _norms(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``np.linalg.norm(v, axis=1)`` of (k, 3) rows, the same operations without its Python layer."""
+    return np.sqrt(np.add.reduce(v * v, axis=1))
+
+
 def tip_lambdas(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     """Cost (mm) of leaving each fingertip (5,) at ``theta`` (26,) without a detection:
     ``ASSIGN_LAMBDA_MM``, falling for a tip curled against a palm that faces the camera."""
@@ -91,7 +96,7 @@ def _tips_cost(
     """:func:`assignment_cost` of the fingertips ``tips`` (5, 3) mm with their costs ``lam`` (5,)
     mm and detections ``assigned`` (5,) of ``det`` (-1: none)."""
     has = assigned >= 0
-    d = np.linalg.norm(tips[has] - det.points[assigned[has]], axis=1).sum()
+    d = _norms(tips[has] - det.points[assigned[has]]).sum()
     unused = np.ones(det.n, bool)
     unused[assigned[has]] = False
     cost = d + lam[~has].sum() + ASSIGN_LAMBDA_MM * det.confidence[unused].sum()
@@ -138,5 +143,5 @@ def own_detections(model: HandModel, theta: NDArray[np.float64], det: Detections
     tips = fingertips(model, theta)
     assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
     own = assigned >= 0
-    own[own] = np.linalg.norm(tips[own] - det.points[assigned[own]], axis=1) < OWN_DETECTION_MM
+    own[own] = _norms(tips[own] - det.points[assigned[own]]) < OWN_DETECTION_MM
     return own
