@@ -230,3 +230,44 @@ def test_the_race_stops_candidates_and_changes_no_answer(monkeypatch: pytest.Mon
         runs.append(_answers(frames, intr))
     assert any(stopped)
     assert runs[0] == runs[1]
+
+
+def test_the_batched_assignment_costs_are_those_pose_by_pose() -> None:
+    from hand_sog_tracker.core.salient import Detections
+    from hand_sog_tracker.core.search.candidates import shifted
+    from hand_sog_tracker.core.search.score import assignment_cost, assignment_costs
+
+    rng = np.random.default_rng(5)
+    model = default_hand_model()
+    for _ in range(20):
+        x = rest_pose() + rng.normal(0.0, 0.3, 26)
+        x[:3] = (0.0, 0.0, 400.0) + rng.normal(0.0, 20.0, 3)
+        poses = np.array([shifted(x, s) for s in (0, 1, -1)])
+        points = (0.0, 0.0, 400.0) + rng.normal(0.0, 60.0, (5, 3))
+        det = Detections(points, points[:, :2], rng.uniform(0.2, 1.0, 5), rng.uniform(size=5) < 0.3)
+        for hidden in (True, False):
+            # (Equal bit for bit: the search decides on differences of these costs.)
+            one_by_one = [assignment_cost(model, p, det, hidden) for p in poses]
+            assert assignment_costs(model, poses, det, hidden) == one_by_one
+
+
+def test_the_batched_assignment_is_the_one_pose_assignment() -> None:
+    from hand_sog_tracker.core.salient import Detections, assign_detections, assign_detections_batch
+
+    rng = np.random.default_rng(6)
+    for n in (1, 3, 5, 8):
+        for _ in range(20):
+            # (Points on a coarse lattice: equal costs, whose ties the first minimum breaks.)
+            points = np.round(rng.normal(0.0, 2.0, (n, 3))) * 10.0
+            det = Detections(points, points[:, :2], rng.choice([0.5, 1.0], n), np.zeros(n, bool))
+            tips = np.round(rng.normal(0.0, 2.0, (4, 5, 3))) * 10.0
+            lam = rng.choice([10.0, 30.0], (4, 5))
+            one = [assign_detections(t, det, 30.0, lam_t) for t, lam_t in zip(tips, lam)]
+            assert np.array_equal(assign_detections_batch(tips, det, 30.0, lam), np.array(one))
+
+
+def test_the_scores_norms_are_numpys() -> None:
+    from hand_sog_tracker.core.search.score import _norms
+
+    v = np.random.default_rng(7).normal(0.0, 50.0, (200, 3))
+    assert np.array_equal(_norms(v), np.linalg.norm(v, axis=1))

@@ -35,9 +35,10 @@ from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.salient import Detections, assign_detections
 from hand_sog_tracker.core.search.score import (
     ASSIGN_LAMBDA_MM,
-    assignment_cost,
+    assignment_costs,
     lonely_detections,
     own_detections,
+    plain,
     score,
     sq_distances,
 )
@@ -76,7 +77,9 @@ class Frame:
     model: HandModel
     fit: OptimizeResult  #: the frame's fit (a tracked frame's, or a new track's best finalist)
     obj: Objective  #: the frame's objective (with the salient term's targets)
-    plain: Objective  #: ``obj`` without its salient term: candidates are fitted and scored on it
+    #: ``obj`` without its salient term, or None: made from ``obj`` when first read (:attr:`plain`;
+    #: most tracked frames make no candidate and never read it)
+    given_plain: Objective | None
     data: ImageSoG
     det: Detections
     limits: tuple[NDArray[np.float64], NDArray[np.float64]]  #: joint limits (low, high) (26,) each, +-inf: wrist
@@ -86,10 +89,37 @@ class Frame:
     #: ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand (no end
     #: to detect: they call for no curl and do not dangle; :mod:`..hands`); None: none
     covered: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
+    #: What several proposals (and the tracker) read of the fit, computed once per frame: see
+    #: :meth:`own_at_fit`, :meth:`lonely_at_fit`, :func:`pull_target`.
+    _memo: dict[str, object] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    @property
+    def plain(self) -> Objective:
+        """``obj`` without its salient term (:func:`~.score.plain`): candidates are fitted and scored on it."""
+        made = self._memo.get("plain")
+        if made is None:
+            made = self._memo["plain"] = self.given_plain if self.given_plain is not None else plain(self.obj)
+        return made  # type: ignore[return-value]
+
+    def own_at_fit(self) -> NDArray[np.bool_]:
+        """:func:`~.score.own_detections` at the fit's pose (5,), read-only (computed once)."""
+        hit = self._memo.get("own")
+        if hit is None:
+            hit = self._memo["own"] = _frozen(own_detections(self.model, self.fit.x, self.det))
+        return hit  # type: ignore[return-value]
+
+    def lonely_at_fit(self) -> NDArray[np.int64]:
+        """:func:`~.score.lonely_detections` at the fit's pose (k,), read-only (computed once)."""
+        hit = self._memo.get("lonely")
+        if hit is None:
+            hit = self._memo["lonely"] = _frozen(lonely_detections(self.model, self.fit.x, self.det))
+        return hit  # type: ignore[return-value]
 
     def score(self, theta: NDArray[np.float64], value: float | None = None) -> float:
         """:func:`~hand_sog_tracker.core.search.score.score` of ``theta`` (26,) on this frame."""
-        return score(self.plain, theta, self.det, self.obj.config.w_sal, not self.new_track, value)
+        # (With its value known the score reads only the objective's model: ``obj``'s, the same.)
+        of = self.plain if value is None else self.obj
+        return score(of, theta, self.det, self.obj.config.w_sal, not self.new_track, value)
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,6 +142,12 @@ class Proposal:
     name: str
     reason: str
     generate: Callable[[Frame], Iterator[Candidate]]
+
+
+def _frozen(a: NDArray) -> NDArray:
+    """``a`` made read-only (a value shared by its readers)."""
+    a.setflags(write=False)
+    return a
 
 
 def _proposal(name: str, reason: str) -> Callable[[Callable[[Frame], Iterator[Candidate]]], Proposal]:
@@ -205,9 +241,9 @@ def CURL(f: Frame) -> Iterator[Candidate]:
     fingers = [c for c in range(1, 5) if flex[c - 1] < CURL_MAX_FLEX_RAD]
     if not fingers:
         return
-    seen = own_detections(f.model, x, f.det)
+    seen = f.own_at_fit()
     if f.covered is not None and not seen[fingers].all():
-        seen |= f.covered(fingertips(f.model, x))  # (a tip against another hand has no end to see)
+        seen = seen | f.covered(fingertips(f.model, x))  # (a tip against another hand has no end to see)
     if not seen[fingers].all():
         for c in fingers:
             yield Candidate("curl", _with_chain(x, c, FINGER_CURLED), CURL_MARGIN)
@@ -217,16 +253,17 @@ def CURL(f: Frame) -> Iterator[Candidate]:
 def SHIFT(f: Frame) -> Iterator[Candidate]:
     x = f.fit.x
     margin = SHIFT_MARGIN
-    if f.new_track or lonely_detections(f.model, x, f.det).size:
+    if f.new_track or f.lonely_at_fit().size:
         sides: tuple[int, ...] = (1, -1)
         margin = 0.0
     elif f.det.n == 0 or _view_cos(x) < EDGE_ON_PALM_COS:
         return  # no detection says where the fingers are, or they overlap in the image (edge-on)
-    elif f.det.n >= 5 and own_detections(f.model, x, f.det).all():
+    elif f.det.n >= 5 and f.own_at_fit().all():
         return  # each fingertip has a detection of its own
     else:
         # The side whose shifted pose the detections explain better than the fit, if any.
-        cost = {s: assignment_cost(f.model, shifted(x, s), f.det, True) for s in (0, 1, -1)}
+        poses = np.array([shifted(x, s) for s in (0, 1, -1)])  # (their fingertips as one batch)
+        cost = dict(zip((0, 1, -1), assignment_costs(f.model, poses, f.det, True)))
         sides = tuple(s for s in (1, -1) if cost[s] < cost[0] and cost[s] <= cost[-s])
     for side in sides:
         yield Candidate("shift", shifted(x, side), margin)
@@ -256,12 +293,16 @@ def pull_objective(obj: Objective) -> Objective:
 def pull_target(f: Frame) -> int | None:
     """The detection the detection proposal pulls fingers onto, or None: the most confident one no
     fingertip explains, unless its pulls lost on the frame before where it still is (within
-    ``SAME_DETECTION_MM`` of ``f.lost_pulls``: the score preferred the fit there)."""
-    lonely = lonely_detections(f.model, f.fit.x, f.det)
+    ``SAME_DETECTION_MM`` of ``f.lost_pulls``: the score preferred the fit there).  Computed
+    once per frame (the detection proposal and the tracker ask)."""
+    if "pull" in f._memo:
+        return f._memo["pull"]  # type: ignore[return-value]
+    lonely = f.lonely_at_fit()
     if lonely.size and f.lost_pulls.shape[0]:
         near = np.sqrt(sq_distances(f.det.points[lonely], f.lost_pulls)).min(axis=1) < SAME_DETECTION_MM
         lonely = lonely[~near]
-    return int(lonely[np.argmax(f.det.confidence[lonely])]) if lonely.size else None
+    target = f._memo["pull"] = int(lonely[np.argmax(f.det.confidence[lonely])]) if lonely.size else None
+    return target
 
 
 @_proposal("detection", "a detection no fingertip explains (pulls not lost before): the 2 nearest fingers pulled on it")
