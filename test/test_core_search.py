@@ -250,14 +250,19 @@ def test_a_rolled_pose_is_the_same_hand_axis_turned_half_a_turn() -> None:
 def test_a_hand_seen_from_its_side_tracked_on_its_wrong_face_turns_over() -> None:
     """Issue 47: the right hand of ``clap`` alone (palm 25 deg off the line of sight), its track
     started on the pose turned half a turn about the finger axis (the wrong face of the strip).
-    Measured on the first frame: 15 mm with the roll proposal, 76 mm without."""
+    Measured: 15 mm on the first frame with the roll proposal, 76 mm without; then 5 mm on the
+    next three frames, 38-54 mm when the roll's jump counted as the track's velocity."""
     from hand_sog_tracker.core.search.candidates import rolled
     from hand_sog_tracker.synth.twohands import TwoHandScene, two_hand_sequence
 
     intr = default_intrinsics()
-    frame = next(two_hand_sequence(TwoHandScene("clap"), 1, intr, seed=0, sensor="clean", shown=("right",)))
+    frames = list(two_hand_sequence(TwoHandScene("clap"), 4, intr, seed=0, sensor="clean", shown=("right",)))
     tracker = Tracker(TrackerConfig(right_hand=True), withhold=False)
-    tracker.start_at(rolled(frame.hands[1].pose))
-    res = tracker.process(frame.depth_mm, intr)
-    assert tracker.last_proposal == "roll"
-    assert np.linalg.norm(res.fingertips_mm - frame.hands[1].fingertips_mm, axis=1).mean() < 30.0
+    tracker.start_at(rolled(frames[0].hands[1].pose))
+    errors = []
+    for k, frame in enumerate(frames):
+        res = tracker.process(frame.depth_mm, intr)
+        if k == 0:
+            assert tracker.last_proposal == "roll"
+        errors.append(float(np.linalg.norm(res.fingertips_mm - frame.hands[1].fingertips_mm, axis=1).mean()))
+    assert errors[0] < 30.0 and max(errors[1:]) < 15.0, errors
