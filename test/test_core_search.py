@@ -230,4 +230,3 @@ def test_the_race_stops_candidates_and_changes_no_answer(monkeypatch: pytest.Mon
         runs.append(_answers(frames, intr))
     assert any(stopped)
     assert runs[0] == runs[1]
-
