@@ -21,7 +21,8 @@ from hand_sog_tracker.core.handfind import HandBlob
 from hand_sog_tracker.core.rotations import euler_from_matrix, rot_y  # euler_from_matrix re-exported
 
 __all__ = [
-    "InitSearch", "INIT_SEARCH", "finger_combinations", "best_combination", "initial_hypotheses", "euler_from_matrix",
+    "InitSearch", "INIT_SEARCH", "finger_combinations", "best_combination", "initial_hypotheses", "edge_on_hypotheses",
+    "euler_from_matrix",
 ]
 
 
@@ -61,21 +62,32 @@ def _frame(y_dir: NDArray[np.float64], palm_to_camera: bool, roll: float) -> NDA
 def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray[np.float64]]:
     """Up to ``n`` start poses (26,) for the hand in ``blob``, most likely first: each direction
     open with the palm toward and away from the camera, closed and half-closed for the first."""
-    palm_local = np.array([0.0, 0.55 * float(model.bases[2, 1]), 0.0])
     combos = []
     for i, d in enumerate(blob.directions):
         for joints in (OPEN, CLOSED, HALF_CLOSED) if i == 0 else (OPEN,):
             combos += [(d, True, joints), (d, False, joints)]
-    out = []
-    for d, palm, joints in combos:
-        # (The mirror of a left hand acts inside the hand frame: the same rotation serves both.)
-        R = _frame(d, palm, 0.0)
-        theta = np.zeros(N_PARAMS)
-        theta[:3] = blob.palm - R @ palm_local
-        theta[3:6] = euler_from_matrix(R)
-        theta[JOINTS] = joints
-        out.append(theta)
-    return out[:n]
+    return [_start(model, blob.palm, _frame(d, palm, 0.0), joints) for d, palm, joints in combos][:n]
+
+
+def edge_on_hypotheses(model: HandModel, blob: HandBlob) -> list[NDArray[np.float64]]:
+    """The two edge-on start poses (26,) of ``blob``'s first direction, open: the palm toward and
+    away from the camera each rolled 90 deg about the finger axis (the palm facing one side of the
+    image, then the other), so that a hand seen from its side (the palm plane near the line of
+    sight) has a start pose of its own."""
+    d = blob.directions[0]
+    return [_start(model, blob.palm, _frame(d, palm, 0.5 * np.pi), OPEN) for palm in (True, False)]
+
+
+def _start(
+    model: HandModel, palm: NDArray[np.float64], R: NDArray[np.float64], joints: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The pose (26,) of hand frame ``R`` (3, 3) with its palm centre at ``palm`` (3,) mm and ``joints``."""
+    # (The mirror of a left hand acts inside the hand frame: the same rotation serves both.)
+    theta = np.zeros(N_PARAMS)
+    theta[:3] = palm - R @ np.array([0.0, 0.55 * float(model.bases[2, 1]), 0.0])
+    theta[3:6] = euler_from_matrix(R)
+    theta[JOINTS] = joints
+    return theta
 
 
 def finger_combinations(start: NDArray[np.float64]) -> list[NDArray[np.float64]]:

@@ -48,7 +48,7 @@ from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
 from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
 from hand_sog_tracker.core.salient import MAX_DETECTIONS, Detections, assigned_targets, detect_fingertips
 from hand_sog_tracker.core.search import ASSIGN_LAMBDA_MM, NEW_TRACK_PROPOSALS, TRACK_PROPOSALS, Frame, plain, search
-from hand_sog_tracker.core.search.candidates import pull_target
+from hand_sog_tracker.core.search.candidates import ROLL, pull_target
 from hand_sog_tracker.core.search.fit import fit_parts, part
 from hand_sog_tracker.core.search.start import NEW_TRACK_DATA, Finalists, on_hand_side, start_search
 from hand_sog_tracker.core.silhouette import Silhouette, silhouette
@@ -383,7 +383,9 @@ class Tracker:
             self._low_frames = 0
             self._status = TrackerStatus.LOST
             return self._result(None, conf, res.fun, data.n, timings)
-        self._prev = (res.x, p1)
+        # A hand turned over by the roll proposal did not turn so between the frames: no velocity
+        # from the jump (else the next frame's start and prior turn it on, measured in two_hands.md).
+        self._prev = (res.x, res.x) if self.last_proposal == ROLL.name else (res.x, p1)
         self._status = TrackerStatus.TRACKING
         answer = self._refined(obj, res, p1)
         if res is not fit:

@@ -32,6 +32,7 @@ from hand_sog_tracker.core.hand_model import (
 from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.objective import Objective, TipTargets
 from hand_sog_tracker.core.optimizer import OptimizeResult
+from hand_sog_tracker.core.rotations import euler_from_matrix, rot_y
 from hand_sog_tracker.core.salient import Detections, assign_detections
 from hand_sog_tracker.core.search.score import (
     ASSIGN_LAMBDA_MM,
@@ -45,7 +46,7 @@ from hand_sog_tracker.core.search.score import (
 
 __all__ = [
     "Candidate", "Frame", "Proposal", "TRACK_PROPOSALS", "NEW_TRACK_PROPOSALS", "pull_objective", "pull_target",
-    "shifted", "swapped",
+    "rolled", "shifted", "swapped",
 ]
 
 DANGLING_TIP_MM = 25.0  #: a fingertip this far (mm) from all data hangs in empty space (seed 004's restarts)
@@ -68,6 +69,7 @@ PULL_WEIGHT = 20.0  #: the salient weight of a detection pull: this x ``w_sal`` 
 SHIFT_MARGIN = 0.02  #: a shift without an unexplained detection wins by this (at an angle fingers one over score alike)
 LATERAL_MM = 15.0  #: a new track's lateral candidates move the hand this far across the palm (mm: a finger's spacing)
 LATERAL_MARGIN = 0.01  #: ... and must win by this (issue 11)
+ROLL_MARGIN = 0.0  #: a hand turned about its finger axis wins by this
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,6 +144,8 @@ class Proposal:
     name: str
     reason: str
     generate: Callable[[Frame], Iterator[Candidate]]
+    #: its candidates join a search only beside another proposal's (they add no batch of their own)
+    rides_along: bool = False
 
 
 def _frozen(a: NDArray) -> NDArray:
@@ -340,6 +344,23 @@ def LATERAL(f: Frame) -> Iterator[Candidate]:
             yield Candidate("lateral", x0, LATERAL_MARGIN)
 
 
+def rolled(theta: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``theta`` (26,) turned half a turn about the hand's own finger axis (the hand frame's y,
+    through the wrist and the palm centre): the other face of the same strip of data."""
+    x0 = theta.copy()
+    x0[3:6] = euler_from_matrix(global_rotation(theta) @ rot_y(np.pi))
+    return x0
+
+
+@_proposal("roll", "a hand seen from its side, beside other candidates: turned half a turn about its finger axis")
+def ROLL(f: Frame) -> Iterator[Candidate]:
+    if _view_cos(f.fit.x) < FACING_COS:
+        yield Candidate("roll", rolled(f.fit.x), ROLL_MARGIN)
+
+
+ROLL = replace(ROLL, rides_along=True)  # (a frame that needs no search pays nothing for it)
+
+
 #: The proposals of a tracked frame and of a new track's first frame.
-TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SWAP, CURL, SHIFT, DETECTION)
+TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SWAP, CURL, SHIFT, DETECTION, ROLL)
 NEW_TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SHIFT, LATERAL)

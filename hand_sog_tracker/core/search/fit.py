@@ -100,9 +100,10 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
     by their margin wins.  A race: a score is the plain value minus a cost >= 0, so a candidate
     whose value cannot reach the fit's score plus its margin stops early (``floor``).
     """
-    candidates = [c for p in proposals for c in p.generate(frame)]
+    candidates = [c for p in proposals if not p.rides_along for c in p.generate(frame)]
     if not candidates:
         return frame.fit, None
+    candidates += [c for p in proposals if p.rides_along for c in p.generate(frame)]
     starts = _pulled(candidates, frame.obj, frame.limits)
     base = frame.score(frame.fit.x, _plain_value(frame))
     floor = base + np.array([c.margin for c in candidates])

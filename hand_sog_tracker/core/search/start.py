@@ -1,7 +1,8 @@
 """A new track's search: from the hand found in the depth to the finalist poses.
 
 The start poses (:func:`~hand_sog_tracker.core.initialise.initial_hypotheses` of the hand blob's
-directions, plus open hands along the hand end's own axis and toward the fingertip detections)
+directions and its two edge-on hands, :func:`~hand_sog_tracker.core.initialise.edge_on_hypotheses`,
+plus open hands along the hand end's own axis and toward the fingertip detections)
 are screened by the objective at the start, aligned rigidly on a coarse quadtree (seed 004's
 coarse-to-fine), the best of each palm side articulated on the fine one, and the best by the
 score become the finalists; when even the best scores poorly, single fingers curled
@@ -21,7 +22,7 @@ from numpy.typing import NDArray
 from hand_sog_tracker.core.depth_sog import MAX_DATA_GAUSSIANS, ImageSoG, Preprocessed, leaf_px, quadtree_sog
 from hand_sog_tracker.core.hand_model import HandModel
 from hand_sog_tracker.core.handfind import HandBlob, detection_direction, find_hand
-from hand_sog_tracker.core.initialise import INIT_SEARCH, best_combination, initial_hypotheses
+from hand_sog_tracker.core.initialise import INIT_SEARCH, best_combination, edge_on_hypotheses, initial_hypotheses
 from hand_sog_tracker.core.kinematics import global_rotation
 from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.optimizer import OptimizeResult
@@ -77,10 +78,12 @@ def _balanced(ranked: list[tuple], n: int) -> list[tuple]:
 
 
 def _screened(
-    model: HandModel, config: TrackerConfig, data: ImageSoG, starts: list, keeps: list[NDArray[np.bool_]], n: int
+    model: HandModel, config: TrackerConfig, data: ImageSoG, starts: list, keeps: list[NDArray[np.bool_]], n: int,
+    sides: list[bool],
 ) -> set[int]:
-    """Indices of the ``n`` start poses per palm side best by the objective of their part
-    ``keeps[i]`` (n,) of ``data`` at the start (one batch per distinct part; the first on a tie)."""
+    """Indices of the ``n`` start poses per palm side (``sides[i]``: the back toward the camera)
+    best by the objective of their part ``keeps[i]`` (n,) of ``data`` at the start (one batch per
+    distinct part; the first on a tie)."""
     values = [-np.inf] * len(starts)
     groups: dict[bytes, list[int]] = {}
     for i, keep in enumerate(keeps):
@@ -90,7 +93,7 @@ def _screened(
         batch = _values(Objective(model, part(data, keeps[ks[0]]), config))(np.array([starts[i] for i in ks]))
         for i, value in zip(ks, batch.tolist()):
             values[i] = value
-    scored = [(value, -i, back_toward(x0)) for i, (x0, value) in enumerate(zip(starts, values))]
+    scored = [(value, -i, side) for i, (value, side) in enumerate(zip(values, sides))]
     chosen: set[int] = set()
     for side in (True, False):
         chosen.update(-s[1] for s in sorted((s for s in scored if s[2] == side), reverse=True)[:n])
@@ -119,10 +122,16 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
     det = detect_fingertips(pre, roi, window)
     if det.n:
         det = det.subset(on_hand_side(det.points, starts[0]))
+    # The edge-on start poses count on the side they were rolled from (their palm normal lies in the
+    # image plane, its sign there is rounding); they compete with the blob's.
+    starts += edge_on_hypotheses(model, blob)
+    sides = [back_toward(x) for x in starts[:-2]] + [False, True]
     n_blob = len(starts)
     for d in (blob.hand_direction, detection_direction(blob, det.points)):
         if d is not None:  # (a wrist bent sideways turns the blob's axis off the hand's)
-            starts += initial_hypotheses(model, HandBlob(blob.palm, [d]), 2)
+            more = initial_hypotheses(model, HandBlob(blob.palm, [d]), 2)
+            starts += more
+            sides += [back_toward(x) for x in more]
     rigid = np.zeros(starts[0].size, dtype=bool)
     rigid[:6] = True
 
@@ -137,9 +146,13 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
         return [(k, poses[k], r) for k, r in zip(ks, fits)]
 
     def align(ranks: list[int], poses: list) -> list[tuple]:
-        """(value, -rank, pose, back toward) of each start rigidly aligned on the coarse data."""
+        """(value, -rank, pose, back toward) of each start rigidly aligned on the coarse data (the
+        side of a start pose of rank under ``len(sides)``: its count, see above)."""
         fits = fitted(coarse, poses, iterations=eff.rigid_iterations, active=rigid)
-        return [(r.fun, -ranks[k], r.x, back_toward(x0)) for k, x0, r in fits]
+        return [
+            (r.fun, -ranks[k], r.x, sides[ranks[k]] if ranks[k] < len(sides) else back_toward(x0))
+            for k, x0, r in fits
+        ]
 
     def articulate(kept: list[tuple]) -> list[tuple[float, int, NDArray[np.float64]]]:
         """(score, -rank, pose) of each kept pose articulated on the fine data."""
@@ -150,7 +163,7 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
         ]
 
     keeps = [on_hand_side(coarse.points, x) for x in starts]
-    screened = _screened(model, cfg, coarse, starts[:n_blob], keeps[:n_blob], eff.screened)
+    screened = _screened(model, cfg, coarse, starts[:n_blob], keeps[:n_blob], eff.screened, sides)
     chosen = [i for i in range(len(starts)) if i >= n_blob or i in screened]
     aligned = align(chosen, [starts[i] for i in chosen])
     # The blob's start poses compete for ``kept``; the best of the extra directions' joins them.
