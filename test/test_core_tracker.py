@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from hand_sog_tracker.core import tracker as tracker_module
 from hand_sog_tracker.core.articulations import FINGER_CURLED, FINGER_EXTENDED
 from hand_sog_tracker.core.depth_sog import ImageSoG, preprocess
 from hand_sog_tracker.core.hand_model import (
@@ -40,6 +41,10 @@ from hand_sog_tracker.errors import DepthImageError, InputError, IntrinsicsError
 from hand_sog_tracker.synth.render import RenderOptions, render_depth
 from hand_sog_tracker.synth.sequence import SyntheticFrame, default_intrinsics, synthetic_sequence
 
+
+def _maximise(tracker: Tracker, obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> OptimizeResult:
+    """:func:`maximise` of ``obj`` from ``x0`` (26,) within ``tracker``'s joint limits (what its frames run)."""
+    return maximise(obj, x0, bounds=tracker._limits(), **kwargs)  # type: ignore[arg-type]
 
 def track(motion: str, n: int, **kw) -> tuple[np.ndarray, list[TrackerStatus]]:
     """Mean fingertip error (mm) per frame, and the statuses."""
@@ -422,7 +427,7 @@ def _fit_wrong(
     pre = preprocess(render_depth(default_hand_model(), truth, intr, RenderOptions()), intr, tracker.config)
     data, det, sil = tracker._data_near(pre, wrong)
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(wrong, det), silhouette=sil)
-    return obj, maximise(obj, wrong, bounds=tracker._limits(), iterations=7), data, det
+    return obj, _maximise(tracker, obj, wrong, iterations=7), data, det
 
 
 
@@ -451,7 +456,7 @@ def test_no_shift_is_proposed_when_every_fingertip_is_seen_at_its_finger() -> No
     data, det, sil = tracker._data_near(pre, truth)
     assert det.n >= 5
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(truth, det), silhouette=sil)
-    res = maximise(obj, truth, bounds=tracker._limits(), iterations=7)
+    res = _maximise(tracker, obj, truth, iterations=7)
     assert list(SHIFT.generate(_frame(tracker, obj, res, data, det))) == []
     assert list(SHIFT.generate(_frame(tracker, obj, res, data, Detections.empty()))) == []
 
@@ -503,7 +508,7 @@ def test_a_detection_candidate_of_a_hand_seen_edge_on_needs_a_margin() -> None:
     obj = Objective(tracker.model, data, tracker.config)
     lonely = fingertips(tracker.model, truth)[2] + np.array([0.0, -60.0, -30.0])
     det = Detections(lonely[None], np.zeros((1, 2)), np.array([0.95]), np.array([False]))
-    facing = maximise(obj, truth, bounds=tracker._limits(), iterations=1)
+    facing = _maximise(tracker, obj, truth, iterations=1)
     side = truth.copy()
     side[3:6] = [0.0, np.radians(70.0), 0.0]  # (turned about the image's vertical axis)
     edge = dataclasses.replace(facing, x=side)
@@ -573,7 +578,7 @@ def test_an_open_finger_on_its_neighbours_data_is_curled_into_the_palm() -> None
     pre = preprocess(depth, intr, tracker.config)
     data, det, sil = tracker._data_near(pre, wrong)
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(wrong, det), silhouette=sil)
-    res = maximise(obj, wrong, bounds=tracker._limits(), iterations=21)
+    res = _maximise(tracker, obj, wrong, iterations=21)
     err_wrong = np.linalg.norm(fingertips(tracker.model, res.x) - true_tips, axis=1)
     assert err_wrong[3] > 100.0, err_wrong.round(0)  # the fit alone keeps it open
     assert len(list(CURL.generate(_frame(tracker, obj, res, data, det)))) >= 1
@@ -581,7 +586,7 @@ def test_an_open_finger_on_its_neighbours_data_is_curled_into_the_palm() -> None
     err = np.linalg.norm(fingertips(tracker.model, out.x) - true_tips, axis=1)
     assert err.max() < 12.0, (err_wrong.round(0), err.round(0))
     # At the truth: the open fingers have their detections, the curled ones are not tried.
-    fit = maximise(obj, truth, bounds=tracker._limits(), iterations=7)
+    fit = _maximise(tracker, obj, truth, iterations=7)
     assert list(CURL.generate(_frame(tracker, obj, fit, data, det))) == []
     # The hand seen from the side: the depth cannot tell a curled finger from an open one.
     side = dataclasses.replace(res, x=res.x.copy())
@@ -603,7 +608,7 @@ def test_a_fist_fitted_from_its_true_pose_stays_closer_when_curled_fingers_may_t
         obj = Objective(
             tracker.model, data, tracker.config, targets=tracker._targets(truth, det), silhouette=sil, contact=contact
         )
-        x = maximise(obj, truth, bounds=tracker._limits(), iterations=40).x
+        x = _maximise(tracker, obj, truth, iterations=40).x
         tips = fingertips(tracker.model, x) - fingertips(tracker.model, truth)
         err[contact is not None] = float(np.linalg.norm(tips, axis=1).mean())
     assert err[True] < 6.0 and err[True] < err[False] - 1.5, err
@@ -649,7 +654,7 @@ def test_the_answer_of_a_curled_hand_is_refined_on_the_joint_model(monkeypatch: 
 
     tracker = Tracker(TrackerConfig())
     truth, obj = _fist_frame(tracker)
-    res = maximise(obj, truth, bounds=tracker._limits(), iterations=7)
+    res = _maximise(tracker, obj, truth, iterations=7)
     refined = tracker._refined(obj, res, truth)
 
     def err(x: NDArray[np.float64]) -> float:
@@ -685,7 +690,7 @@ def test_only_the_answers_refinement_weights_the_overlaps_by_visibility(monkeypa
 
     tracker = Tracker(TrackerConfig())
     truth, obj = _fist_frame(tracker)
-    res = maximise(obj, truth, bounds=tracker._limits(), iterations=7)
+    res = _maximise(tracker, obj, truth, iterations=7)
     monkeypatch.setattr(tracker_module, "Objective", spy)
     tracker._refined(obj, res, truth)
     assert len(made) == 1
@@ -733,14 +738,13 @@ def test_a_refinement_starts_from_the_frame_befores_correction_when_the_track_we
     frame before was not refined or its refinement was stopped) from the fit's pose."""
     tracker = Tracker(TrackerConfig())
     truth, obj = _fist_frame(tracker)
-    res = maximise(obj, truth, bounds=tracker._limits(), iterations=7)
-    import hand_sog_tracker.core.tracker as tracker_module
-
+    res = _maximise(tracker, obj, truth, iterations=7)
     starts: list[NDArray[np.float64]] = []
+    fit = tracker_module.maximise
 
     def spy(obj: Objective, x0: NDArray[np.float64], **kwargs: object) -> object:
         starts.append(x0)
-        return maximise(obj, x0, **kwargs)  # type: ignore[arg-type]
+        return fit(obj, x0, **kwargs)
 
     monkeypatch.setattr(tracker_module, "maximise", spy)
 

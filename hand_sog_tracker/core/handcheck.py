@@ -424,7 +424,7 @@ def _finger_ends(
         tip = tips[c]
         d = tip - sk[4 * c + 3]
         base = sk[4 * c + 2] - sk[4 * c + 1]
-        n, nb = math.sqrt(d.dot(d)), math.sqrt(base.dot(base))  # (= np.linalg.norm's, without its Python layer)
+        n, nb = float(np.linalg.norm(d)), float(np.linalg.norm(base))
         if n < 1e-6 or nb < 1e-6 or (d @ base) / (n * nb) < END_STRAIGHT_COS:
             continue  # a curled finger ends against the palm
         d /= n

@@ -378,39 +378,6 @@ def assign_detections(
     return out
 
 
-def assign_detections_batch(
-    tips_mm: NDArray[np.float64], det: Detections, lam_mm: float, tip_lam_mm: NDArray[np.float64]
-) -> NDArray[np.int64]:
-    """:func:`assign_detections` of each set of fingertips ``tips_mm`` (B, T, 3) mm with its
-    costs ``tip_lam_mm`` (B, T), shape (B, T): the same dynamic programme with a leading axis
-    (the same operations per pose: the same assignments)."""
-    B, T, S = tips_mm.shape[0], tips_mm.shape[1], det.n
-    out = np.full((B, T), -1, dtype=np.int64)
-    if S == 0:
-        return out
-    if S > 10:
-        raise ValueError(f"at most 10 detections can be assigned, got {S}")
-    diff = tips_mm[:, :, None, :] - det.points[None, None, :, :]
-    cost = np.sqrt(np.add.reduce(diff * diff, axis=-1))  # (B, T, S)
-    _, prev, not_bits = _subset_tables(S)
-    n_masks = 1 << S
-    best = np.full((B, T + 1, n_masks + 1), np.inf)
-    best[:, 0, 0] = 0.0
-    cand = np.empty((B, T, S + 1, n_masks))
-    for t in range(T):
-        np.add(best[:, t, :n_masks], tip_lam_mm[:, t, None], out=cand[:, t, 0])
-        np.add(best[:, t].take(prev, axis=-1), cost[:, t, :, None], out=cand[:, t, 1:])
-        np.minimum.reduce(cand[:, t], axis=1, out=best[:, t + 1, :n_masks])
-    unused = not_bits @ (lam_mm * det.confidence)
-    for b, mask in enumerate(np.argmin(best[:, T, :n_masks] + unused, axis=1).tolist()):
-        for t in range(T, 0, -1):
-            s = int(cand[b, t - 1, :, mask].argmin()) - 1
-            out[b, t - 1] = s
-            if s >= 0:
-                mask &= ~(1 << s)
-    return out
-
-
 def assigned_targets(
     tips_mm: NDArray[np.float64], det: Detections, lam_mm: float, end_on: bool
 ) -> TipTargets | None:

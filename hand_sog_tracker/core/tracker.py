@@ -366,7 +366,7 @@ class Tracker:
         )
         self._steps = fit.steps
         frame = Frame(
-            self._model, fit, obj, None, data, det, self._limits(), lost_pulls=self._lost_pulls,
+            self._model, fit, obj, plain(obj), data, det, self._limits(), lost_pulls=self._lost_pulls,
             covered=self.covered_tips,
         )
         res, self.last_proposal = search(frame, TRACK_PROPOSALS)

@@ -36,10 +36,9 @@ from hand_sog_tracker.core.rotations import euler_from_matrix, rot_y
 from hand_sog_tracker.core.salient import Detections, assign_detections
 from hand_sog_tracker.core.search.score import (
     ASSIGN_LAMBDA_MM,
-    assignment_costs,
+    assignment_cost,
     lonely_detections,
     own_detections,
-    plain,
     score,
     sq_distances,
 )
@@ -79,9 +78,7 @@ class Frame:
     model: HandModel
     fit: OptimizeResult  #: the frame's fit (a tracked frame's, or a new track's best finalist)
     obj: Objective  #: the frame's objective (with the salient term's targets)
-    #: ``obj`` without its salient term, or None: made from ``obj`` when first read (:attr:`plain`;
-    #: most tracked frames make no candidate and never read it)
-    given_plain: Objective | None
+    plain: Objective  #: ``obj`` without its salient term: candidates are fitted and scored on it
     data: ImageSoG
     det: Detections
     limits: tuple[NDArray[np.float64], NDArray[np.float64]]  #: joint limits (low, high) (26,) each, +-inf: wrist
@@ -91,37 +88,10 @@ class Frame:
     #: ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand (no end
     #: to detect: they call for no curl and do not dangle; :mod:`..hands`); None: none
     covered: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
-    #: What several proposals (and the tracker) read of the fit, computed once per frame: see
-    #: :meth:`own_at_fit`, :meth:`lonely_at_fit`, :func:`pull_target`.
-    _memo: dict[str, object] = field(default_factory=dict, init=False, repr=False, compare=False)
-
-    @property
-    def plain(self) -> Objective:
-        """``obj`` without its salient term (:func:`~.score.plain`): candidates are fitted and scored on it."""
-        made = self._memo.get("plain")
-        if made is None:
-            made = self._memo["plain"] = self.given_plain if self.given_plain is not None else plain(self.obj)
-        return made  # type: ignore[return-value]
-
-    def own_at_fit(self) -> NDArray[np.bool_]:
-        """:func:`~.score.own_detections` at the fit's pose (5,), read-only (computed once)."""
-        hit = self._memo.get("own")
-        if hit is None:
-            hit = self._memo["own"] = _frozen(own_detections(self.model, self.fit.x, self.det))
-        return hit  # type: ignore[return-value]
-
-    def lonely_at_fit(self) -> NDArray[np.int64]:
-        """:func:`~.score.lonely_detections` at the fit's pose (k,), read-only (computed once)."""
-        hit = self._memo.get("lonely")
-        if hit is None:
-            hit = self._memo["lonely"] = _frozen(lonely_detections(self.model, self.fit.x, self.det))
-        return hit  # type: ignore[return-value]
 
     def score(self, theta: NDArray[np.float64], value: float | None = None) -> float:
         """:func:`~hand_sog_tracker.core.search.score.score` of ``theta`` (26,) on this frame."""
-        # (With its value known the score reads only the objective's model: ``obj``'s, the same.)
-        of = self.plain if value is None else self.obj
-        return score(of, theta, self.det, self.obj.config.w_sal, not self.new_track, value)
+        return score(self.plain, theta, self.det, self.obj.config.w_sal, not self.new_track, value)
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,12 +116,6 @@ class Proposal:
     generate: Callable[[Frame], Iterator[Candidate]]
     #: its candidates join a search only beside another proposal's (they add no batch of their own)
     rides_along: bool = False
-
-
-def _frozen(a: NDArray) -> NDArray:
-    """``a`` made read-only (a value shared by its readers)."""
-    a.setflags(write=False)
-    return a
 
 
 def _proposal(name: str, reason: str) -> Callable[[Callable[[Frame], Iterator[Candidate]]], Proposal]:
@@ -245,9 +209,9 @@ def CURL(f: Frame) -> Iterator[Candidate]:
     fingers = [c for c in range(1, 5) if flex[c - 1] < CURL_MAX_FLEX_RAD]
     if not fingers:
         return
-    seen = f.own_at_fit()
+    seen = own_detections(f.model, x, f.det)
     if f.covered is not None and not seen[fingers].all():
-        seen = seen | f.covered(fingertips(f.model, x))  # (a tip against another hand has no end to see)
+        seen |= f.covered(fingertips(f.model, x))  # (a tip against another hand has no end to see)
     if not seen[fingers].all():
         for c in fingers:
             yield Candidate("curl", _with_chain(x, c, FINGER_CURLED), CURL_MARGIN)
@@ -257,17 +221,16 @@ def CURL(f: Frame) -> Iterator[Candidate]:
 def SHIFT(f: Frame) -> Iterator[Candidate]:
     x = f.fit.x
     margin = SHIFT_MARGIN
-    if f.new_track or f.lonely_at_fit().size:
+    if f.new_track or lonely_detections(f.model, x, f.det).size:
         sides: tuple[int, ...] = (1, -1)
         margin = 0.0
     elif f.det.n == 0 or _view_cos(x) < EDGE_ON_PALM_COS:
         return  # no detection says where the fingers are, or they overlap in the image (edge-on)
-    elif f.det.n >= 5 and f.own_at_fit().all():
+    elif f.det.n >= 5 and own_detections(f.model, x, f.det).all():
         return  # each fingertip has a detection of its own
     else:
         # The side whose shifted pose the detections explain better than the fit, if any.
-        poses = np.array([shifted(x, s) for s in (0, 1, -1)])  # (their fingertips as one batch)
-        cost = dict(zip((0, 1, -1), assignment_costs(f.model, poses, f.det, True)))
+        cost = {s: assignment_cost(f.model, shifted(x, s), f.det, True) for s in (0, 1, -1)}
         sides = tuple(s for s in (1, -1) if cost[s] < cost[0] and cost[s] <= cost[-s])
     for side in sides:
         yield Candidate("shift", shifted(x, side), margin)
@@ -297,16 +260,12 @@ def pull_objective(obj: Objective) -> Objective:
 def pull_target(f: Frame) -> int | None:
     """The detection the detection proposal pulls fingers onto, or None: the most confident one no
     fingertip explains, unless its pulls lost on the frame before where it still is (within
-    ``SAME_DETECTION_MM`` of ``f.lost_pulls``: the score preferred the fit there).  Computed
-    once per frame (the detection proposal and the tracker ask)."""
-    if "pull" in f._memo:
-        return f._memo["pull"]  # type: ignore[return-value]
-    lonely = f.lonely_at_fit()
+    ``SAME_DETECTION_MM`` of ``f.lost_pulls``: the score preferred the fit there)."""
+    lonely = lonely_detections(f.model, f.fit.x, f.det)
     if lonely.size and f.lost_pulls.shape[0]:
         near = np.sqrt(sq_distances(f.det.points[lonely], f.lost_pulls)).min(axis=1) < SAME_DETECTION_MM
         lonely = lonely[~near]
-    target = f._memo["pull"] = int(lonely[np.argmax(f.det.confidence[lonely])]) if lonely.size else None
-    return target
+    return int(lonely[np.argmax(f.det.confidence[lonely])]) if lonely.size else None
 
 
 @_proposal("detection", "a detection no fingertip explains (pulls not lost before): the 2 nearest fingers pulled on it")

@@ -15,13 +15,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.hand_model import FINGER_DIP, FINGER_PIP, HandModel
-from hand_sog_tracker.core.kinematics import centres_batch, fingertips, global_rotation
+from hand_sog_tracker.core.kinematics import fingertips, global_rotation
 from hand_sog_tracker.core.objective import SALIENT_SCALE_MM, Objective
-from hand_sog_tracker.core.salient import Detections, assign_detections, assign_detections_batch
+from hand_sog_tracker.core.salient import Detections, assign_detections
 
 __all__ = [
-    "ASSIGN_LAMBDA_MM", "assignment_cost", "assignment_costs", "lonely_detections", "own_detections", "plain", "score",
-    "sq_distances", "tip_lambdas",
+    "ASSIGN_LAMBDA_MM", "assignment_cost", "lonely_detections", "own_detections", "plain", "score", "sq_distances",
+    "tip_lambdas",
 ]
 
 ASSIGN_LAMBDA_MM = 30.0  #: cost (mm) of a fingertip without a detection (seed 001's lambda, eq. 11)
@@ -52,11 +52,6 @@ def sq_distances(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.f
     return d2
 
 
-def _norms(v: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``np.linalg.norm(v, axis=1)`` of (k, 3) rows, the same operations without its Python layer."""
-    return np.sqrt(np.add.reduce(v * v, axis=1))
-
-
 def tip_lambdas(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     """Cost (mm) of leaving each fingertip (5,) at ``theta`` (26,) without a detection:
     ``ASSIGN_LAMBDA_MM``, falling for a curled tip while the palm or the back faces the camera."""
@@ -77,29 +72,9 @@ def assignment_cost(model: HandModel, theta: NDArray[np.float64], det: Detection
         return 0.0
     tips = fingertips(model, theta)
     lam = tip_lambdas(theta) if hidden_tips else np.full(5, ASSIGN_LAMBDA_MM)
-    return _tips_cost(tips, lam, assign_detections(tips, det, ASSIGN_LAMBDA_MM, lam), det)
-
-
-def assignment_costs(
-    model: HandModel, thetas: NDArray[np.float64], det: Detections, hidden_tips: bool
-) -> list[float]:
-    """:func:`assignment_cost` of each pose of ``thetas`` (B, 26), the fingertips of all from one
-    batch of the kinematics (:func:`~.kinematics.centres_batch`: the same bits as pose by pose)."""
-    if det.n == 0:
-        return [0.0] * len(thetas)
-    tips = centres_batch(model, thetas, pullback=False)[0].take(model.tip_index, axis=1)
-    lams = np.array([tip_lambdas(theta) if hidden_tips else np.full(5, ASSIGN_LAMBDA_MM) for theta in thetas])
-    assigned = assign_detections_batch(tips, det, ASSIGN_LAMBDA_MM, lams)
-    return [_tips_cost(*each, det) for each in zip(tips, lams, assigned)]
-
-
-def _tips_cost(
-    tips: NDArray[np.float64], lam: NDArray[np.float64], assigned: NDArray[np.int64], det: Detections
-) -> float:
-    """:func:`assignment_cost` of the fingertips ``tips`` (5, 3) mm with their costs ``lam`` (5,)
-    mm and detections ``assigned`` (5,) of ``det`` (-1: none)."""
+    assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM, lam)
     has = assigned >= 0
-    d = _norms(tips[has] - det.points[assigned[has]]).sum()
+    d = np.linalg.norm(tips[has] - det.points[assigned[has]], axis=1).sum()
     unused = np.ones(det.n, bool)
     unused[assigned[has]] = False
     cost = d + lam[~has].sum() + ASSIGN_LAMBDA_MM * det.confidence[unused].sum()
@@ -146,5 +121,5 @@ def own_detections(model: HandModel, theta: NDArray[np.float64], det: Detections
     tips = fingertips(model, theta)
     assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
     own = assigned >= 0
-    own[own] = _norms(tips[own] - det.points[assigned[own]]) < OWN_DETECTION_MM
+    own[own] = np.linalg.norm(tips[own] - det.points[assigned[own]], axis=1) < OWN_DETECTION_MM
     return own
