@@ -118,9 +118,11 @@ class Proposal:
     rides_along: bool = False
 
 
-def _proposal(name: str, reason: str) -> Callable[[Callable[[Frame], Iterator[Candidate]]], Proposal]:
+def _proposal(
+    name: str, reason: str, rides_along: bool = False
+) -> Callable[[Callable[[Frame], Iterator[Candidate]]], Proposal]:
     """Decorator: the generator of candidates it decorates as the :class:`Proposal` ``name``."""
-    return lambda generate: Proposal(name, reason, generate)
+    return lambda generate: Proposal(name, reason, generate, rides_along)
 
 
 def shifted(theta: NDArray[np.float64], side: int) -> NDArray[np.float64]:
@@ -311,13 +313,11 @@ def rolled(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     return x0
 
 
-@_proposal("roll", "a hand seen from its side, beside other candidates: turned half a turn about its finger axis")
+# (Rides along: a frame that needs no search pays nothing for it.)
+@_proposal("roll", "a hand seen from its side, beside other candidates: turned half a turn about its finger axis", True)
 def ROLL(f: Frame) -> Iterator[Candidate]:
     if _view_cos(f.fit.x) < FACING_COS:
         yield Candidate("roll", rolled(f.fit.x), ROLL_MARGIN)
-
-
-ROLL = replace(ROLL, rides_along=True)  # (a frame that needs no search pays nothing for it)
 
 
 #: The proposals of a tracked frame and of a new track's first frame.
