@@ -1,10 +1,6 @@
-"""Automatic initialisation: start poses for the hand found in a depth image.
-
-The hand is found by :func:`hand_sog_tracker.core.handfind.find_hand`.  Start poses combine palm
-toward / away from the camera, open / closed hand and in-plane rotations, plus open hands along the
-hand end's own axis and toward the fingertip detections (a wrist bent sideways turns hand and
-forearm apart).  The search over them is :func:`hand_sog_tracker.core.search.start.start_search`;
-the measurements behind the constants: ``doc/design/search.md``.
+"""Automatic initialisation: start poses for the hand found in a depth image (:mod:`.handfind`),
+palm toward / away from the camera, open / closed, in-plane rotations; the search over them:
+:func:`~hand_sog_tracker.core.search.start.start_search` (measurements: doc/design/search.md).
 """
 
 from __future__ import annotations
@@ -70,10 +66,8 @@ def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray
 
 
 def edge_on_hypotheses(model: HandModel, blob: HandBlob) -> list[NDArray[np.float64]]:
-    """The two edge-on start poses (26,) of ``blob``'s first direction, open: the palm toward and
-    away from the camera each rolled 90 deg about the finger axis (the palm facing one side of the
-    image, then the other), so that a hand seen from its side (the palm plane near the line of
-    sight) has a start pose of its own."""
+    """The two edge-on start poses (26,) of ``blob``'s first direction, open: palm toward and away
+    from the camera rolled 90 deg about the finger axis (a hand seen from its side has its own)."""
     d = blob.directions[0]
     return [_start(model, blob.palm, _frame(d, palm, 0.5 * np.pi), OPEN) for palm in (True, False)]
 

@@ -1,11 +1,8 @@
 """A frame's candidates: the proposals, small generators with a name and a reason.
 
-Each proposal looks at the frame's fit (:class:`Frame`) and yields start poses
-(:class:`Candidate`) out of a local optimum the fit may be in, or nothing when its reason does
-not apply (no schedules, waits or cooldowns); the search (:func:`~.fit.search`) fits them all as
-one batch and the score (:mod:`.score`) picks the answer.  ``margin``: how much a candidate must
-beat the fit's score by where the score tells the two apart poorly (the measurements behind the
-values: ``doc/design/search.md``).
+Each looks at the frame's fit (:class:`Frame`) and yields start poses (:class:`Candidate`) out of
+a local optimum the fit may be in, or nothing when its reason does not apply.  ``margin``: what a
+candidate must beat the fit's score by where the score tells them apart poorly (doc/design/search.md).
 """
 
 from __future__ import annotations
@@ -50,15 +47,13 @@ __all__ = [
 
 DANGLING_TIP_MM = 25.0  #: a fingertip this far (mm) from all data hangs in empty space (seed 004's restarts)
 DANGLING_MARGIN = 0.02  #: ... and its candidates must win by this (without, they won wrongly on rotating hands)
-#: Swap: a finger within this of its abduction limit (rad) toward a neighbour curled
-#: ``SWAP_CURL_GAP_RAD`` more (MCP + PIP), itself curled at most ``SWAP_MAX_CURL_RAD`` (issue 11).
+#: Swap: a finger this near (rad) its abduction limit toward a neighbour curled ``SWAP_CURL_GAP_RAD``
+#: more (MCP + PIP), itself curled at most ``SWAP_MAX_CURL_RAD`` (issue 11).
 SWAP_ABD_MARGIN_RAD = float(np.radians(0.5))
 SWAP_CURL_GAP_RAD = 0.8
 SWAP_MAX_CURL_RAD = 2.2
 SWAP_MARGIN = 0.02
-#: Swaps and curls need |palm normal . view| at least this: from the side the score cannot tell
-#: neighbouring fingers apart.
-FACING_COS = 0.85
+FACING_COS = 0.85  #: swaps and curls need |palm normal . view| >= this (from the side fingers score alike)
 CURL_MAX_FLEX_RAD = 1.5  #: curl: an open finger (MCP + PIP + DIP under this, rad) without a detection of its own
 CURL_MARGIN = 0.04
 EDGE_ON_PALM_COS = 0.6  #: a hand this nearly edge-on (|palm normal . view| under) overlaps its fingers ...

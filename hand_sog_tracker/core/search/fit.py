@@ -95,10 +95,9 @@ def fit_parts(
 def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult, str | None]:
     """The frame's answer and the name of the proposal it came from (None: the frame's fit).
 
-    Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain``, all as one batch (a pull
-    first on its own objective); the highest :meth:`Frame.score` among those that beat the fit's
-    by their margin wins.  A race: a score is the plain value minus a cost >= 0, so a candidate
-    whose value cannot reach the fit's score plus its margin stops early (``floor``).
+    Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain`` as one batch (a pull first on
+    its own objective); the best :meth:`Frame.score` beating the fit's by its margin wins.  A
+    candidate whose value cannot reach that (a score is the value minus a cost >= 0) stops early.
     """
     candidates = [c for p in proposals if not p.rides_along for c in p.generate(frame)]
     if not candidates:
