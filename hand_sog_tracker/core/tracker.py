@@ -162,8 +162,8 @@ class Tracker:
         self.covered_tips: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
         #: ``theta (26,) -> (26,) bool``: what a tracked frame's fit holds at its start (hidden fingers).
         self.held: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
-        #: ``(centres (m, 3), radii (m,)) mm -> InterHand or None``: the other hands' spheres this
-        #: hand's, posed at a tracked frame's start, may not penetrate (:mod:`.objective.interhand`).
+        #: ``(centres (m, 3), radii (m,)) mm -> InterHand or None``: the other hands' spheres this hand's
+        #: may not penetrate, posed at a tracked frame's start (:mod:`.objective.interhand`).
         self.interhand: Callable[[NDArray[np.float64], NDArray[np.float64]], InterHand | None] | None = None
 
     @property
@@ -236,9 +236,8 @@ class Tracker:
         return _timed(result, t0, t1, t2)
 
     def process_preprocessed(self, pre: Preprocessed) -> TrackResult:
-        """:meth:`process` of a frame preprocessed with this tracker's configuration, without the
-        hand check and gate (the multi-hand tracker decides for its hands, :mod:`.hands`: a gate's
-        reset would search the other hand's data too); ``timings_ms["preprocess"]`` 0."""
+        """:meth:`process` of a frame preprocessed with this tracker's configuration, without check
+        and gate (the multi-hand tracker decides for its hands, :mod:`.hands`); no preprocess time."""
         t1 = time.perf_counter()
         return _timed(self._fit(pre)[0], t1, t1, time.perf_counter())
 
@@ -247,8 +246,7 @@ class Tracker:
         self, pre: Preprocessed, image: tuple[NDArray, Intrinsics] | None = None
     ) -> tuple[TrackResult, HandDecision | None]:
         """The frame's result before the gate and, with ``image`` (depth mm, intrinsics), a tracked
-        frame's hand check (a lost track's is 0), below ``FRESH_BELOW`` against a fresh start (its
-        data capped: a frame costs at most a tracked frame at the data cap and a new track)."""
+        frame's hand check (a lost track's is 0), below ``FRESH_BELOW`` against a fresh start."""
         checked = None
         if self._prev is None:
             result = self._initialise(pre)
@@ -290,9 +288,8 @@ class Tracker:
         self, pre: Preprocessed, theta: NDArray[np.float64], end_mm: float | None = None,
         roi_window: RoiWindow | None = None, max_gaussians: int = MAX_DATA_GAUSSIANS,
     ) -> tuple[ImageSoG, Detections, Silhouette | None]:
-        """Data Gaussians (at most ``max_gaussians``), detections and silhouette (None without
-        ``w_sil``) of the depth window around the hand at ``theta`` (ending at ``end_mm`` at the
-        latest; ``roi_window``: :func:`hand_roi` when known), without what lies beyond its wrist."""
+        """Data Gaussians (at most ``max_gaussians``), detections and silhouette (None without ``w_sil``)
+        of the depth window (ending by ``end_mm``) around the hand at ``theta``, on its hand side."""
         if roi_window is None:
             roi_window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
         roi, window = roi_window
@@ -375,9 +372,8 @@ class Tracker:
         return self._result(answer, conf, res.fun, data.n, timings, centres)
 
     def _refined(self, obj: Objective, res: OptimizeResult, p1: NDArray[np.float64]) -> NDArray[np.float64]:
-        """A tracked frame's answer (26,): its pose ``res.x`` or, with a PIP over ``REFINE_CURL_RAD``,
-        that refined on the frame's objective ``obj`` of the joint model; from the frame before's
-        correction (``REFINE_WARM_STEPS``) when the track went on from its refined pose ``p1``."""
+        """A tracked frame's answer (26,): ``res.x`` or, with a PIP over ``REFINE_CURL_RAD``, that refined
+        on ``obj`` of the joint model (from the last correction when the track went on from ``p1``)."""
         x = res.x
         iterations = self._config.refine_iterations
         last, self._refine_last = self._refine_last, None
@@ -405,9 +401,8 @@ class Tracker:
         return self._model.bounds
 
     def _initialise(self, pre: Preprocessed) -> TrackResult:
-        """A new track: the start search's finalists (:func:`~.search.start.start_search`) refined
-        on one data extraction (:meth:`_finalist_fits`), the best searched (:data:`NEW_TRACK_PROPOSALS`);
-        on the default model the small one wins ``SMALL_HAND_GAIN`` higher with open fingers."""
+        """A new track: the start search's finalists refined on one data extraction, the best searched
+        (:data:`NEW_TRACK_PROPOSALS`); on the default model the small one may win (``SMALL_HAND_*``)."""
         self._steps, self._lost_pulls, self.last_proposal = None, _NO_POINTS, None
         if self._sizes is not None:
             self._model = self._sizes[0]
@@ -447,9 +442,8 @@ class Tracker:
     def _finalist_fits(
         self, found: Finalists, data: ImageSoG, det: Detections, sil: Silhouette | None
     ) -> list[tuple[int, tuple[float, Frame]]]:
-        """(index, (score, :class:`Frame`)) of each finalist of ``found`` with data on its hand side,
-        refined ``final_iterations`` with the full objective of its part of ``data``, as one batch;
-        best first (the earlier on a tie)."""
+        """(index, (score, :class:`Frame`)) of each finalist with data on its hand side, refined with the
+        full objective of its part of ``data`` as one batch; best first (the earlier on a tie)."""
         items = []
         for k, x in enumerate(found.poses):
             keep = on_hand_side(data.points, x)

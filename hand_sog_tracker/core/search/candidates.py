@@ -91,9 +91,8 @@ class Frame:
 
 @dataclass(frozen=True, eq=False)
 class Candidate:
-    """One start pose of the search: ``proposal`` (its name), ``x0`` (26,), the ``margin`` it must
-    beat the fit's score by and, optionally, the fingertip targets it is first ``pull``-ed onto
-    (:func:`pull_objective`) with only its ``active`` (26,) parameters free."""
+    """One start pose ``x0`` (26,) of ``proposal``, the ``margin`` it must beat the fit's score by and,
+    optionally, fingertip targets it is first ``pull``-ed onto with only its ``active`` (26,) free."""
 
     proposal: str
     x0: NDArray[np.float64]
@@ -132,8 +131,7 @@ def shifted(theta: NDArray[np.float64], side: int) -> NDArray[np.float64]:
 
 
 def swapped(theta: NDArray[np.float64], a: int, b: int) -> NDArray[np.float64]:
-    """``theta`` (26,) with chains ``a`` and ``b`` (1-4) exchanging their flexions, both with
-    neutral abductions."""
+    """``theta`` (26,) with chains ``a`` and ``b`` (1-4) exchanging flexions, abductions neutral."""
     x0 = theta.copy()
     sa, sb = chain_slice(a), chain_slice(b)
     x0[sa], x0[sb] = theta[sb], theta[sa]
@@ -256,8 +254,7 @@ def pull_objective(obj: Objective) -> Objective:
 
 def pull_target(f: Frame) -> int | None:
     """The detection the detection proposal pulls fingers onto, or None: the most confident one no
-    fingertip explains, unless its pulls lost on the frame before where it still is (within
-    ``SAME_DETECTION_MM`` of ``f.lost_pulls``: the score preferred the fit there)."""
+    fingertip explains, unless its pulls lost last frame there (``SAME_DETECTION_MM``, ``lost_pulls``)."""
     lonely = lonely_detections(f.model, f.fit.x, f.det)
     if lonely.size and f.lost_pulls.shape[0]:
         near = np.sqrt(sq_distances(f.det.points[lonely], f.lost_pulls)).min(axis=1) < SAME_DETECTION_MM

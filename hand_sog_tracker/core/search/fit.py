@@ -80,9 +80,8 @@ def fit_parts(
     obj: Objective, starts: NDArray[np.float64], parts: NDArray[np.bool_],
     targets: Sequence[TipTargets | None] | None = None, **kwargs: Any,
 ) -> list[OptimizeResult]:
-    """Each of ``starts`` (B, 26) fitted on ``obj`` with only its part ``parts[b]`` (B, n) of the
-    data and, given, ``targets[b]``, as one batch (a lone pose without targets on its part's own
-    objective: the one-pose path)."""
+    """Each of ``starts`` (B, 26) fitted on ``obj`` with only its part ``parts[b]`` (B, n) of the data
+    and ``targets[b]`` as one batch (a lone pose without targets: on its part's own objective)."""
     if len(starts) == 1 and targets is None:
         keep = parts[0]
         if not keep.all():
@@ -128,9 +127,8 @@ def _plain_value(frame: Frame) -> float:
 def _pulled(
     candidates: Sequence[Candidate], obj: Objective, limits: tuple[NDArray[np.float64], NDArray[np.float64]]
 ) -> NDArray[np.float64]:
-    """The candidates' start poses (B, 26), a pulled one's after ``SEARCH_ITERATIONS`` on the
-    frame's :func:`pull_objective` of ``obj`` with its own targets and ``active`` parameters (all
-    pulls as one batch: the same iterates as one by one)."""
+    """The candidates' start poses (B, 26), a pulled one's after ``SEARCH_ITERATIONS`` on the frame's
+    :func:`pull_objective` with its targets and ``active`` parameters (all pulls as one batch)."""
     starts = np.array([c.x0 for c in candidates])
     ks = [i for i, c in enumerate(candidates) if c.pull is not None]
     if ks:

@@ -37,9 +37,8 @@ BLOB_BEHIND_MM = 20.0  #: the window ends this far (mm) behind the blob's farthe
 WRIST_MARGIN_MM = 0.0  #: data farther than this (mm) beyond the wrist plane are forearm (the model has none)
 #: Most candidates of one stage: ``screened`` start poses per palm side and 2 x 2 extra directions.
 NEW_TRACK_CANDIDATES = 2 * INIT_SEARCH.screened + 4
-#: Most data Gaussians of a new track's search and finish (thinned beyond, as :func:`quadtree_sog`
-#: thins): its largest stage fits in the model x data pairs of one batch at the data cap, whatever
-#: the input (issue 50).
+#: Most data Gaussians of a new track's search and finish (:func:`quadtree_sog` thins beyond): its
+#: largest stage fits in the model x data pairs of one batch at the data cap (issue 50).
 NEW_TRACK_DATA = MAX_BATCH * MAX_DATA_GAUSSIANS // NEW_TRACK_CANDIDATES
 Bounds = tuple[NDArray[np.float64], NDArray[np.float64]]
 
@@ -76,9 +75,8 @@ def _screened(
     model: HandModel, config: TrackerConfig, data: ImageSoG, starts: list, keeps: list[NDArray[np.bool_]], n: int,
     sides: list[bool],
 ) -> set[int]:
-    """Indices of the ``n`` start poses per palm side (``sides[i]``: the back toward the camera)
-    best by the objective of their part ``keeps[i]`` (n,) of ``data`` at the start (one batch per
-    distinct part; the first on a tie)."""
+    """Indices of the ``n`` start poses per palm side (``sides[i]``: back to the camera) best by the
+    objective of their part ``keeps[i]`` (n,) of ``data`` (a batch per distinct part; first on a tie)."""
     values = [-np.inf] * len(starts)
     groups: dict[bytes, list[int]] = {}
     for i, keep in enumerate(keeps):
