@@ -277,6 +277,10 @@ def test_serialised_markers_are_the_messages_bytes() -> None:
             assert got == deserialize_message(serialize_message(markers.message(h, tips, sk, radii)), MarkerArray)
             assert all((m.lifetime.sec, m.lifetime.nanosec) == (1, 0) for m in got.markers)
         assert markers._template is not None  # (the template path was taken)
+    # Without a lifetime (the per-hand topics): what fingertip_markers builds.
+    h = Header(stamp=Time(sec=7, nanosec=8), frame_id="cam")
+    got = deserialize_message(SerialisedMarkers(0.0)(h, tips, skel, model.tip_radii), MarkerArray)
+    assert got == deserialize_message(serialize_message(fingertip_markers(h, tips, skel, model.tip_radii)), MarkerArray)
 
 
 def test_bgr_image_and_diagnostics() -> None:
