@@ -80,8 +80,8 @@ class Frame:
     new_track: bool = False  #: a new track: no hidden-tip discount, lateral candidates, both shifts
     #: (k, 3) mm: detections whose pulls lost on the frame before (see :func:`pull_target`)
     lost_pulls: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
-    #: ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand (no end
-    #: to detect: they call for no curl and do not dangle; :mod:`..hands`); None: none
+    #: ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand (no end to
+    #: see: no curl, no dangling; :mod:`..hands`); None: none
     covered: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
 
     def score(self, theta: NDArray[np.float64], value: float | None = None) -> float:

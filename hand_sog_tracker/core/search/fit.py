@@ -23,8 +23,7 @@ MAX_BATCH = 4
 
 
 def batch_size(n_data: int) -> int:
-    """Most candidates fitted in one call on ``n_data`` data Gaussians: at most the model x data
-    pairs of ``MAX_BATCH`` candidates at the data cap (``MAX_DATA_GAUSSIANS``)."""
+    """Most candidates fitted in one call on ``n_data`` data Gaussians: ``MAX_BATCH``'s pairs at the cap."""
     return MAX_BATCH * max(1, MAX_DATA_GAUSSIANS // max(n_data, 1))
 
 

@@ -111,8 +111,7 @@ def lonely_detections(model: HandModel, theta: NDArray[np.float64], det: Detecti
 
 
 def own_detections(model: HandModel, theta: NDArray[np.float64], det: Detections) -> NDArray[np.bool_]:
-    """Whether the optimal assignment gives each fingertip (5,) at ``theta`` (26,) a detection
-    within ``OWN_DETECTION_MM``."""
+    """Whether the optimal assignment gives each fingertip (5,) at ``theta`` a detection within ``OWN_DETECTION_MM``."""
     tips = fingertips(model, theta)
     assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
     own = assigned >= 0
