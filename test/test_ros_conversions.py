@@ -17,6 +17,7 @@ from hand_sog_tracker.core.kinematics import fingertips, global_rotation, skelet
 from hand_sog_tracker.errors import DepthImageError, InputError, IntrinsicsError
 from hand_sog_tracker.ros.conversions import (
     SKELETON_BONES,
+    SerialisedMarkers,
     bgr_to_image_msg,
     camera_info_to_intrinsics,
     delete_all_markers,
@@ -253,6 +254,33 @@ def test_fingertip_and_skeleton_markers_in_metres() -> None:
     assert all(m.header.frame_id == "depth_optical" for m in arr.markers)
     (clear,) = delete_all_markers(header()).markers
     assert clear.action == Marker.DELETEALL
+
+
+def test_serialised_markers_are_the_messages_bytes() -> None:
+    """The node's fingertip markers written into a template: received, the same message as the
+    one built and serialised (stamps, frame ids, radii, a fallback without a skeleton)."""
+    from builtin_interfaces.msg import Time
+    from rclpy.serialization import deserialize_message, serialize_message
+    from visualization_msgs.msg import MarkerArray
+
+    model = default_hand_model()
+    rng = np.random.default_rng(11)
+    markers = SerialisedMarkers(1.0)
+    stamps = [(0, 0), (-(2**31), 999_999_999), (2**31 - 1, 1), (12, 345)]
+    for i in range(24):
+        sec, nanosec = stamps[i % 4]
+        h = Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=("cam", "", "camera_depth_optical_frame")[i % 3])
+        tips, skel = rng.normal(0.0, 300.0, (5, 3)), rng.normal(0.0, 300.0, (21, 3))
+        radii = model.tip_radii * (1.0 + 0.1 * (i % 2))
+        for sk in (skel, None) if i % 6 == 0 else (skel,):
+            got = deserialize_message(markers(h, tips, sk, radii), MarkerArray)
+            assert got == deserialize_message(serialize_message(markers.message(h, tips, sk, radii)), MarkerArray)
+            assert all((m.lifetime.sec, m.lifetime.nanosec) == (1, 0) for m in got.markers)
+        assert markers._template is not None  # (the template path was taken)
+    # Without a lifetime (the per-hand topics): what fingertip_markers builds.
+    h = Header(stamp=Time(sec=7, nanosec=8), frame_id="cam")
+    got = deserialize_message(SerialisedMarkers(0.0)(h, tips, skel, model.tip_radii), MarkerArray)
+    assert got == deserialize_message(serialize_message(fingertip_markers(h, tips, skel, model.tip_radii)), MarkerArray)
 
 
 def test_bgr_image_and_diagnostics() -> None:

@@ -33,9 +33,10 @@ import pytest
 import rclpy
 from rclpy.context import Context
 from rclpy.parameter import Parameter
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, RegionOfInterest
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import Marker
+from visualization_msgs.msg import Marker, MarkerArray
 
 from hand_sog_tracker.compressed_depth import encode_compressed_depth, rvl_encode
 from hand_sog_tracker.core.hand_model import default_hand_model, rest_pose
@@ -242,6 +243,8 @@ class Bench(CleanFrames):
         return wrapped
 
     def _markers(self, msg) -> None:
+        if isinstance(msg, bytes):  # (the node publishes its fingertips serialised, SerialisedMarkers)
+            msg = deserialize_message(msg, MarkerArray)
         tips = {m.id: m for m in msg.markers if m.ns == FINGERTIPS_NS and m.action == Marker.ADD}
         if len(tips) == 5:
             stamp = stamp_to_ns(tips[0].header.stamp)

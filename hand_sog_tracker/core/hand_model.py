@@ -18,6 +18,7 @@ flexion, MCP abduction, PIP flexion, DIP flexion).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Final, Sequence
 
 import numpy as np
@@ -264,6 +265,15 @@ class HandModel:
     def tip_radii(self) -> NDArray[np.float64]:
         """Radius (mm) of each fingertip sphere, shape (5,)."""
         return self.g_sigmas[self.tip_index]
+
+    @cached_property
+    def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The joint limits as bounds (low, high) of a pose (26,) each, read-only (+-inf: the wrist)."""
+        unlimited = np.full(N_PARAMS - self.limits_low.size, np.inf)
+        lo, hi = np.concatenate([-unlimited, self.limits_low]), np.concatenate([unlimited, self.limits_high])
+        lo.setflags(write=False)
+        hi.setflags(write=False)
+        return lo, hi
 
     def scaled(self, shape: HandShape) -> "HandModel":
         """Return the default hand of the same handedness scaled by ``shape``.

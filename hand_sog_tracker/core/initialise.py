@@ -1,10 +1,6 @@
-"""Automatic initialisation: start poses for the hand found in a depth image.
-
-The hand is found by :func:`hand_sog_tracker.core.handfind.find_hand`.  Start poses combine palm
-toward / away from the camera, open / closed hand and in-plane rotations, plus open hands along the
-hand end's own axis and toward the fingertip detections (a wrist bent sideways turns hand and
-forearm apart).  The search over them is :func:`hand_sog_tracker.core.search.start.start_search`;
-the measurements behind the constants: ``doc/design/search.md``.
+"""Automatic initialisation: start poses for the hand found in a depth image (:mod:`.handfind`),
+palm toward / away from the camera, open / closed, in-plane rotations; the search over them:
+:func:`~hand_sog_tracker.core.search.start.start_search` (measurements: doc/design/search.md).
 """
 
 from __future__ import annotations
@@ -31,8 +27,8 @@ class InitSearch:
     """Effort of a new track's search (counts and score thresholds; chosen here, issues 11 and 14)."""
 
     coarse_quad_px: int = 8  #: smallest quadtree leaf (px) of the coarse data the start poses are aligned on
-    #: start poses of the blob's directions aligned per palm side, the best by the objective at the
-    #: start (those along the hand end's axis and toward the detections always)
+    #: start poses of the blob's directions aligned per palm side, the best at the start (the extra
+    #: directions' always)
     screened: int = 4
     rigid_iterations: int = 3  #: rigid (wrist pose only) iterations of every start pose on the coarse data
     kept: int = 4  #: poses articulated after the rigid alignment, the best, half per palm side
@@ -70,10 +66,8 @@ def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray
 
 
 def edge_on_hypotheses(model: HandModel, blob: HandBlob) -> list[NDArray[np.float64]]:
-    """The two edge-on start poses (26,) of ``blob``'s first direction, open: the palm toward and
-    away from the camera each rolled 90 deg about the finger axis (the palm facing one side of the
-    image, then the other), so that a hand seen from its side (the palm plane near the line of
-    sight) has a start pose of its own."""
+    """The two edge-on start poses (26,) of ``blob``'s first direction, open: palm toward and away
+    from the camera rolled 90 deg about the finger axis (a hand seen from its side has its own)."""
     d = blob.directions[0]
     return [_start(model, blob.palm, _frame(d, palm, 0.5 * np.pi), OPEN) for palm in (True, False)]
 
@@ -106,10 +100,9 @@ def finger_combinations(start: NDArray[np.float64]) -> list[NDArray[np.float64]]
 def best_combination(
     start: NDArray[np.float64], values: Callable[[NDArray[np.float64]], NDArray[np.float64]]
 ) -> NDArray[np.float64]:
-    """The pose of :func:`finger_combinations` at ``start`` (26,) that ``values`` (scores (k,) of
-    poses (k, 26)) scores highest, from 17 of the 31 in two calls: the 15 of index .. little with
-    the thumb extended, then the thumb alone and with the best of them (the first of equal
-    scores).  Exact when the score adds up per chain."""
+    """The pose of :func:`finger_combinations` at ``start`` (26,) that ``values`` (scores (k,) of poses
+    (k, 26)) scores highest (the first of equal scores), from 17 of the 31 in two calls: the 15 of index
+    .. little, thumb extended, then the thumb alone and with their best.  Exact when it adds per chain."""
     combos = finger_combinations(start)
     # combos[i] curls the chains of the bits of i + 1 (bit 0: the thumb).
     first = [i for i in range(31) if (i + 1) % 2 == 0]

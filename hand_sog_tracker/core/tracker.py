@@ -1,17 +1,12 @@
 """Frame-to-frame hand tracker: depth in, 26-DOF pose and fingertips out.
 
-Units: millimetres (depth and every position, camera optical frame: x right, y down, z forward)
-and radians.  Per frame (paper 000, sec. 5) a large supporting plane is dropped (:mod:`.support`),
-the depth near the hand's extrapolated pose is clustered into Gaussians, the pose is fitted by the
-adaptive gradient ascent, and the search (:mod:`.search`) fits the candidates its proposals make
-from that fit as one batch; one score picks the pose.  Without a track the same search starts
-from the hand found in the depth (:mod:`.search.start`) with more candidates.  A curled finger's
-answer is refined on a model with joint Gaussians (the track goes on from the pose).  Every frame
-ends with the hand decision (:mod:`.handcheck`, issue 46): no hand is answered without a pose and
-may reset the track; a doubted track competes with a fresh start on the same frame.  Nothing
-depends on the wall clock: the same frames give the same answers.
+Units: mm (camera optical frame: x right, y down, z forward) and radians.  Per frame (paper 000,
+sec. 5): the supporting plane dropped (:mod:`.support`), the depth near the extrapolated pose
+clustered into Gaussians, the pose fitted by adaptive gradient ascent, then searched
+(:mod:`.search`; without a track from the hand found in the depth, :mod:`.search.start`); a curled
+finger's answer refined on joint Gaussians; the hand decision last (:mod:`.handcheck`, issue 46).
+Nothing depends on the wall clock: the same frames give the same answers.
 """
-
 from __future__ import annotations
 
 import math
@@ -36,7 +31,6 @@ from hand_sog_tracker.core.initialise import INIT_SEARCH
 from hand_sog_tracker.core.kinematics import (
     fingertips,
     gaussian_centres,
-    global_rotation,
     keep_palm_centre,
     keypoint_skeleton,
     posed_centres,
@@ -70,9 +64,8 @@ SALIENT_END_ON = False  #: whether detections of fingers seen end-on pull tips (
 REFINE_CURL_RAD = math.radians(60.0)
 REFINE_WARM_STEPS = 0.5  #: steps x this from the frame before's correction (issue 14: it changes little)
 REFINE_VISIBILITY = True  #: the refinement weights overlaps by visibility (a fist's hidden palm and tips)
-#: A new track on the default model also fits its best ``SMALL_HAND_FINALISTS`` on the model of
-#: this length, which wins by ``SMALL_HAND_GAIN`` with open fingers (mean MCP + PIP under
-#: ``SMALL_HAND_MAX_FLEX`` rad; issue 11: small hands started with their fingers one over).
+#: A new track also fits its best ``SMALL_HAND_FINALISTS`` on a model of this length, which wins by
+#: ``SMALL_HAND_GAIN`` with open fingers (mean MCP + PIP < ``SMALL_HAND_MAX_FLEX`` rad; issue 11).
 SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
@@ -132,10 +125,9 @@ class Tracker:
         Hand model (mm), kept as given; default: the default adult hand of ``config.right_hand``,
         on which every new track may start the small hand instead (until :meth:`set_model`).
     withhold : bool
-        Every result carries its hand decision (:class:`~.handcheck.HandGate`); by default a
-        frame that is no hand has no pose and resets the track as the gate says (what the node
-        publishes), and a doubted track competes with a fresh start.  False keeps every fitted
-        pose and track, without fresh starts (the raw fit's evidence, for the tools).
+        Every result carries its hand decision (:class:`~.handcheck.HandGate`); True (what the node
+        publishes): a frame that is no hand has no pose and may reset the track, a doubted track
+        competes with a fresh start.  False keeps every fitted pose and track (for the tools).
     """
 
     def __init__(
@@ -159,7 +151,6 @@ class Tracker:
         self._steps: NDArray[np.float64] | None = None  # last frame's final step lengths (26,)
         self._low_frames = 0
         self._status = TrackerStatus.NO_HAND
-        self._bounds: tuple[HandModel, NDArray[np.float64], NDArray[np.float64]] | None = None
         self._joint_model: tuple[HandModel, HandModel] | None = None  # (model, with joint Gaussians)
         #: (track pose, answer) (26,) each of the frame before, when it was refined.
         self._refine_last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
@@ -171,8 +162,8 @@ class Tracker:
         self.covered_tips: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
         #: ``theta (26,) -> (26,) bool``: what a tracked frame's fit holds at its start (hidden fingers).
         self.held: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
-        #: ``(centres (m, 3), radii (m,)) mm -> InterHand or None``: the other hands' spheres this
-        #: hand's, posed at a tracked frame's start, may not penetrate (:mod:`.objective.interhand`).
+        #: ``(centres (m, 3), radii (m,)) mm -> InterHand or None``: the other hands' spheres this hand's
+        #: may not penetrate, posed at a tracked frame's start (:mod:`.objective.interhand`).
         self.interhand: Callable[[NDArray[np.float64], NDArray[np.float64]], InterHand | None] | None = None
 
     @property
@@ -217,29 +208,22 @@ class Tracker:
     def start_at(self, pose: NDArray[np.float64]) -> None:
         """Go on as if the last frame had been tracked at ``pose`` (26,), at rest (the multi-hand
         tracker starts the other label's model of a new hand so, :mod:`.hands`)."""
-        self._prev = (np.array(pose, dtype=np.float64), np.array(pose, dtype=np.float64))
+        self._restart((np.array(pose, dtype=np.float64), np.array(pose, dtype=np.float64)), TrackerStatus.TRACKING)
         self._steps = None
-        self._low_frames = 0
-        self._lost_pulls = _NO_POINTS
-        self._status = TrackerStatus.TRACKING
 
     def reset(self) -> None:
         """Forget the track: the next frame initialises from scratch."""
-        self._prev = None
-        self._low_frames = 0
-        self._status = TrackerStatus.NO_HAND
-        self._lost_pulls = _NO_POINTS
+        self._restart(None, TrackerStatus.NO_HAND)
         self._gate.forget()
+
+    def _restart(self, prev: tuple[NDArray[np.float64], NDArray[np.float64]] | None, status: TrackerStatus) -> None:
+        """A track starting at ``prev`` (the last two poses (26,); None: no track) with ``status``."""
+        self._prev, self._low_frames, self._status, self._lost_pulls = prev, 0, status, _NO_POINTS
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> TrackResult:
         """Track the hand in one depth frame ``depth_mm`` (H, W) mm (0, NaN and Inf invalid) with
-        the ``intrinsics`` of its size.
-
-        Raises
-        ------
-        DepthImageError, IntrinsicsError
-            When the frame cannot be used; the track is left untouched.
-        """
+        the ``intrinsics`` of its size; raises DepthImageError or IntrinsicsError (the track left
+        untouched) when the frame cannot be used."""
         t0 = time.perf_counter()  # (timings only: nothing below depends on the clock)
         # (Raises before any change of state; without a table under the hand: the check reads it all.)
         pre = without_support(preprocess(depth_mm, intrinsics, self._config))
@@ -252,9 +236,8 @@ class Tracker:
         return _timed(result, t0, t1, t2)
 
     def process_preprocessed(self, pre: Preprocessed) -> TrackResult:
-        """:meth:`process` of a frame preprocessed with this tracker's configuration, without the
-        hand check and gate (the multi-hand tracker decides for its hands, :mod:`.hands`: a gate's
-        reset would search the other hand's data too); ``timings_ms["preprocess"]`` 0."""
+        """:meth:`process` of a frame preprocessed with this tracker's configuration, without check
+        and gate (the multi-hand tracker decides for its hands, :mod:`.hands`); no preprocess time."""
         t1 = time.perf_counter()
         return _timed(self._fit(pre)[0], t1, t1, time.perf_counter())
 
@@ -263,8 +246,7 @@ class Tracker:
         self, pre: Preprocessed, image: tuple[NDArray, Intrinsics] | None = None
     ) -> tuple[TrackResult, HandDecision | None]:
         """The frame's result before the gate and, with ``image`` (depth mm, intrinsics), a tracked
-        frame's hand check (a lost track's is 0), below ``FRESH_BELOW`` against a fresh start (its
-        data capped: a frame costs at most a tracked frame at the data cap and a new track)."""
+        frame's hand check (a lost track's is 0), below ``FRESH_BELOW`` against a fresh start."""
         checked = None
         if self._prev is None:
             result = self._initialise(pre)
@@ -281,10 +263,9 @@ class Tracker:
     def _fresh_start(
         self, pre: Preprocessed, image: tuple[NDArray, Intrinsics], track: TrackResult, checked: HandDecision
     ) -> tuple[TrackResult, HandDecision]:
-        """(result, its check): a doubted tracked frame or a new track on it, which wins with a check
-        ``FRESH_MARGIN`` higher and a palm elsewhere (:func:`_apart`: a wrong lock replaced at once)
-        or, on the same hand, a higher score on the track's frame (the check does not judge the
-        articulation); else the track and its state are kept."""
+        """(result, its check): a doubted tracked frame, or a new track on it that wins with a check
+        ``FRESH_MARGIN`` higher and a palm elsewhere (:func:`_apart`) or, on the same hand, a higher
+        score on the track's frame (the check does not judge articulation); else the track is kept."""
         kept = {name: getattr(self, name) for name in _TRACK_STATE}
         on_track = self._track_frame if track.pose is not None else None
         fresh = self._initialise(pre)
@@ -307,9 +288,8 @@ class Tracker:
         self, pre: Preprocessed, theta: NDArray[np.float64], end_mm: float | None = None,
         roi_window: RoiWindow | None = None, max_gaussians: int = MAX_DATA_GAUSSIANS,
     ) -> tuple[ImageSoG, Detections, Silhouette | None]:
-        """Data Gaussians (at most ``max_gaussians``), detections and silhouette (None without
-        ``w_sil``) of the depth window around the hand at ``theta`` (ending at ``end_mm`` at the
-        latest; ``roi_window``: :func:`hand_roi` when known), without what lies beyond its wrist."""
+        """Data Gaussians (at most ``max_gaussians``), detections and silhouette (None without ``w_sil``)
+        of the depth window (ending by ``end_mm``) around the hand at ``theta``, on its hand side."""
         if roi_window is None:
             roi_window = hand_roi(self._model, theta, pre.intrinsics, self._config.roi_radius_mm)
         roi, window = roi_window
@@ -317,14 +297,13 @@ class Tracker:
         if end_mm is not None:
             window = (window[0], min(window[1], end_mm))
         sil = silhouette(pre, window, roi) if self._config.w_sil > 0 else None
-        axis = global_rotation(theta)[:, 1]  # the hand's long axis (camera frame)
         # (With a data filter the cap applies to what it leaves: another hand's tips would take places.)
         det = detect_fingertips(pre, roi, window, None if self.data_filter is not None else MAX_DETECTIONS)
         if det.n:
-            det = det.subset((det.points - theta[:3]) @ axis > 0.0)
+            det = det.subset(on_hand_side(det.points, theta))
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf, max_gaussians)
         if data.n:
-            data = part(data, (data.points - theta[:3]) @ axis > 0.0)
+            data = part(data, on_hand_side(data.points, theta))
         if self.data_filter is not None:
             data, det = self.data_filter(data, det, theta)
             if det.n > MAX_DETECTIONS:  # (most confident first: the detector's order)
@@ -379,9 +358,7 @@ class Tracker:
         conf = coverage(self._model, res.x, data, centres, obj.support(res.x))
         self._low_frames = self._low_frames + 1 if conf < cfg.lost_confidence else 0
         if self._low_frames >= cfg.lost_frames or data.n == 0:
-            self._prev = None
-            self._low_frames = 0
-            self._status = TrackerStatus.LOST
+            self._restart(None, TrackerStatus.LOST)
             return self._result(None, conf, res.fun, data.n, timings)
         # A hand turned over by the roll proposal did not turn so between the frames: no velocity
         # from the jump (else the next frame's start and prior turn it on, measured in two_hands.md).
@@ -395,9 +372,8 @@ class Tracker:
         return self._result(answer, conf, res.fun, data.n, timings, centres)
 
     def _refined(self, obj: Objective, res: OptimizeResult, p1: NDArray[np.float64]) -> NDArray[np.float64]:
-        """A tracked frame's answer (26,): its pose ``res.x`` or, with a PIP over ``REFINE_CURL_RAD``,
-        that refined on the frame's objective ``obj`` of the joint model; from the frame before's
-        correction (``REFINE_WARM_STEPS``) when the track went on from its refined pose ``p1``."""
+        """A tracked frame's answer (26,): ``res.x`` or, with a PIP over ``REFINE_CURL_RAD``, that refined
+        on ``obj`` of the joint model (from the last correction when the track went on from ``p1``)."""
         x = res.x
         iterations = self._config.refine_iterations
         last, self._refine_last = self._refine_last, None
@@ -421,20 +397,12 @@ class Tracker:
         return fit.x
 
     def _limits(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The model's joint limits as bounds (low, high) (26,) each, read-only (+-inf: the wrist)."""
-        m = self._model
-        if self._bounds is None or self._bounds[0] is not m:
-            lo = np.concatenate([np.full(6, -np.inf), m.limits_low])
-            hi = np.concatenate([np.full(6, np.inf), m.limits_high])
-            lo.setflags(write=False)
-            hi.setflags(write=False)
-            self._bounds = (m, lo, hi)
-        return self._bounds[1:]
+        """The model's joint limits as bounds (low, high) (26,) each (:attr:`HandModel.bounds`)."""
+        return self._model.bounds
 
     def _initialise(self, pre: Preprocessed) -> TrackResult:
-        """A new track: the start search's finalists (:func:`~.search.start.start_search`) refined
-        on one data extraction (:meth:`_finalist_fits`), the best searched (:data:`NEW_TRACK_PROPOSALS`);
-        on the default model the small one wins ``SMALL_HAND_GAIN`` higher with open fingers."""
+        """A new track: the start search's finalists refined on one data extraction, the best searched
+        (:data:`NEW_TRACK_PROPOSALS`); on the default model the small one may win (``SMALL_HAND_*``)."""
         self._steps, self._lost_pulls, self.last_proposal = None, _NO_POINTS, None
         if self._sizes is not None:
             self._model = self._sizes[0]
@@ -449,7 +417,6 @@ class Tracker:
         fits = self._finalist_fits(found, data, det, sil)
         best = fits[0][1] if fits else None
         if best is not None and self._sizes is not None and _open(best[1].fit.x):
-            default = self._model
             self._model = self._sizes[1]
             tried = sorted(k for k, _ in fits[:SMALL_HAND_FINALISTS])  # (in the finalists' order)
             small_fits = self._finalist_fits(Finalists([found.poses[k] for k in tried]), data, det, sil)
@@ -457,7 +424,7 @@ class Tracker:
             if small is not None and small[0] > best[0] + SMALL_HAND_GAIN and _open(small[1].fit.x):
                 best = small
             else:
-                self._model = default
+                self._model = self._sizes[0]
         if best is None:
             return self._no_hand(timings)
         frame = best[1]
@@ -465,9 +432,7 @@ class Tracker:
         conf = coverage(self._model, res.x, frame.data)
         if conf < self._config.lost_confidence:
             return self._no_hand(timings, conf, res.fun, frame.data.n)
-        self._prev = (res.x, res.x)
-        self._low_frames = 0
-        self._status = TrackerStatus.TRACKING
+        self._restart((res.x, res.x), TrackerStatus.TRACKING)
         return self._result(res.x, conf, res.fun, frame.data.n, timings)
 
     def _no_hand(self, timings: dict[str, float], conf: float = 0.0, energy: float = 0.0, n: int = 0) -> TrackResult:
@@ -477,16 +442,14 @@ class Tracker:
     def _finalist_fits(
         self, found: Finalists, data: ImageSoG, det: Detections, sil: Silhouette | None
     ) -> list[tuple[int, tuple[float, Frame]]]:
-        """(index, (score, :class:`Frame`)) of each finalist of ``found`` with data on its hand side,
-        refined ``final_iterations`` with the full objective of its part of ``data``, as one batch;
-        best first (the earlier on a tie)."""
+        """(index, (score, :class:`Frame`)) of each finalist with data on its hand side, refined with the
+        full objective of its part of ``data`` as one batch; best first (the earlier on a tie)."""
         items = []
         for k, x in enumerate(found.poses):
             keep = on_hand_side(data.points, x)
             if keep.any():
                 targets = self._targets(x, det)
-                obj = Objective(self._model, part(data, keep), self._config, targets=targets, silhouette=sil)
-                items.append((k, keep, obj))
+                items.append((k, keep, Objective(self._model, part(data, keep), self._config, None, targets, sil)))
         if not items:
             return []
         shared = Objective(self._model, data, self._config, silhouette=sil)

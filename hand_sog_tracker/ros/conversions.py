@@ -19,6 +19,7 @@ Output side (rclpy messages; units converted from mm to metres):
 
 from __future__ import annotations
 
+import struct
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -26,6 +27,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped, TransformStamped
 from numpy.typing import NDArray
+from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
@@ -77,6 +79,7 @@ __all__ = [
     "TF_TIP_FRAMES",
     "hand_transforms",
     "fingertip_markers",
+    "SerialisedMarkers",
     "delete_all_markers",
     "bgr_to_image_msg",
     "diagnostic_array",
@@ -291,6 +294,96 @@ def fingertip_markers(
         out.markers.append(line)
     return out
 
+
+class SerialisedMarkers:
+    """:func:`fingertip_markers`, every marker with ``lifetime_s``, as the MarkerArray's CDR bytes
+    (``Publisher.publish`` takes them): the message is built and serialised once per frame id and
+    tip radii; a frame writes its stamp, fingertips and skeleton into a copy of those bytes (what
+    ``serialize_message`` gives, padding aside, without building the message: doc/design/speed.md).
+    Where the template's fields lie is found from sentinel values and checked by deserialising a
+    frame written into it; a template that fails the check is not used (the message path is)."""
+
+    #: Sentinels of the template: a stamp (sec, nanosec), fingertips and skeleton (mm) of distinct
+    #: values, each of no zero bytes in metres (a whole number's 4 zero bytes beside an int32 0 and
+    #: padding matched an old one), and the values of the check.
+    _STAMP = (0x5A5A5A5A, 0x3C3C3C3C)
+    _TIPS_MM = np.pi * 1e6 + 1e3 * np.arange(15.0).reshape(5, 3)
+    _SKELETON_MM = np.e * 1e6 + 1e3 * np.arange(63.0).reshape(21, 3)
+    _CHECK_TIPS_MM = np.linspace(-500.0, 900.0, 15).reshape(5, 3)
+    _CHECK_SKELETON_MM = np.linspace(-700.0, 600.0, 63).reshape(21, 3)
+    _BONE_ROWS = np.array([j for bone in SKELETON_BONES for j in bone])
+
+    def __init__(self, lifetime_s: float) -> None:
+        self.lifetime = (int(lifetime_s), int(lifetime_s % 1 * 1e9))
+        self._key: tuple[str, bytes] | None = None
+        self._template: NDArray[np.uint8] | None = None
+        self._stamp_at = self._tips_at = np.zeros((0, 8), np.int64)
+        self._points_at = 0
+
+    def message(
+        self, header: Header, fingertips_mm: NDArray[np.float64], skeleton_mm: NDArray[np.float64] | None,
+        tip_radii_mm: NDArray[np.float64],
+    ) -> MarkerArray:
+        """The message the bytes serialise: :func:`fingertip_markers` with the lifetime."""
+        out = fingertip_markers(header, fingertips_mm, skeleton_mm, tip_radii_mm)
+        for m in out.markers:
+            m.lifetime.sec, m.lifetime.nanosec = self.lifetime
+        return out
+
+    def __call__(
+        self, header: Header, fingertips_mm: NDArray[np.float64], skeleton_mm: NDArray[np.float64] | None,
+        tip_radii_mm: NDArray[np.float64],
+    ) -> bytes:
+        """The CDR bytes of :meth:`message` (shapes (5, 3), (21, 3), (5,) mm; else through it)."""
+        tips = np.asarray(fingertips_mm, dtype=np.float64)
+        radii = np.asarray(tip_radii_mm, dtype=np.float64)
+        shapes = (tips.shape, np.shape(skeleton_mm) if skeleton_mm is not None else None, radii.shape)
+        if shapes == ((5, 3), (21, 3), (5,)):
+            key = (header.frame_id, radii.tobytes())
+            if key != self._key:
+                self._key = key
+                self._build(header.frame_id, radii)
+            if self._template is not None:
+                return self._fill(header.stamp, tips, np.asarray(skeleton_mm, dtype=np.float64))
+        return bytes(serialize_message(self.message(header, fingertips_mm, skeleton_mm, tip_radii_mm)))
+
+    def _fill(self, stamp: Time, tips_mm: NDArray[np.float64], skeleton_mm: NDArray[np.float64]) -> bytes:
+        assert self._template is not None
+        out = self._template.copy()
+        out[self._stamp_at] = np.frombuffer(struct.pack("<iI", stamp.sec, stamp.nanosec), np.uint8)
+        out[self._tips_at] = (tips_mm / 1000.0).astype("<f8").view(np.uint8).reshape(15, 8)
+        points = (skeleton_mm / 1000.0)[self._BONE_ROWS].astype("<f8")
+        out[self._points_at : self._points_at + points.nbytes] = points.view(np.uint8).ravel()
+        return out.tobytes()
+
+    def _build(self, frame_id: str, radii: NDArray[np.float64]) -> None:
+        """The template of ``frame_id`` and ``radii`` and its fields' places, or None (see above)."""
+        self._template = None
+        header = Header(stamp=Time(sec=self._STAMP[0], nanosec=self._STAMP[1]), frame_id=frame_id)
+        raw = bytes(serialize_message(self.message(header, self._TIPS_MM, self._SKELETON_MM, radii)))
+
+        def at(pattern: bytes, align: int) -> list[int]:
+            """Where ``pattern`` starts in ``raw`` at a multiple of ``align`` after the 4-byte CDR header."""
+            found, k = [], raw.find(pattern)
+            while k >= 0:
+                found += [k] if (k - 4) % align == 0 else []
+                k = raw.find(pattern, k + 1)
+            return found
+
+        stamps = at(struct.pack("<iI", *self._STAMP), 4)
+        tips = [at(v.tobytes(), 8) for v in (self._TIPS_MM / 1000.0).astype("<f8").ravel()]
+        points = at((self._SKELETON_MM / 1000.0)[self._BONE_ROWS].astype("<f8").tobytes(), 8)
+        if raw[:2] != b"\x00\x01" or len(stamps) != 6 or any(len(t) != 1 for t in tips) or len(points) != 1:
+            return  # (not little-endian CDR, or a sentinel not found once: the message path)
+        self._stamp_at = np.array(stamps)[:, None] + np.arange(8)
+        self._tips_at = np.array([t[0] for t in tips])[:, None] + np.arange(8)
+        self._points_at = points[0]
+        self._template = np.frombuffer(raw, dtype=np.uint8).copy()
+        check = Header(stamp=Time(sec=-3, nanosec=999_999_999), frame_id=frame_id)
+        written = self._fill(check.stamp, self._CHECK_TIPS_MM, self._CHECK_SKELETON_MM)
+        wanted = serialize_message(self.message(check, self._CHECK_TIPS_MM, self._CHECK_SKELETON_MM, radii))
+        if deserialize_message(written, MarkerArray) != deserialize_message(wanted, MarkerArray):
+            self._template = None  # (compared as received: the colours are float32 on the wire)
 
 def delete_all_markers(header: Header) -> MarkerArray:
     """A MarkerArray holding one DELETEALL marker (clears fingertips and skeleton)."""

@@ -38,9 +38,9 @@ from hand_sog_tracker.core.hands import HANDS, HandsResult
 from hand_sog_tracker.core.types import Intrinsics
 from hand_sog_tracker.core.urdf import UrdfJoint, hand_urdf, urdf_joints
 from hand_sog_tracker.ros.conversions import (
+    SerialisedMarkers,
     confidence_msg,
     delete_all_markers,
-    fingertip_markers,
     joint_state_msg,
     keypoints_msg,
     pose_msg,
@@ -83,6 +83,7 @@ class _Side:
         self.described: tuple[HandModel, str | None] | None = None
         self.description_joints: tuple[UrdfJoint, ...] = ()
         self.markers_shown = False
+        self.serialised_markers = SerialisedMarkers(0.0)  # (no lifetime: as fingertip_markers builds them)
 
 
 class HandTopics:
@@ -150,7 +151,7 @@ class HandTopics:
             self._describe(out, track.model, header.frame_id if self._wrist_joints else None)
             if out.markers.get_subscription_count():
                 out.markers.publish(
-                    fingertip_markers(header, res.fingertips_mm, res.skeleton_mm, track.model.tip_radii)
+                    out.serialised_markers(header, res.fingertips_mm, res.skeleton_mm, track.model.tip_radii)
                 )
                 out.markers_shown = True
             if out.joints.get_subscription_count():

@@ -135,11 +135,11 @@ from hand_sog_tracker.interface import (
 from hand_sog_tracker.ros.blas import limit_blas_threads
 from hand_sog_tracker.ros.calibration_service import CalibrationService, FitWorker
 from hand_sog_tracker.ros.conversions import (
+    SerialisedMarkers,
     bgr_to_image_msg,
     confidence_msg,
     delete_all_markers,
     diagnostic_array,
-    fingertip_markers,
     joint_state_msg,
     keypoints_msg,
     pose_msg,
@@ -292,6 +292,7 @@ class TrackerNode(CalibrationService, Node):
         self._last_intr: Intrinsics | None = None  # of the last frame that passed the checks
         self._last_intr_shape: tuple[int, int] | None = None
         self._markers_shown = False
+        self._serialised_markers = SerialisedMarkers(MARKER_LIFETIME_S)
         self._frame_id = ""
         # Recent tracked frames for ~/calibrate and the automatic fit (calibration_service.py),
         # which runs only without a saved user model.
@@ -883,13 +884,9 @@ class TrackerNode(CalibrationService, Node):
             # (issue 14: a publication costs 0.2-0.5 ms between frames, measured on this node's
             # outputs at 30-100 Hz; a pose and keypoints nobody reads cost 0.45 ms per frame).
             # The fingertips first: what most listeners (and the evaluations) wait for.
-            if self._marker_pub.get_subscription_count():
-                markers = fingertip_markers(
-                    header, result.fingertips_mm, result.skeleton_mm, self._tracker.model.tip_radii
-                )
-                for m in markers.markers:
-                    m.lifetime.sec, m.lifetime.nanosec = int(MARKER_LIFETIME_S), int(MARKER_LIFETIME_S % 1 * 1e9)
-                self._marker_pub.publish(markers)
+            if self._marker_pub.get_subscription_count():  # (as CDR bytes: built once, SerialisedMarkers)
+                tips, radii = result.fingertips_mm, self._tracker.model.tip_radii
+                self._marker_pub.publish(self._serialised_markers(header, tips, result.skeleton_mm, radii))
                 self._markers_shown = True
             if self._joint_pub.get_subscription_count():
                 self._joint_pub.publish(joint_state_msg(header, result.pose, wrist_joints))

@@ -325,9 +325,7 @@ class Objective(DataTerms, CollisionTerm, PoseTerms, SalientTerm):
         self._four_sh2 = self._two_sh * self._two_sh
         # Per model Gaussian values of one evaluation of _data_terms, rows 2 (ones) and 8
         # (2 sigma_h) set once (see there).
-        unlimited = np.full(N_PARAMS - model.limits_low.size, np.inf)
-        self._limits_low = np.concatenate([-unlimited, model.limits_low])  # (26,) rad
-        self._limits_high = np.concatenate([unlimited, model.limits_high])
+        self._limits_low, self._limits_high = model.bounds  # (26,) rad
         rows = np.empty((11, model.n_gaussians))
         rows[2] = 1.0
         rows[8] = self._two_sh

@@ -1,11 +1,8 @@
 """A frame's candidates: the proposals, small generators with a name and a reason.
 
-Each proposal looks at the frame's fit (:class:`Frame`) and yields start poses
-(:class:`Candidate`) out of a local optimum the fit may be in, or nothing when its reason does
-not apply (no schedules, waits or cooldowns); the search (:func:`~.fit.search`) fits them all as
-one batch and the score (:mod:`.score`) picks the answer.  ``margin``: how much a candidate must
-beat the fit's score by where the score tells the two apart poorly (the measurements behind the
-values: ``doc/design/search.md``).
+Each looks at the frame's fit (:class:`Frame`) and yields start poses (:class:`Candidate`) out of
+a local optimum the fit may be in, or nothing when its reason does not apply.  ``margin``: what a
+candidate must beat the fit's score by where the score tells them apart poorly (doc/design/search.md).
 """
 
 from __future__ import annotations
@@ -50,15 +47,13 @@ __all__ = [
 
 DANGLING_TIP_MM = 25.0  #: a fingertip this far (mm) from all data hangs in empty space (seed 004's restarts)
 DANGLING_MARGIN = 0.02  #: ... and its candidates must win by this (without, they won wrongly on rotating hands)
-#: Swap: a finger within this of its abduction limit (rad) toward a neighbour curled
-#: ``SWAP_CURL_GAP_RAD`` more (MCP + PIP), itself curled at most ``SWAP_MAX_CURL_RAD`` (issue 11).
+#: Swap: a finger this near (rad) its abduction limit toward a neighbour curled ``SWAP_CURL_GAP_RAD``
+#: more (MCP + PIP), itself curled at most ``SWAP_MAX_CURL_RAD`` (issue 11).
 SWAP_ABD_MARGIN_RAD = float(np.radians(0.5))
 SWAP_CURL_GAP_RAD = 0.8
 SWAP_MAX_CURL_RAD = 2.2
 SWAP_MARGIN = 0.02
-#: Swaps and curls need |palm normal . view| at least this: from the side the score cannot tell
-#: neighbouring fingers apart.
-FACING_COS = 0.85
+FACING_COS = 0.85  #: swaps and curls need |palm normal . view| >= this (from the side fingers score alike)
 CURL_MAX_FLEX_RAD = 1.5  #: curl: an open finger (MCP + PIP + DIP under this, rad) without a detection of its own
 CURL_MARGIN = 0.04
 EDGE_ON_PALM_COS = 0.6  #: a hand this nearly edge-on (|palm normal . view| under) overlaps its fingers ...
@@ -85,8 +80,8 @@ class Frame:
     new_track: bool = False  #: a new track: no hidden-tip discount, lateral candidates, both shifts
     #: (k, 3) mm: detections whose pulls lost on the frame before (see :func:`pull_target`)
     lost_pulls: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
-    #: ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand (no end
-    #: to detect: they call for no curl and do not dangle; :mod:`..hands`); None: none
+    #: ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand (no end to
+    #: see: no curl, no dangling; :mod:`..hands`); None: none
     covered: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
 
     def score(self, theta: NDArray[np.float64], value: float | None = None) -> float:
@@ -96,9 +91,8 @@ class Frame:
 
 @dataclass(frozen=True, eq=False)
 class Candidate:
-    """One start pose of the search: ``proposal`` (its name), ``x0`` (26,), the ``margin`` it must
-    beat the fit's score by and, optionally, the fingertip targets it is first ``pull``-ed onto
-    (:func:`pull_objective`) with only its ``active`` (26,) parameters free."""
+    """One start pose ``x0`` (26,) of ``proposal``, the ``margin`` it must beat the fit's score by and,
+    optionally, fingertip targets it is first ``pull``-ed onto with only its ``active`` (26,) free."""
 
     proposal: str
     x0: NDArray[np.float64]
@@ -137,8 +131,7 @@ def shifted(theta: NDArray[np.float64], side: int) -> NDArray[np.float64]:
 
 
 def swapped(theta: NDArray[np.float64], a: int, b: int) -> NDArray[np.float64]:
-    """``theta`` (26,) with chains ``a`` and ``b`` (1-4) exchanging their flexions, both with
-    neutral abductions."""
+    """``theta`` (26,) with chains ``a`` and ``b`` (1-4) exchanging flexions, abductions neutral."""
     x0 = theta.copy()
     sa, sb = chain_slice(a), chain_slice(b)
     x0[sa], x0[sb] = theta[sb], theta[sa]
@@ -261,8 +254,7 @@ def pull_objective(obj: Objective) -> Objective:
 
 def pull_target(f: Frame) -> int | None:
     """The detection the detection proposal pulls fingers onto, or None: the most confident one no
-    fingertip explains, unless its pulls lost on the frame before where it still is (within
-    ``SAME_DETECTION_MM`` of ``f.lost_pulls``: the score preferred the fit there)."""
+    fingertip explains, unless its pulls lost last frame there (``SAME_DETECTION_MM``, ``lost_pulls``)."""
     lonely = lonely_detections(f.model, f.fit.x, f.det)
     if lonely.size and f.lost_pulls.shape[0]:
         near = np.sqrt(sq_distances(f.det.points[lonely], f.lost_pulls)).min(axis=1) < SAME_DETECTION_MM

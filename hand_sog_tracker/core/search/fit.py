@@ -23,8 +23,7 @@ MAX_BATCH = 4
 
 
 def batch_size(n_data: int) -> int:
-    """Most candidates fitted in one call on ``n_data`` data Gaussians: at most the model x data
-    pairs of ``MAX_BATCH`` candidates at the data cap (``MAX_DATA_GAUSSIANS``)."""
+    """Most candidates fitted in one call on ``n_data`` data Gaussians: ``MAX_BATCH``'s pairs at the cap."""
     return MAX_BATCH * max(1, MAX_DATA_GAUSSIANS // max(n_data, 1))
 
 
@@ -80,9 +79,8 @@ def fit_parts(
     obj: Objective, starts: NDArray[np.float64], parts: NDArray[np.bool_],
     targets: Sequence[TipTargets | None] | None = None, **kwargs: Any,
 ) -> list[OptimizeResult]:
-    """Each of ``starts`` (B, 26) fitted on ``obj`` with only its part ``parts[b]`` (B, n) of the
-    data and, given, ``targets[b]``, as one batch (a lone pose without targets on its part's own
-    objective: the one-pose path)."""
+    """Each of ``starts`` (B, 26) fitted on ``obj`` with only its part ``parts[b]`` (B, n) of the data
+    and ``targets[b]`` as one batch (a lone pose without targets: on its part's own objective)."""
     if len(starts) == 1 and targets is None:
         keep = parts[0]
         if not keep.all():
@@ -95,10 +93,9 @@ def fit_parts(
 def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult, str | None]:
     """The frame's answer and the name of the proposal it came from (None: the frame's fit).
 
-    Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain``, all as one batch (a pull
-    first on its own objective); the highest :meth:`Frame.score` among those that beat the fit's
-    by their margin wins.  A race: a score is the plain value minus a cost >= 0, so a candidate
-    whose value cannot reach the fit's score plus its margin stops early (``floor``).
+    Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain`` as one batch (a pull first on
+    its own objective); the best :meth:`Frame.score` beating the fit's by its margin wins.  A
+    candidate whose value cannot reach that (a score is the value minus a cost >= 0) stops early.
     """
     candidates = [c for p in proposals if not p.rides_along for c in p.generate(frame)]
     if not candidates:
@@ -129,9 +126,8 @@ def _plain_value(frame: Frame) -> float:
 def _pulled(
     candidates: Sequence[Candidate], obj: Objective, limits: tuple[NDArray[np.float64], NDArray[np.float64]]
 ) -> NDArray[np.float64]:
-    """The candidates' start poses (B, 26), a pulled one's after ``SEARCH_ITERATIONS`` on the
-    frame's :func:`pull_objective` of ``obj`` with its own targets and ``active`` parameters (all
-    pulls as one batch: the same iterates as one by one)."""
+    """The candidates' start poses (B, 26), a pulled one's after ``SEARCH_ITERATIONS`` on the frame's
+    :func:`pull_objective` with its targets and ``active`` parameters (all pulls as one batch)."""
     starts = np.array([c.x0 for c in candidates])
     ks = [i for i, c in enumerate(candidates) if c.pull is not None]
     if ks:

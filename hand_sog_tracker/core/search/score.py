@@ -1,10 +1,8 @@
 """The one score that picks a frame's answer among its candidates (seed 001, eq. 11).
 
 ``score(theta) = E_plain(theta) - w_sal * cost(theta) / SALIENT_SCALE_MM``: the objective without
-its salient term (which favours the assignment the frame started with) minus the optimal
-assignment cost of the fingertip detections at ``theta`` (:func:`assignment_cost`).  A pose whose
-fingertips are not where fingertips are seen (flipped palm-for-back, fingers swapped) scores
-worse even where the depth overlap cannot tell.
+its salient term (which favours the frame's start assignment) minus the optimal assignment cost of
+the fingertip detections (:func:`assignment_cost`): it tells flipped or swapped fingers apart.
 """
 
 from __future__ import annotations
@@ -25,12 +23,9 @@ __all__ = [
 ]
 
 ASSIGN_LAMBDA_MM = 30.0  #: cost (mm) of a fingertip without a detection (seed 001's lambda, eq. 11)
-#: A curled tip with the palm or the back of the hand to the camera (its normal within
-#: acos(``HIDDEN_PALM_COS``) of the view) costs less, down to ``HIDDEN_TIP_LAMBDA`` x lambda from
-#: PIP + DIP ``OPEN_TIP_RAD`` to ``CURLED_TIP_RAD`` (rad): the detector cannot see such a tip,
-#: against the palm (issue 11) or under the hand (issue 46: from the back a fist's tips are
-#: hidden too; with the full cost there the score preferred fingers pointing away behind their
-#: knuckles, ``doc/design/hand_check.md``).
+#: A curled tip with the palm or the back to the camera (normal within acos(``HIDDEN_PALM_COS``) of
+#: the view) costs less, down to ``HIDDEN_TIP_LAMBDA`` x lambda from PIP + DIP ``OPEN_TIP_RAD`` to
+#: ``CURLED_TIP_RAD`` (rad): the detector cannot see it (issues 11, 46; doc/design/hand_check.md).
 HIDDEN_TIP_LAMBDA = 0.0
 HIDDEN_PALM_COS = 0.5
 OPEN_TIP_RAD = 1.0
@@ -116,8 +111,7 @@ def lonely_detections(model: HandModel, theta: NDArray[np.float64], det: Detecti
 
 
 def own_detections(model: HandModel, theta: NDArray[np.float64], det: Detections) -> NDArray[np.bool_]:
-    """Whether the optimal assignment gives each fingertip (5,) at ``theta`` (26,) a detection
-    within ``OWN_DETECTION_MM``."""
+    """Whether the optimal assignment gives each fingertip (5,) at ``theta`` a detection within ``OWN_DETECTION_MM``."""
     tips = fingertips(model, theta)
     assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM)
     own = assigned >= 0

@@ -1,16 +1,12 @@
 """A new track's search: from the hand found in the depth to the finalist poses.
 
-The start poses (:func:`~hand_sog_tracker.core.initialise.initial_hypotheses` of the hand blob's
-directions and its two edge-on hands, :func:`~hand_sog_tracker.core.initialise.edge_on_hypotheses`,
-plus open hands along the hand end's own axis and toward the fingertip detections)
-are screened by the objective at the start, aligned rigidly on a coarse quadtree (seed 004's
-coarse-to-fine), the best of each palm side articulated on the fine one, and the best by the
-score become the finalists; when even the best scores poorly, single fingers curled
-(:func:`best_combination`) are tried too.  No silhouette term yet: it would pull the poses into
-the outline before the depth has placed them.  Each pose drops the data beyond its own wrist;
-the poses of a stage are fitted as one batch, each on its own part (:func:`~.fit.fit_parts`).
+Start poses (:mod:`..initialise`: the blob's directions, its edge-on hands, open hands along the hand
+end's axis and toward the detections) are screened by the objective, aligned rigidly on coarse data
+(seed 004's coarse-to-fine), the best per palm side articulated on fine data, the best by the score
+kept (single fingers curled, :func:`best_combination`, when even the best scores poorly).  No
+silhouette yet: it pulls poses into the outline before the depth has placed them.  Each pose drops
+the data beyond its wrist; a stage's poses are fitted as one batch (:func:`~.fit.fit_parts`).
 """
-
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -39,12 +35,10 @@ __all__ = [
 
 BLOB_BEHIND_MM = 20.0  #: the window ends this far (mm) behind the blob's farthest surface pixel (edge noise)
 WRIST_MARGIN_MM = 0.0  #: data farther than this (mm) beyond the wrist plane are forearm (the model has none)
-#: Most candidates of one stage: the rigid alignment of ``screened`` start poses per palm side
-#: and the two open hands of each of the two extra directions.
+#: Most candidates of one stage: ``screened`` start poses per palm side and 2 x 2 extra directions.
 NEW_TRACK_CANDIDATES = 2 * INIT_SEARCH.screened + 4
-#: Most data Gaussians of a new track's search and finish (thinned beyond, as :func:`quadtree_sog`
-#: thins): its largest stage fits in the model x data pairs of one batch at the data cap, whatever
-#: the input (issue 50).
+#: Most data Gaussians of a new track's search and finish (:func:`quadtree_sog` thins beyond): its
+#: largest stage fits in the model x data pairs of one batch at the data cap (issue 50).
 NEW_TRACK_DATA = MAX_BATCH * MAX_DATA_GAUSSIANS // NEW_TRACK_CANDIDATES
 Bounds = tuple[NDArray[np.float64], NDArray[np.float64]]
 
@@ -81,9 +75,8 @@ def _screened(
     model: HandModel, config: TrackerConfig, data: ImageSoG, starts: list, keeps: list[NDArray[np.bool_]], n: int,
     sides: list[bool],
 ) -> set[int]:
-    """Indices of the ``n`` start poses per palm side (``sides[i]``: the back toward the camera)
-    best by the objective of their part ``keeps[i]`` (n,) of ``data`` at the start (one batch per
-    distinct part; the first on a tie)."""
+    """Indices of the ``n`` start poses per palm side (``sides[i]``: back to the camera) best by the
+    objective of their part ``keeps[i]`` (n,) of ``data`` (a batch per distinct part; first on a tie)."""
     values = [-np.inf] * len(starts)
     groups: dict[bytes, list[int]] = {}
     for i, keep in enumerate(keeps):
