@@ -20,7 +20,7 @@ sys.path.insert(0, str(REPO))
 
 project = "hand_sog_tracker"
 author = "hand_sog_tracker maintainers"
-copyright = "hand_sog_tracker maintainers, Apache-2.0"  # noqa: A001 - Sphinx's name
+copyright = "hand_sog_tracker maintainers, Apache-2.0"
 release = ET.parse(REPO / "package.xml").getroot().findtext("version")
 version = release
 
