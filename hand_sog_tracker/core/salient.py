@@ -119,21 +119,11 @@ def _ring_offsets(radius_px: float) -> NDArray[np.int64]:
     return q.take(_RING_INDEX) * _RING_SIGN  # (= _reflected(q), one gather)
 
 
-def _within(z: NDArray, span: tuple[float, float] | None) -> NDArray:
-    """The depths ``z`` (n,) mm within :data:`SAME_SURFACE_MM` of ``span`` (near, far) mm; all
-    of them when none is, or without a span."""
-    if span is None:
-        return z
-    inside = z[(z >= span[0] - SAME_SURFACE_MM) & (z <= span[1] + SAME_SURFACE_MM)]
-    return inside if inside.size else z
-
-
 def detect_fingertips(
     pre: Preprocessed,
     roi: tuple[int, int, int, int],
     window_mm: tuple[float, float],
     max_detections: int | None = MAX_DETECTIONS,
-    hand_span_mm: tuple[float, float] | None = None,
 ) -> Detections:
     """Detect fingertips in the depth inside a region of interest.
 
@@ -154,11 +144,6 @@ def detect_fingertips(
         Depth window of the hand (mm); depth outside it counts as no data.
     max_detections : int or None
         Keep at most this many, the most confident first (None: all).
-    hand_span_mm : (near, far), optional
-        The hand's depth span (mm, its skin's): the ring's radius in pixels is taken at the
-        median depth of the candidate pixels within :data:`SAME_SURFACE_MM` of it (of all of
-        them when none is, or without a span): another hand in the region, in front or behind,
-        does not size this hand's ring.
 
     Returns
     -------
@@ -199,7 +184,7 @@ def detect_fingertips(
     centre += (v0 + cv - hw.v0) * stride + (u0 + cu - hw.u0)
     dc = flat.take(centre)
     # The hand's depth: the median over the candidates (a quarter of the pixels).
-    z_ref = _median(_within(dc, hand_span_mm) if dc.size else d[d > 0])
+    z_ref = _median(dc if dc.size else d[d > 0])
     f = float(np.sqrt(intr.fx * intr.fy))
     r_px = max(RING_RADIUS_MM * f / z_ref, 3.0)
     offsets = _ring_offsets(r_px)

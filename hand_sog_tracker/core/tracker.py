@@ -318,14 +318,8 @@ class Tracker:
             window = (window[0], min(window[1], end_mm))
         sil = silhouette(pre, window, roi) if self._config.w_sil > 0 else None
         axis = global_rotation(theta)[:, 1]  # the hand's long axis (camera frame)
-        # (With a data filter the cap applies to what it leaves: another hand's tips would take places;
-        # and the ring is sized on this hand's depth span: another hand in the region moves its median.)
-        if self.data_filter is None:
-            det = detect_fingertips(pre, roi, window, MAX_DETECTIONS)
-        else:
-            z = posed_centres(self._model, theta)[:, 2]
-            span = (float(np.min(z - self._model.g_sigmas)), float(np.max(z + self._model.g_sigmas)))
-            det = detect_fingertips(pre, roi, window, None, span)
+        # (With a data filter the cap applies to what it leaves: another hand's tips would take places.)
+        det = detect_fingertips(pre, roi, window, None if self.data_filter is not None else MAX_DETECTIONS)
         if det.n:
             det = det.subset((det.points - theta[:3]) @ axis > 0.0)
         data = quadtree_sog(pre, self._config.quadtree_threshold_mm, roi, window, leaf, max_gaussians)
