@@ -9,7 +9,6 @@ import pytest
 
 from hand_sog_tracker.core.depth_sog import preprocess
 from hand_sog_tracker.core.hand_model import default_hand_model
-from hand_sog_tracker.core.kinematics import posed_centres
 from hand_sog_tracker.core.salient import Detections, assign_detections, detect_fingertips
 from hand_sog_tracker.core.tracker import hand_roi
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig
@@ -262,29 +261,3 @@ def test_median_by_partition_equals_numpys() -> None:
             a = np.round(rng.uniform(200.0, 700.0, n)).astype(np.float32)  # with ties
             assert _median(a) == float(np.median(a))
 
-
-def test_the_ring_is_sized_on_the_hands_depth_span_when_given() -> None:
-    """A surface 100 mm in front of the fingers fills the region below them (another hand in
-    front): its pixels pull the region's median depth, and a ring sized there is too wide for
-    the fingertips (at most one found within 15 mm).  Sized on the hand's own depth span (the
-    multi-hand tracker's), every fingertip is found."""
-    frame = next(mesh_sequence("abdadd", 1, shape=MeshShape(1.05, 0.95, 1.0), seed=3,
-                               options=MeshRenderOptions(sensor="clean")))
-    intr = default_intrinsics()
-    model = default_hand_model()
-    tips = frame.fingertips_mm
-    below = int(intr.project(tips)[:, 1].max()) + 30  # (image rows from 30 px below the lowest tip)
-    depth = frame.depth_mm.copy()
-    depth[below:, :] = float(np.median(tips[:, 2])) - 100.0
-    pre = preprocess(depth, intr, TrackerConfig())
-    roi, window = hand_roi(model, frame.pose, pre.intrinsics, 160.0)
-    z = posed_centres(model, frame.pose)[:, 2]
-    span = (float(np.min(z - model.g_sigmas)), float(np.max(z + model.g_sigmas)))
-
-    def found(det: Detections) -> int:
-        if det.n == 0:
-            return 0
-        return int((np.linalg.norm(tips[:, None, :] - det.points[None, :, :], axis=-1).min(axis=1) < 15.0).sum())
-
-    assert found(detect_fingertips(pre, roi, window, None)) <= 1
-    assert found(detect_fingertips(pre, roi, window, None, span)) == 5
