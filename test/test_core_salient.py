@@ -260,4 +260,3 @@ def test_median_by_partition_equals_numpys() -> None:
         for _ in range(10):
             a = np.round(rng.uniform(200.0, 700.0, n)).astype(np.float32)  # with ties
             assert _median(a) == float(np.median(a))
-
