@@ -115,7 +115,7 @@ INTERHAND_REACH_MM: Final[float] = 30.0
 SAME_HAND_MM: Final[float] = 40.0
 #: Two models are in one volume when more than this share of either's Gaussian centres lies
 #: inside the other's skin: a majority (two fits of one hand overlap; two hands in contact
-#: interpenetrate at their surfaces only, 0-4% of the centres in dev ``clap``).
+#: interpenetrate at their surfaces only, 0-11% of the centres on dev ``clap`` frames 5-31).
 SHARED_VOLUME: Final[float] = 0.5
 #: With at least one hand tracked, a new hand is searched for every this many frames.
 SEARCH_EVERY: Final[int] = 5
