@@ -293,3 +293,31 @@ def test_data_another_hand_explains_count_neither_way() -> None:
     clean = check_hand(hand, INTR, MODEL, res)
     assert doubted.confidence < 0.8 * clean.confidence, doubted.evidence
     assert given.confidence >= clean.confidence - 0.05, (given.evidence, clean.evidence)
+
+
+def test_a_finger_another_hand_hides_wholly_is_left_out_of_fingers_on() -> None:
+    """A bar well in front of the index finger, covering all of it (another hand's, as the
+    multi-hand tracker's split says): without ``theirs`` the hidden finger counts as none of it
+    on data (the one-hand rule); with it, the finger is left out of ``fingers_on``, which stays
+    that of the four fingers shown."""
+    rng = np.random.default_rng(4)
+    hand = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), rng)
+    c = gaussian_centres(MODEL, THETA)
+    index = c[MODEL.g_chain == 1]
+    centre = index.mean(axis=0) - np.array([0.0, 0.0, 60.0])
+    half = 0.5 * np.ptp(index[:, 1]) + 20.0
+    bar = _mesh_depth(_cylinder(centre, 14.0, 2.0 * half, np.eye(3)))
+    depth = np.where((bar > 0) & ((hand == 0) | (bar < hand)), bar, hand).astype(np.float32)
+    res = _result(THETA)
+
+    def theirs(points: np.ndarray) -> np.ndarray:
+        d = np.linalg.norm((points - centre)[:, [0, 2]], axis=1)  # (the bar's axis is y)
+        return d < 14.0 + 12.0
+
+    alone = check_hand(depth, INTR, MODEL, res)
+    given = check_hand(depth, INTR, MODEL, res, theirs)
+    clean = check_hand(hand, INTR, MODEL, res)
+    assert alone.evidence is not None and given.evidence is not None and clean.evidence is not None
+    assert alone.fingers[1] < 0.1  # (the index finger is hidden)
+    assert alone.evidence.fingers_on < clean.evidence.fingers_on - 0.1, alone.evidence
+    assert given.evidence.fingers_on >= clean.evidence.fingers_on - 0.05, (given.evidence, clean.evidence)

@@ -9,8 +9,18 @@ import pytest
 
 from hand_sog_tracker.core.depth_sog import Preprocessed
 from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
-from hand_sog_tracker.core.hands import FOREARM_RADIUS_MM, MultiHandTracker, hidden_by, skin_distance
-from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation
+from hand_sog_tracker.core.hands import (
+    FOREARM_RADIUS_MM,
+    SAME_HAND_MM,
+    SHARED_VOLUME,
+    MultiHandTracker,
+    _palm,
+    _Slot,
+    hidden_by,
+    shared_volume,
+    skin_distance,
+)
+from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation, posed_centres
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import Intrinsics, TrackerConfig, TrackerStatus
 from hand_sog_tracker.errors import InputError
@@ -18,6 +28,7 @@ from hand_sog_tracker.tools.bagio import BagTopics, DepthBagReader
 from hand_sog_tracker.tools.twohand_bags import read_hand_truth
 
 APART = Path(__file__).resolve().parents[1] / "bags" / "twohands_dev" / "apart"
+CLAP = APART.parent / "clap"
 
 
 def _frames(n: int, mirror: bool = False):
@@ -227,3 +238,63 @@ def test_a_withheld_hand_keeps_its_decision(monkeypatch: pytest.MonkeyPatch) -> 
     out = mt.process(*frames[8][:2])
     assert [h.handedness for h in out.hands] == ["left"]
     assert out.withheld == {"right": doubt}
+
+
+def _slot(side: str, pose: np.ndarray, track_id: int) -> _Slot:
+    """A live track of the ``side`` model last tracked at ``pose`` (26,)."""
+    tracker = Tracker(TrackerConfig(right_hand=side == "right"), default_hand_model(right=side == "right"))
+    tracker.start_at(pose)
+    return _Slot(tracker, side, track_id)
+
+
+def test_two_hands_in_contact_are_not_one_hand() -> None:
+    """A right and a left hand turned edge-on, back to back, their skins touching (no sphere of
+    one inside the other): the palm centres are nearer than SAME_HAND_MM, but the two models do
+    not share a volume, so both tracks are kept.  Two fits of one hand (moved 5 mm, or the
+    mirrored model turned half a turn about the long axis) are one hand."""
+    right, left = default_hand_model(), default_hand_model(right=False)
+    xr = rest_pose((0.0, 0.0, 450.0))
+    xr[4] = np.pi / 2
+    xl = rest_pose((0.0, 0.0, 450.0))
+    xl[4] = -np.pi / 2
+    cr = posed_centres(right, xr)
+    for dx in np.arange(0.0, 80.0, 1.0):  # (the left hand moved away until the skins just touch)
+        x = xl.copy()
+        x[0] -= dx
+        gap = np.linalg.norm(cr[:, None] - posed_centres(left, x)[None], axis=2)
+        if (gap - right.g_sigmas[:, None] - left.g_sigmas[None, :]).min() >= 0.0:
+            break
+    assert np.linalg.norm(_palm(right, xr) - _palm(left, x)) < SAME_HAND_MM
+    assert shared_volume((right, xr), (left, x)) <= SHARED_VOLUME
+    mt = MultiHandTracker(max_hands=2)
+    assert not mt._same_hand(_slot("right", xr, 0), _slot("left", x, 1))
+    moved = xr.copy()
+    moved[0] += 5.0
+    mirrored = xr.copy()
+    mirrored[4] += np.pi
+    assert mt._same_hand(_slot("right", xr, 0), _slot("right", moved, 1))
+    assert mt._same_hand(_slot("right", xr, 0), _slot("left", mirrored, 1))
+
+
+def test_a_hand_keeps_its_track_while_the_other_claps_against_it() -> None:
+    """Dev ``clap``: the right hand is tracked within 15 mm on frames 3-8, as the palms come
+    together; its track goes on through frame 9 (before, the hands' palm centres came within
+    SAME_HAND_MM on frame 8 and the younger track was dropped as the same hand)."""
+    truth = read_hand_truth(CLAP)
+    mt = MultiHandTracker(TrackerConfig(), max_hands=2)
+    ids: list[int] = []
+    with DepthBagReader(CLAP, BagTopics(), require_truth=False) as reader:
+        for f in reader.frames():
+            if f.index > 9:
+                break
+            out = mt.process(f.depth_mm, f.intrinsics)
+            hand = out.hand("right")
+            if f.index < 3:
+                continue
+            assert hand is not None, f"frame {f.index}: no right hand"
+            ids.append(hand.track_id)
+            true = truth["right"][f.stamp_ns].fingertips_mm
+            err = float(np.linalg.norm(hand.result.fingertips_mm - true, axis=1).mean())
+            if f.index <= 8:
+                assert err < 15.0, (f.index, err)
+    assert len(set(ids)) == 1, ids

@@ -148,7 +148,8 @@ def check_hand(
     theirs : callable, optional
         ``points (n, 3) mm -> (n,) bool``: the data that another hand explains (the multi-hand
         tracker's split, :mod:`.hands`).  Their pixels count neither way (as occluded ones):
-        not on or off the model, not foreground to explain, not outline, no finger end.
+        not on or off the model, not foreground to explain, not outline, no finger end, and a
+        finger whose visible part they all are is left out of ``fingers_on``.
 
     Returns
     -------
@@ -228,6 +229,7 @@ def check_hand(
     ends = _finger_ends(full, s, result, model, (fx, fy, cx, cy), on_model, (u0, v0), other)
     fingers = np.zeros(5)  # per finger: on / all (occluded counts against: not shown)
     visible_on = np.zeros(5)  # per finger: on / (on + off)
+    counted = np.ones(5, dtype=bool)  # the fingers in ``fingers_on``'s mean
     for c in range(5):
         mine = (own_chain == c) & core
         n = int(np.count_nonzero(mine))
@@ -235,7 +237,9 @@ def check_hand(
         fingers[c] = n_c_on / n if n else 0.0
         n_c_off = int(np.count_nonzero(mine & off))
         visible_on[c] = n_c_on / max(n_c_on + n_c_off, 1)
-    fingers_on = float(visible_on.mean())
+        if other is not None and n_c_on + n_c_off == 0 and bool(np.any(mine & other)):
+            counted[c] = False  # another hand hides the whole finger: it counts neither way
+    fingers_on = float(visible_on[counted].mean()) if counted.any() else float(visible_on.mean())
     e_factor = 1.0 if math.isnan(ends) else _ramp(ends, ENDS_LOW, 1.0)
     s_factor = 1.0 if math.isnan(steep) else _ramp(steep, STEEP_LOW, STEEP_HIGH)
     confidence = (

@@ -31,8 +31,10 @@ Per frame the depth is preprocessed once and shared:
   (summed :attr:`TrackResult.confidence`, the share of the model on data) wins; two trials at
   once are decided together with different labels.  Unless ``handedness`` fixes it.  A hand
   in its trial is not reported.
-* A new track that lands on a tracked hand (palms closer than :data:`SAME_HAND_MM`) is
-  dropped; two tracks that converge on one hand keep the older.
+* A new track that lands on a tracked hand (palms closer than :data:`SAME_HAND_MM` and the
+  two models in one volume, :func:`shared_volume`) is dropped; two tracks that converge on
+  one hand keep the older.  Two hands that touch (palm to palm in a clap) are not one: their
+  models meet at the skin, they do not share it.
 * **Is it a hand?**  Every track's frame ends with the hand decision of the one-hand tracker
   (its own :class:`~.handcheck.HandGate` on the frame's depth, issue 46): a frame that is no
   hand is not reported, and a track the gate would reset is dropped, and the next frame
@@ -66,10 +68,12 @@ __all__ = [
     "PAIR_LEAD",
     "PIXEL_MARGIN_MM",
     "SAME_HAND_MM",
+    "SHARED_VOLUME",
     "SEARCH_EVERY",
     "TRIAL_FRAMES",
     "TRIAL_LEAD",
     "hidden_by",
+    "shared_volume",
     "HandTrack",
     "HandsResult",
     "MultiHandTracker",
@@ -106,8 +110,13 @@ W_INTERHAND = 0.0
 #: Another hand's spheres enter a hand's term when they come this near (mm) to touching one of
 #: its spheres at the fit's start (a frame's motion and the fit's reach).
 INTERHAND_REACH_MM: Final[float] = 30.0
-#: Two tracks whose palm centres (the mean of the model's Gaussians) are closer are one hand (mm).
+#: Two tracks whose palm centres (the mean of the model's Gaussians) are closer may be one hand
+#: (mm); they are when their models also share a volume (:data:`SHARED_VOLUME`).
 SAME_HAND_MM: Final[float] = 40.0
+#: Two models are in one volume when more than this share of either's Gaussian centres lies
+#: inside the other's skin: a majority (two fits of one hand overlap; two hands in contact
+#: interpenetrate at their surfaces only, 0-11% of the centres on dev ``clap`` frames 5-31).
+SHARED_VOLUME: Final[float] = 0.5
 #: With at least one hand tracked, a new hand is searched for every this many frames.
 SEARCH_EVERY: Final[int] = 5
 #: A track started with both labels free is tracked with both models (its trial) until the
@@ -141,6 +150,19 @@ def skin_distance(model: HandModel, theta: NDArray[np.float64], points: NDArray[
     t = np.clip(-(rel @ axis), 0.0, FOREARM_LENGTH_MM)  # along the forearm, from the wrist
     lateral = np.linalg.norm(rel + t[:, None] * axis[None, :], axis=1)
     return np.minimum(skin, lateral - FOREARM_RADIUS_MM)
+
+
+def shared_volume(
+    a: tuple[HandModel, NDArray[np.float64]], b: tuple[HandModel, NDArray[np.float64]]
+) -> float:
+    """The larger of the shares of ``a``'s Gaussian centres inside ``b``'s skin and of ``b``'s
+    inside ``a``'s (each (model, pose (26,))), in [0, 1]; the forearm is not counted."""
+    (ma, xa), (mb, xb) = a, b
+    ca, cb = posed_centres(ma, xa), posed_centres(mb, xb)
+    d = np.linalg.norm(ca[:, None, :] - cb[None, :, :], axis=2)  # (m_a, m_b) mm
+    a_in_b = (d - mb.g_sigmas[None, :]).min(axis=1) < 0.0
+    b_in_a = (d - ma.g_sigmas[:, None]).min(axis=0) < 0.0
+    return float(max(a_in_b.mean(), b_in_a.mean()))
 
 
 def in_front(model: HandModel, theta: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.bool_]:
@@ -466,11 +488,15 @@ class MultiHandTracker:
             a.alt = a.alt_result = b.alt = b.alt_result = None
 
     def _same_hand(self, a: _Slot, b: _Slot) -> bool:
+        """Whether ``a`` and ``b`` track one hand: their palms are closer than
+        :data:`SAME_HAND_MM` and their models share a volume (:func:`shared_volume`)."""
         pa, pb = self._pose(a), self._pose(b)
         if pa is None or pb is None:
             return False
-        d = np.linalg.norm(_palm(a.tracker.model, pa) - _palm(b.tracker.model, pb))
-        return bool(d < SAME_HAND_MM)
+        ma, mb = a.tracker.model, b.tracker.model
+        if np.linalg.norm(_palm(ma, pa) - _palm(mb, pb)) >= SAME_HAND_MM:
+            return False
+        return shared_volume((ma, pa), (mb, pb)) > SHARED_VOLUME
 
     def _filter(self, tracker: Tracker, others: Sequence[_Slot]):
         """The :attr:`Tracker.data_filter` of ``tracker``: drop data and detections that one of
