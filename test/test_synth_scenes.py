@@ -117,3 +117,12 @@ def test_scene_eval_sets_tracker_parameters(tmp_path: Path) -> None:
     recs = json.loads((tmp_path / "o.json").read_text())["b"]["records"]
     assert len(recs) == 3 and all("hands" in r for r in recs)
     assert main([str(tmp_path / "b"), "--set", "no_such_parameter=1"]) == 2
+
+
+def test_a_scene_set_can_be_rendered_with_one_sensor_and_one_shape_and_is_otherwise_unchanged() -> None:
+    own = scene_set("scenes_dev", repeats=2)
+    assert {s.sensor for s in own if s.kind == "back"} == {"structured"}  # (why --sensor exists)
+    wide = MeshShape(1.0, 1.12, 1.0)
+    tof = scene_set("scenes_dev", repeats=2, sensor="tof", shape=wide)
+    assert {s.sensor for s in tof} == {"tof"} and {s.shape for s in tof} == {wide}
+    assert [(s.name, s.seed, s.frames) for s in tof] == [(s.name, s.seed, s.frames) for s in own]

@@ -7,6 +7,7 @@ Usage::
 
     make_scene_bags --set scenes_dev --surface-frames 15     # the bundled bags/scenes_dev
     make_scene_bags --set scenes_test --out DIR [--frames 45] [--repeats 3]
+    make_scene_bags --set scenes_dev --out DIR --repeats 6 --only back leave_top --sensor tof
 
 One bag per scene type of :data:`hand_sog_tracker.synth.scenes.SCENE_TYPES` (and per repeat,
 ``<type>_<r>`` for ``r > 0``), rendered by :func:`~hand_sog_tracker.synth.scenes.scene_frames`
@@ -43,6 +44,7 @@ import numpy as np
 from hand_sog_tracker.errors import BagError, HandSogError, InputError
 from hand_sog_tracker.synth.mesh import MeshShape
 from hand_sog_tracker.synth.scenes import SCENE_TYPES, scene_frames
+from hand_sog_tracker.synth.sensors import SENSORS
 from hand_sog_tracker.synth.sequence import default_intrinsics
 from hand_sog_tracker.tools.bagio import DepthSample, write_depth_bag
 from hand_sog_tracker.tools.make_sample_bags import BASE_STAMP_NS, FPS, SIDECAR
@@ -82,9 +84,15 @@ class SceneSpec:
     split: str
 
 
-def scene_set(name: str, frames: int = 45, repeats: int = 1, surface_frames: int | None = None) -> list[SceneSpec]:
+def scene_set(
+    name: str, frames: int = 45, repeats: int = 1, surface_frames: int | None = None, sensor: str | None = None,
+    shape: MeshShape | None = None,
+) -> list[SceneSpec]:
     """The bags of scene set ``name`` (``scenes_dev`` or ``scenes_test``), deterministic;
-    ``surface_frames``: frames of the :data:`SURFACE_TYPES` (default ``frames``).
+    ``surface_frames``: frames of the :data:`SURFACE_TYPES` (default ``frames``); ``sensor``:
+    every bag with this sensor instead of the set's (each scene type has one sensor in every
+    repeat, so e.g. the dev set's back-of-hand scenes are otherwise all structured light);
+    ``shape``: every hand of this shape instead of the set's three.
 
     Raises
     ------
@@ -105,8 +113,8 @@ def scene_set(name: str, frames: int = 45, repeats: int = 1, surface_frames: int
                     name=kind if r == 0 else f"{kind}_{r}",
                     kind=kind,
                     seed=zlib.crc32(f"{name}/{kind}/{r}".encode("utf-8")) & 0x7FFFFFFF,
-                    shape=MeshShape(*d["shapes"][i % len(d["shapes"])]),
-                    sensor=d["sensors"][(i + r) % len(d["sensors"])],
+                    shape=shape or MeshShape(*d["shapes"][i % len(d["shapes"])]),
+                    sensor=sensor or d["sensors"][(i + r) % len(d["sensors"])],
                     frames=surface_frames if surface_frames and kind in SURFACE_TYPES else frames,
                     split=d["split"],
                 )
@@ -177,11 +185,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--surface-frames", type=int, default=None, metavar="N",
                    help="frames of the scenes with large surfaces (default --frames)")
     p.add_argument("--only", nargs="+", metavar="TYPE", choices=SCENE_TYPES, help="only these scene types")
+    p.add_argument("--sensor", choices=SENSORS, default=None, help="every bag with this sensor (default: the set's)")
+    p.add_argument("--shape", type=float, nargs=3, default=None, metavar=("LENGTH", "WIDTH", "THICKNESS"),
+                   help="every hand of this shape (default: the set's)")
     args = p.parse_args(argv)
     root = Path(args.out or Path("bags") / args.scene_set)
     try:
         total = 0
-        for spec in scene_set(args.scene_set, args.frames, args.repeats, args.surface_frames):
+        for spec in scene_set(
+            args.scene_set, args.frames, args.repeats, args.surface_frames, args.sensor,
+            MeshShape(*args.shape) if args.shape else None,
+        ):
             if args.only and spec.kind not in args.only:
                 continue
             size = write_scene_bag(root / spec.name, spec)
