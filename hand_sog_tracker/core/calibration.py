@@ -506,7 +506,7 @@ def calibrate(
         search(("length",) if widths_fixed else _FACTORS[round_no], span, step)
     still = independent_frames(mirrored, [found[i] for i in used])
     if widths_fixed and still <= STILL_FRAMES:
-        best_shape, best_val, best_poses = _length_about_tip(best_shape, best_poses, fits, mirrored, evaluate)
+        best_shape, best_val, best_poses = _length_about_tip(best_shape, best_val, best_poses, fits, mirrored, evaluate)
         ref_model = mirrored.scaled(best_shape)
     bounded = _bounded_thickness(best_shape)
     if bounded is not best_shape:
@@ -566,6 +566,7 @@ def calibrate(
 
 def _length_about_tip(
     shape: HandShape,
+    value: float,
     poses: list[NDArray[np.float64]],
     fits: list[_Frame],
     mirrored: HandModel,
@@ -579,22 +580,22 @@ def _length_about_tip(
     searched about the palm centre trades off against that place: held still, the hands'
     lengths came out 1.3-2.5% long on average (doc/design/calibration_guard.md).  Here every
     candidate of :data:`_TIP_ROUND` about ``shape``'s length is scaled about the palm centre at
-    ``poses`` and then moved along the hand so that its middle fingertip stays (the data's
-    end of the hand), scored on the fit frames like the other candidates.  Only for a hand
+    ``poses`` (where ``shape`` scores ``value``) and then moved along the hand so that its
+    middle fingertip stays (the data's end of the hand), scored on the fit frames like the
+    other candidates.  Only for a hand
     held still: on moving hands the fit frames' thumb and finger angles differ from the open
     pose the fit sets, and the place is then a spurious optimum (lengths 2.5-3.6% short).
 
     Returns
     -------
     shape, value, poses
-        The best shape, its mean score about the palm centre at its own poses and the fit
-        frames' poses (26,) for it (also stored in ``fits``).
+        The best shape, its mean score and the fit frames' poses (26,) for it (also stored in
+        ``fits``: scaled about the palm centre from there, the shape itself keeps them).
     """
     for fr, th in zip(fits, poses):
         fr.pose = th
-    ref = mirrored.scaled(shape)
-    best_val, best_poses = evaluate(shape, ref)
-    best = shape
+    ref = mirrored.scaled(shape)  # (at ``poses`` itself: its score is ``value``)
+    best, best_val, best_poses = shape, value, poses
     span, step = _TIP_ROUND
     for off in np.arange(-span, span + 1e-9, step):
         cand = _candidate(shape, "length", float(off)) if abs(off) > 1e-9 else None
@@ -605,8 +606,7 @@ def _length_about_tip(
             best_val, best, best_poses = val, cand, ths
     for fr, th in zip(fits, best_poses):
         fr.pose = th
-    value, out = evaluate(best, mirrored.scaled(best))
-    return best, value, out
+    return best, best_val, best_poses
 
 
 def _bounded_thickness(shape: HandShape) -> HandShape:
