@@ -37,6 +37,12 @@ depth and sigma are set from them and the second round searches the length alone
 a usable measurement (fingers not seen) the search fits all factors as before.  The measured
 numbers are in :class:`Validation` (and so in the saved model file).
 
+Length of a hand held still.  The fit frames' poses sit off along the hand's axis (the
+tracking objective's global-pose optimum), and the length searched about the palm centre trades
+off against that place: when the fit frames show a hand held still (:data:`STILL_FRAMES`) the
+length is searched once more with each candidate's middle fingertip kept in place
+(:func:`_length_about_tip`).
+
 Per-finger lengths.  Real hands do not have the default model's finger proportions.  After the
 four factors, the fingers (index .. little; the thumb's angles are set open, and fitted that way
 its length was 9% off on average) are refitted at each fit frame with the model found (global
@@ -186,8 +192,9 @@ _MEASURE = True
 #: Fit frames that add up to at most this many independent observations of the pose
 #: (:func:`~hand_sog_tracker.core.calibration_guard.independent_frames` of their tracked poses,
 #: unitless) show a hand held still: its length is searched once more with each candidate's
-#: middle fingertip kept where it is (:func:`_length_about_tip`).  2.0: together the fit frames'
-#: fingertips moved less than two fingertip radii (dev renders: held still 1.0-1.x, moving 3).
+#: middle fingertip kept where it is (:func:`_length_about_tip`).  2.0: between them the fit
+#: frames' fingertips moved less than two fingertip radii (``calibration_benchmark`` dev
+#: renders: held still 1.17-2.24, p90 1.80; moving 2.22-3.0, p10 2.29).
 STILL_FRAMES = 2.0
 #: Span and step (unitless) of the length search about the middle fingertip: the second
 #: round's grid widened by two steps (the static hands' lengths came out up to 8% long).
