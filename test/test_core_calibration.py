@@ -437,3 +437,24 @@ def test_skin_drawn_by_chains_composes_to_the_whole_skin() -> None:
         split = np.minimum(draw_skin(model, theta, INTR, roi, rest), draw_skin(model, theta, INTR, roi, (chain,)))
         assert np.array_equal(split, whole)
     assert not np.isfinite(draw_skin(model, theta, INTR, roi, ())).any()
+
+
+def test_a_short_hand_held_still_gets_its_length_about_the_fingertip(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Held still (three frames within 3 ms, tracked with the default model), a short hand's length
+    searched about the palm centre comes out long; searched again about the middle fingertip it
+    comes closer to the truth.  Frames of a moving hand do not get the second search."""
+    import hand_sog_tracker.core.calibration as calibration
+
+    truth = HandShape(0.87, 0.97, 0.9, 0.9)
+    still = [f.depth_mm for f in synthetic_sequence("abdadd", 3, INTR, shape=truth, seed=27, fps=1000.0)]
+    fitted = {}
+    for name, limit in (("palm", 0.0), ("tip", calibration.STILL_FRAMES)):
+        monkeypatch.setattr(calibration, "STILL_FRAMES", limit)
+        fitted[name] = calibrate(still, INTR, TrackerConfig(), default_hand_model(True)).shape.length
+    print(f"length {truth.length}: about the palm centre {fitted['palm']:.3f}, about the tip {fitted['tip']:.3f}")
+    assert fitted["palm"] > truth.length * 1.02  # the bias this corrects
+    assert abs(fitted["tip"] - truth.length) < abs(fitted["palm"] - truth.length) - 0.01
+    calls: list[int] = []
+    monkeypatch.setattr(calibration, "_length_about_tip", lambda *a: calls.append(1) or a[0])
+    calibrate(open_hand_frames(truth, 27), INTR, TrackerConfig(), default_hand_model(True))
+    assert calls == []  # a moving hand (frames 33 ms apart) keeps the palm-centre search

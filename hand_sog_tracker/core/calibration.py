@@ -37,6 +37,12 @@ depth and sigma are set from them and the second round searches the length alone
 a usable measurement (fingers not seen) the search fits all factors as before.  The measured
 numbers are in :class:`Validation` (and so in the saved model file).
 
+Length of a hand held still.  The fit frames' poses sit off along the hand's axis (the
+tracking objective's global-pose optimum), and the length searched about the palm centre trades
+off against that place: when the fit frames show a hand held still (:data:`STILL_FRAMES`) the
+length is searched once more with each candidate's middle fingertip kept in place
+(:func:`_length_about_tip`).
+
 Per-finger lengths.  Real hands do not have the default model's finger proportions.  After the
 four factors, the fingers (index .. little; the thumb's angles are set open, and fitted that way
 its length was 9% off on average) are refitted at each fit frame with the model found (global
@@ -117,7 +123,7 @@ from hand_sog_tracker.core.hand_model import (
     chain_slice,
 )
 from hand_sog_tracker.core.measure import WidthMeasurement, measure_widths, shape_from_widths
-from hand_sog_tracker.core.kinematics import keep_palm_centre
+from hand_sog_tracker.core.kinematics import fingertips, keep_palm_centre
 from hand_sog_tracker.core.optimizer import maximise
 from hand_sog_tracker.core.skin import SCORE_TOLERANCE_MM, draw_skin, overlap_score, shape_score
 from hand_sog_tracker.core.tracker import coverage
@@ -176,11 +182,23 @@ _FACTORS = (("size", "length", "width", "thickness"), ("length", "width", "thick
 _REFIT_ITERATIONS = 15
 #: A fit frame whose fingers are flexed more than this (mean MCP + PIP flexion, rad) is not open.
 _MAX_OPEN_FLEX = 0.6
+#: Fingertip row of the middle finger in :func:`~hand_sog_tracker.core.kinematics.fingertips`.
+_MIDDLE = 2
 _FINGER_FLEX = np.array([chain_slice(c).start + k for c in range(1, 5) for k in (FLEX1, FLEX2, FLEX3)])
 #: The global pose and the four joint angles of index .. little (the per-finger search's refit).
 _RIGID_FINGERS = _RIGID | (np.arange(N_PARAMS) >= chain_slice(1).start)
 #: Take width, depth and sigma from :mod:`.measure` (False: search them, as before 2026-11-23).
 _MEASURE = True
+#: Fit frames that add up to at most this many independent observations of the pose
+#: (:func:`~hand_sog_tracker.core.calibration_guard.independent_frames` of their tracked poses,
+#: unitless) show a hand held still: its length is searched once more with each candidate's
+#: middle fingertip kept where it is (:func:`_length_about_tip`).  2.0: between them the fit
+#: frames' fingertips moved less than two fingertip radii (``calibration_benchmark`` dev
+#: renders: held still 1.17-2.24, p90 1.80; moving 2.22-3.0, p10 2.29).
+STILL_FRAMES = 2.0
+#: Span and step (unitless) of the length search about the middle fingertip: the second
+#: round's grid widened by two steps (the static hands' lengths came out up to 8% long).
+_TIP_ROUND = (0.075, 0.015)
 #: Fit per-finger length factors (:attr:`~hand_sog_tracker.core.hand_model.HandShape.fingers`)
 #: after the four overall factors (False: they stay as in the starting model, as before
 #: 2026-11-23).
@@ -410,9 +428,10 @@ def calibrate(
     others_drawn: dict[tuple[object, ...], NDArray[np.float32]] = {}
 
     def evaluate(
-        shape: HandShape, ref_model: HandModel, chain: int | None = None
+        shape: HandShape, ref_model: HandModel, chain: int | None = None, about_tip: bool = False
     ) -> tuple[float, list[NDArray[np.float64]]]:
-        """Mean score of ``shape`` over the fit frames, scaled about each palm centre.
+        """Mean score of ``shape`` over the fit frames, scaled about each palm centre (with
+        ``about_tip``: then moved so that its middle fingertip lies where ``ref_model``'s does).
 
         With ``chain`` (a candidate that differs from the others of its search in that chain's
         length factor alone) only that chain's capsules are drawn anew; the other chains' skin
@@ -421,6 +440,9 @@ def calibrate(
         """
         m = mirrored.scaled(shape)
         ths = [keep_palm_centre(fr.pose, ref_model, m) for fr in fits]
+        if about_tip:
+            for th, fr in zip(ths, fits):
+                th[:3] += fingertips(ref_model, fr.pose)[_MIDDLE] - fingertips(m, th)[_MIDDLE]
         total = 0.0
         for k, (th, fr) in enumerate(zip(ths, fits)):
             skin = None
@@ -489,6 +511,10 @@ def calibrate(
                     for fr, th in zip(fits, saved):
                         fr.pose = th
         search(("length",) if widths_fixed else _FACTORS[round_no], span, step)
+    still = independent_frames(mirrored, [found[i] for i in used])
+    if widths_fixed and still <= STILL_FRAMES:
+        best_shape, best_val, best_poses = _length_about_tip(best_shape, best_val, best_poses, fits, mirrored, evaluate)
+        ref_model = mirrored.scaled(best_shape)
     bounded = _bounded_thickness(best_shape)
     if bounded is not best_shape:
         best_shape = bounded
@@ -543,6 +569,51 @@ def calibrate(
         used_frames=tuple(used),
         validation=validation,
     )
+
+
+def _length_about_tip(
+    shape: HandShape,
+    value: float,
+    poses: list[NDArray[np.float64]],
+    fits: list[_Frame],
+    mirrored: HandModel,
+    evaluate: Callable[..., tuple[float, list[NDArray[np.float64]]]],
+) -> tuple[HandShape, float, list[NDArray[np.float64]]]:
+    """The length searched once more, each candidate placed with its middle fingertip kept.
+
+    The fit frames' poses were refitted by the tracking objective, whose global-pose optimum
+    lies off along the hand's axis (on renders of a hand held still the wrist sat up to 12 mm
+    off after the fit, the true model refitted from the true pose moved 5 mm), and the length
+    searched about the palm centre trades off against that place: held still, the hands'
+    lengths came out 1.3-2.5% long on average (doc/design/calibration_guard.md).  Here every
+    candidate of :data:`_TIP_ROUND` about ``shape``'s length is scaled about the palm centre at
+    ``poses`` (where ``shape`` scores ``value``) and then moved along the hand so that its
+    middle fingertip stays (the data's end of the hand), scored on the fit frames like the
+    other candidates.  Only for a hand
+    held still: on moving hands the fit frames' thumb and finger angles differ from the open
+    pose the fit sets, and the place is then a spurious optimum (lengths 2.5-3.6% short).
+
+    Returns
+    -------
+    shape, value, poses
+        The best shape, its mean score and the fit frames' poses (26,) for it (also stored in
+        ``fits``: scaled about the palm centre from there, the shape itself keeps them).
+    """
+    for fr, th in zip(fits, poses):
+        fr.pose = th
+    ref = mirrored.scaled(shape)  # (at ``poses`` itself: its score is ``value``)
+    best, best_val, best_poses = shape, value, poses
+    span, step = _TIP_ROUND
+    for off in np.arange(-span, span + 1e-9, step):
+        cand = _candidate(shape, "length", float(off)) if abs(off) > 1e-9 else None
+        if cand is None:
+            continue
+        val, ths = evaluate(cand, ref, about_tip=True)
+        if val > best_val:
+            best_val, best, best_poses = val, cand, ths
+    for fr, th in zip(fits, best_poses):
+        fr.pose = th
+    return best, best_val, best_poses
 
 
 def _bounded_thickness(shape: HandShape) -> HandShape:
