@@ -227,18 +227,13 @@ def check_hand(
         data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis, other
     )
     ends = _finger_ends(full, s, result, model, (fx, fy, cx, cy), on_model, (u0, v0), other)
-    fingers = np.zeros(5)  # per finger: on / all (occluded counts against: not shown)
-    visible_on = np.zeros(5)  # per finger: on / (on + off)
+    # Per finger (chains 0-4; -1 the palm, -2 no owner): its core, on and off pixels counted.
+    n, n_c_on, n_c_off = (np.bincount(own_chain[mask] + 2, minlength=7)[2:] for mask in (core, on, off))
+    fingers = n_c_on / np.maximum(n, 1)  # per finger: on / all (occluded counts against: not shown; 0 without)
+    visible_on = n_c_on / np.maximum(n_c_on + n_c_off, 1)  # per finger: on / (on + off)
     counted = np.ones(5, dtype=bool)  # the fingers in ``fingers_on``'s mean
-    for c in range(5):
-        mine = (own_chain == c) & core
-        n = int(np.count_nonzero(mine))
-        n_c_on = int(np.count_nonzero(mine & on))
-        fingers[c] = n_c_on / n if n else 0.0
-        n_c_off = int(np.count_nonzero(mine & off))
-        visible_on[c] = n_c_on / max(n_c_on + n_c_off, 1)
-        if other is not None and n_c_on + n_c_off == 0 and bool(np.any(mine & other)):
-            counted[c] = False  # another hand hides the whole finger: it counts neither way
+    if other is not None:  # (another hand hides the whole finger: it counts neither way)
+        counted = (n_c_on + n_c_off > 0) | (np.bincount(own_chain[core & other] + 2, minlength=7)[2:] == 0)
     fingers_on = float(visible_on[counted].mean()) if counted.any() else float(visible_on.mean())
     e_factor = 1.0 if math.isnan(ends) else _ramp(ends, ENDS_LOW, 1.0)
     s_factor = 1.0 if math.isnan(steep) else _ramp(steep, STEEP_LOW, STEEP_HIGH)
@@ -289,10 +284,11 @@ def _front(
     du = (uu.take(np.minimum(cols, bw - 1)) - u[:, None]) * (z / fx)[:, None]
     dv = (vv.take(np.minimum(rows, bh - 1)) - v[:, None]) * (z / fy)[:, None]
     d2 = (r * r)[:, None, None] - (du * du)[:, None, :] - (dv * dv)[:, :, None]
-    disc = in_box & (d2 >= 0)
-    idx = (rows[:, :, None] * bw + cols[:, None, :])[disc]  # flat box pixels, Gaussian after Gaussian
-    zf = (C[:, 2][:, None, None] - np.sqrt(np.maximum(d2, 0.0)))[disc]
-    gi = np.broadcast_to(np.arange(m)[:, None, None], d2.shape)[disc]
+    disc = np.flatnonzero(in_box & (d2 >= 0))  # (the drawn patch pixels, Gaussian after Gaussian)
+    idx = (rows[:, :, None] * bw + cols[:, None, :]).take(disc)  # their flat box pixels
+    gi = disc // (ph * pw)  # their Gaussians
+    d2 = d2.take(disc)  # (>= 0: only the drawn pixels' square roots)
+    zf = C[:, 2].take(gi) - np.sqrt(d2)
     front = np.full(bh * bw, np.inf)
     np.minimum.at(front, idx, zf)
     nearest = zf == front[idx]
@@ -300,7 +296,7 @@ def _front(
     np.minimum.at(owner, idx[nearest], gi[nearest])
     owner[owner == m] = -1
     core = np.zeros(bh * bw, dtype=bool)
-    core[idx[(d2 >= ((1.0 - ON_CORE * ON_CORE) * r * r)[:, None, None])[disc]]] = True
+    core[idx[d2 >= ((1.0 - ON_CORE * ON_CORE) * r * r).take(gi)]] = True
     return front.reshape(bh, bw), owner.reshape(bh, bw), core.reshape(bh, bw)
 
 
@@ -317,18 +313,17 @@ def _grid_depth(depth_mm: NDArray, s: int) -> tuple[NDArray[np.float32], NDArray
     block's other pixel there is often the hand's own edge."""
     h, w = depth_mm.shape
     gh, gw = -(-h // s), -(-w // s)
-    # Each cell's s x s block as axes 1 and 3 (the image's edge padded with no data).
-    block = np.zeros((gh * s, gw * s), dtype=np.float32)
-    block[:h, :w] = depth_mm
-    cells = block.reshape(gh, s, gw, s)
+    block = np.asarray(depth_mm, dtype=np.float32)
+    if h % s or w % s:  # (the image's edge padded with no data)
+        block = np.zeros((gh * s, gw * s), dtype=np.float32)
+        block[:h, :w] = depth_mm
+    cells = block.reshape(gh, s, gw, s)  # each cell's s x s block as axes 1 and 3
     valid = (cells > 0) & (cells < np.inf)  # (NaN: neither)
-    cells = np.where(valid, cells, np.float32(0.0))
-    plain = cells[:, 0, :, 0]
-    grid = cells[:, s - 1, :, s - 1]
-    for k in range(s * s - 2, -1, -1):  # (the block's pixels from its last: the first valid one stays)
+    grid = np.zeros((gh, gw), dtype=np.float32)
+    for k in range(s * s - 1, -1, -1):  # (the block's pixels from its last: the first valid one stays)
         dy, dx = divmod(k, s)
-        grid = np.where(valid[:, dy, :, dx], cells[:, dy, :, dx], grid)
-    return plain, grid
+        np.copyto(grid, cells[:, dy, :, dx], where=valid[:, dy, :, dx])
+    return np.where(valid[:, 0, :, 0], cells[:, 0, :, 0], np.float32(0.0)), grid
 
 
 def _outline(
@@ -428,7 +423,7 @@ def _finger_ends(
         tip = tips[c]
         d = tip - sk[4 * c + 3]
         base = sk[4 * c + 2] - sk[4 * c + 1]
-        n, nb = float(np.linalg.norm(d)), float(np.linalg.norm(base))
+        n, nb = math.sqrt(d @ d), math.sqrt(base @ base)  # (as np.linalg.norm takes them)
         if n < 1e-6 or nb < 1e-6 or (d @ base) / (n * nb) < END_STRAIGHT_COS:
             continue  # a curled finger ends against the palm
         d /= n
