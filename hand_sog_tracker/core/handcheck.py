@@ -195,8 +195,8 @@ def check_hand(
     valid = data > 0
     valid_f = data_f > 0
     diff = np.where(valid_f, data_f - np.where(on_model, front, 0.0), np.inf)
-    on = core & valid_f & (np.abs(diff) <= DEPTH_TOL_MM)
-    occluded = core & valid_f & (diff < -DEPTH_TOL_MM)
+    on = core & (np.abs(diff) <= DEPTH_TOL_MM)  # (diff: inf without data)
+    occluded = core & (diff < -DEPTH_TOL_MM)
     other = None if theirs is None else _theirs_grid(theirs, data_f, valid_f, (uu, vv), (fx, fy, cx, cy))
     if other is not None:
         on &= ~other
@@ -208,7 +208,7 @@ def check_hand(
 
     # Foreground data near the model on the hand side of the wrist plane, not behind it.
     k = 2 * pad + 1
-    near_front = cv2.erode(np.where(on_model, front, np.inf).astype(np.float32), np.ones((k, k), np.uint8))
+    near_front = cv2.erode(front.astype(np.float32), np.ones((k, k), np.uint8))  # (front: inf off the model)
     axis = _hand_axis(result.pose)
     zs = np.where(valid, data, 0.0)
     px = ((uu[None, :] - cx) / fx) * zs
@@ -222,7 +222,7 @@ def check_hand(
     n_fg = int(np.count_nonzero(fg))
     explained = float(np.count_nonzero(fg & covered)) / max(n_fg, 1) if n_fg else 0.0
 
-    own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
+    own_chain = np.append(chain, -2)[owner]  # (owner -1: none, chain -2)
     outline, finger_edges, steep = _outline(
         data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis, other
     )
@@ -416,6 +416,8 @@ def _finger_ends(
     assert result.pose is not None and result.fingertips_mm is not None
     sk = skeleton_points(model, result.pose)  # (the kinematic joints: the fingers' bones)
     tips = np.asarray(result.fingertips_mm)
+    radii = model.tip_radii.tolist()
+    # (Per finger in Python floats from its unit direction on: the same IEEE operations.)
     gh, gw = -(-full.shape[0] // s), -(-full.shape[1] // s)
     bh, bw = on_model.shape
     checked = ended = 0
@@ -426,15 +428,17 @@ def _finger_ends(
         n, nb = math.sqrt(d @ d), math.sqrt(base @ base)  # (as np.linalg.norm takes them)
         if n < 1e-6 or nb < 1e-6 or (d @ base) / (n * nb) < END_STRAIGHT_COS:
             continue  # a curled finger ends against the palm
-        d /= n
-        lateral = math.hypot(d[0], d[1])
+        ux, uy, _ = (d / n).tolist()
+        lateral = math.hypot(ux, uy)
         if lateral < 0.6:  # end-on: the end is not seen against the image
             continue
-        dxy = np.array([d[0], d[1], 0.0]) / lateral
+        ux, uy = ux / lateral, uy / lateral
+        tx, ty, tz = tip.tolist()
         fg = samples = 0
         for gap in (END_GAP_MM, 1.5 * END_GAP_MM):
-            p = tip + (float(model.tip_radii[c]) + gap) * dxy
-            iu, iv = int(round(fx * p[0] / p[2] + cx)), int(round(fy * p[1] / p[2] + cy))
+            step = radii[c] + gap
+            px, py = tx + step * ux, ty + step * uy  # (z: the tip's)
+            iu, iv = int(round(fx * px / tz + cx)), int(round(fy * py / tz + cy))
             if not (0 <= iu < gw and 0 <= iv < gh):
                 continue
             bu, bv = iu - origin[0], iv - origin[1]
@@ -444,7 +448,7 @@ def _finger_ends(
                 continue  # another hand lies there (touching fingertips): cannot tell
             dz = float(np.float32(full[iv * s, iu * s]))  # (the grid's pixel: 0 without data)
             dz = dz if math.isfinite(dz) and dz > 0 else 0.0
-            surface = tip[2] - float(model.tip_radii[c])
+            surface = tz - radii[c]
             if 0 < dz < surface - DEPTH_TOL_MM:
                 continue  # something in front of the finger: cannot tell
             samples += 1
