@@ -210,10 +210,9 @@ def check_hand(
     k = 2 * pad + 1
     near_front = cv2.erode(front.astype(np.float32), np.ones((k, k), np.uint8))  # (front: inf off the model)
     axis = _hand_axis(result.pose)
-    zs = np.where(valid, data, 0.0)
-    px = ((uu[None, :] - cx) / fx) * zs
-    py = ((vv[:, None] - cy) / fy) * zs
-    along = (px - result.pose[0]) * axis[0] + (py - result.pose[1]) * axis[1] + (zs - result.pose[2]) * axis[2]
+    px = ((uu[None, :] - cx) / fx) * data  # (data: 0 where there are none)
+    py = ((vv[:, None] - cy) / fy) * data
+    along = (px - result.pose[0]) * axis[0] + (py - result.pose[1]) * axis[1] + (data - result.pose[2]) * axis[2]
     fg = valid & np.isfinite(near_front) & (data <= near_front + DEPTH_TOL_MM)
     fg &= (data >= near_front - 3.0 * MARGIN_MM) & (along > -WRIST_MARGIN_MM)
     if other is not None:
@@ -364,7 +363,8 @@ def _outline(
     fx, fy, cx, cy = k
     uu, vv = grid
     w = on_model.shape[1]
-    pu, pv = uu[ring_idx % w], vv[ring_idx // w]
+    rv, ru = np.divmod(ring_idx, w)
+    pu, pv = uu[ru], vv[rv]
     p = np.empty((inner.size, 3))
     p[:, 0], p[:, 1], p[:, 2] = (pu - cx) / fx * inner, (pv - cy) / fy * inner, inner
     hand_side = (p - theta[:3]) @ axis > -WRIST_MARGIN_MM
@@ -376,14 +376,15 @@ def _outline(
     if other is not None:
         count &= ~other.ravel()[ring_idx]
     n = int(np.count_nonzero(count))
-    finger = count & (own_chain.ravel()[near] >= 0) & (own_chain.ravel()[near] < 5)
+    near_chain = own_chain.ravel()[near]
+    finger = count & (near_chain >= 0) & (near_chain < 5)
     n_f = int(np.count_nonzero(finger))
     finger_edges = float(np.count_nonzero(edge & finger)) / n_f if n_f else math.nan
     n_edge = int(np.count_nonzero(edge & count))
     # A surface curving away: an edge less than STEEP_MM behind that keeps receding (or ends)
     # one ring width further out; a step onto a wall or a table close behind does not recede.
-    ru, rv = ring_idx % w, ring_idx // w
-    du, dv = ru - near % w, rv - near // w
+    nv, nu = np.divmod(near, w)
+    du, dv = ru - nu, rv - nv
     reach = (OUTLINE_RING_PX[1] - OUTLINE_RING_PX[0]) / np.maximum(np.hypot(du, dv), 1e-6)
     ou = np.clip(np.rint(ru + du * reach).astype(np.int64), 0, w - 1)
     ov = np.clip(np.rint(rv + dv * reach).astype(np.int64), 0, on_model.shape[0] - 1)
