@@ -195,8 +195,8 @@ def check_hand(
     valid = data > 0
     valid_f = data_f > 0
     diff = np.where(valid_f, data_f - np.where(on_model, front, 0.0), np.inf)
-    on = core & valid_f & (np.abs(diff) <= DEPTH_TOL_MM)
-    occluded = core & valid_f & (diff < -DEPTH_TOL_MM)
+    on = core & (np.abs(diff) <= DEPTH_TOL_MM)  # (diff: inf without data)
+    occluded = core & (diff < -DEPTH_TOL_MM)
     other = None if theirs is None else _theirs_grid(theirs, data_f, valid_f, (uu, vv), (fx, fy, cx, cy))
     if other is not None:
         on &= ~other
@@ -208,12 +208,11 @@ def check_hand(
 
     # Foreground data near the model on the hand side of the wrist plane, not behind it.
     k = 2 * pad + 1
-    near_front = cv2.erode(np.where(on_model, front, np.inf).astype(np.float32), np.ones((k, k), np.uint8))
+    near_front = cv2.erode(front.astype(np.float32), np.ones((k, k), np.uint8))  # (front: inf off the model)
     axis = _hand_axis(result.pose)
-    zs = np.where(valid, data, 0.0)
-    px = ((uu[None, :] - cx) / fx) * zs
-    py = ((vv[:, None] - cy) / fy) * zs
-    along = (px - result.pose[0]) * axis[0] + (py - result.pose[1]) * axis[1] + (zs - result.pose[2]) * axis[2]
+    px = ((uu[None, :] - cx) / fx) * data  # (data: 0 where there are none)
+    py = ((vv[:, None] - cy) / fy) * data
+    along = (px - result.pose[0]) * axis[0] + (py - result.pose[1]) * axis[1] + (data - result.pose[2]) * axis[2]
     fg = valid & np.isfinite(near_front) & (data <= near_front + DEPTH_TOL_MM)
     fg &= (data >= near_front - 3.0 * MARGIN_MM) & (along > -WRIST_MARGIN_MM)
     if other is not None:
@@ -222,23 +221,18 @@ def check_hand(
     n_fg = int(np.count_nonzero(fg))
     explained = float(np.count_nonzero(fg & covered)) / max(n_fg, 1) if n_fg else 0.0
 
-    own_chain = np.where(owner >= 0, chain[np.maximum(owner, 0)], -2)
+    own_chain = np.append(chain, -2)[owner]  # (owner -1: none, chain -2)
     outline, finger_edges, steep = _outline(
         data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis, other
     )
     ends = _finger_ends(full, s, result, model, (fx, fy, cx, cy), on_model, (u0, v0), other)
-    fingers = np.zeros(5)  # per finger: on / all (occluded counts against: not shown)
-    visible_on = np.zeros(5)  # per finger: on / (on + off)
+    # Per finger (chains 0-4; -1 the palm, -2 no owner): its core, on and off pixels counted.
+    n, n_c_on, n_c_off = (np.bincount(own_chain[mask] + 2, minlength=7)[2:] for mask in (core, on, off))
+    fingers = n_c_on / np.maximum(n, 1)  # per finger: on / all (occluded counts against: not shown; 0 without)
+    visible_on = n_c_on / np.maximum(n_c_on + n_c_off, 1)  # per finger: on / (on + off)
     counted = np.ones(5, dtype=bool)  # the fingers in ``fingers_on``'s mean
-    for c in range(5):
-        mine = (own_chain == c) & core
-        n = int(np.count_nonzero(mine))
-        n_c_on = int(np.count_nonzero(mine & on))
-        fingers[c] = n_c_on / n if n else 0.0
-        n_c_off = int(np.count_nonzero(mine & off))
-        visible_on[c] = n_c_on / max(n_c_on + n_c_off, 1)
-        if other is not None and n_c_on + n_c_off == 0 and bool(np.any(mine & other)):
-            counted[c] = False  # another hand hides the whole finger: it counts neither way
+    if other is not None:  # (another hand hides the whole finger: it counts neither way)
+        counted = (n_c_on + n_c_off > 0) | (np.bincount(own_chain[core & other] + 2, minlength=7)[2:] == 0)
     fingers_on = float(visible_on[counted].mean()) if counted.any() else float(visible_on.mean())
     e_factor = 1.0 if math.isnan(ends) else _ramp(ends, ENDS_LOW, 1.0)
     s_factor = 1.0 if math.isnan(steep) else _ramp(steep, STEEP_LOW, STEEP_HIGH)
@@ -289,10 +283,11 @@ def _front(
     du = (uu.take(np.minimum(cols, bw - 1)) - u[:, None]) * (z / fx)[:, None]
     dv = (vv.take(np.minimum(rows, bh - 1)) - v[:, None]) * (z / fy)[:, None]
     d2 = (r * r)[:, None, None] - (du * du)[:, None, :] - (dv * dv)[:, :, None]
-    disc = in_box & (d2 >= 0)
-    idx = (rows[:, :, None] * bw + cols[:, None, :])[disc]  # flat box pixels, Gaussian after Gaussian
-    zf = (C[:, 2][:, None, None] - np.sqrt(np.maximum(d2, 0.0)))[disc]
-    gi = np.broadcast_to(np.arange(m)[:, None, None], d2.shape)[disc]
+    disc = np.flatnonzero(in_box & (d2 >= 0))  # (the drawn patch pixels, Gaussian after Gaussian)
+    idx = (rows[:, :, None] * bw + cols[:, None, :]).take(disc)  # their flat box pixels
+    gi = disc // (ph * pw)  # their Gaussians
+    d2 = d2.take(disc)  # (>= 0: only the drawn pixels' square roots)
+    zf = C[:, 2].take(gi) - np.sqrt(d2)
     front = np.full(bh * bw, np.inf)
     np.minimum.at(front, idx, zf)
     nearest = zf == front[idx]
@@ -300,7 +295,7 @@ def _front(
     np.minimum.at(owner, idx[nearest], gi[nearest])
     owner[owner == m] = -1
     core = np.zeros(bh * bw, dtype=bool)
-    core[idx[(d2 >= ((1.0 - ON_CORE * ON_CORE) * r * r)[:, None, None])[disc]]] = True
+    core[idx[d2 >= ((1.0 - ON_CORE * ON_CORE) * r * r).take(gi)]] = True
     return front.reshape(bh, bw), owner.reshape(bh, bw), core.reshape(bh, bw)
 
 
@@ -317,18 +312,17 @@ def _grid_depth(depth_mm: NDArray, s: int) -> tuple[NDArray[np.float32], NDArray
     block's other pixel there is often the hand's own edge."""
     h, w = depth_mm.shape
     gh, gw = -(-h // s), -(-w // s)
-    # Each cell's s x s block as axes 1 and 3 (the image's edge padded with no data).
-    block = np.zeros((gh * s, gw * s), dtype=np.float32)
-    block[:h, :w] = depth_mm
-    cells = block.reshape(gh, s, gw, s)
+    block = np.asarray(depth_mm, dtype=np.float32)
+    if h % s or w % s:  # (the image's edge padded with no data)
+        block = np.zeros((gh * s, gw * s), dtype=np.float32)
+        block[:h, :w] = depth_mm
+    cells = block.reshape(gh, s, gw, s)  # each cell's s x s block as axes 1 and 3
     valid = (cells > 0) & (cells < np.inf)  # (NaN: neither)
-    cells = np.where(valid, cells, np.float32(0.0))
-    plain = cells[:, 0, :, 0]
-    grid = cells[:, s - 1, :, s - 1]
-    for k in range(s * s - 2, -1, -1):  # (the block's pixels from its last: the first valid one stays)
+    grid = np.zeros((gh, gw), dtype=np.float32)
+    for k in range(s * s - 1, -1, -1):  # (the block's pixels from its last: the first valid one stays)
         dy, dx = divmod(k, s)
-        grid = np.where(valid[:, dy, :, dx], cells[:, dy, :, dx], grid)
-    return plain, grid
+        np.copyto(grid, cells[:, dy, :, dx], where=valid[:, dy, :, dx])
+    return np.where(valid[:, 0, :, 0], cells[:, 0, :, 0], np.float32(0.0)), grid
 
 
 def _outline(
@@ -369,7 +363,8 @@ def _outline(
     fx, fy, cx, cy = k
     uu, vv = grid
     w = on_model.shape[1]
-    pu, pv = uu[ring_idx % w], vv[ring_idx // w]
+    rv, ru = np.divmod(ring_idx, w)
+    pu, pv = uu[ru], vv[rv]
     p = np.empty((inner.size, 3))
     p[:, 0], p[:, 1], p[:, 2] = (pu - cx) / fx * inner, (pv - cy) / fy * inner, inner
     hand_side = (p - theta[:3]) @ axis > -WRIST_MARGIN_MM
@@ -381,14 +376,15 @@ def _outline(
     if other is not None:
         count &= ~other.ravel()[ring_idx]
     n = int(np.count_nonzero(count))
-    finger = count & (own_chain.ravel()[near] >= 0) & (own_chain.ravel()[near] < 5)
+    near_chain = own_chain.ravel()[near]
+    finger = count & (near_chain >= 0) & (near_chain < 5)
     n_f = int(np.count_nonzero(finger))
     finger_edges = float(np.count_nonzero(edge & finger)) / n_f if n_f else math.nan
     n_edge = int(np.count_nonzero(edge & count))
     # A surface curving away: an edge less than STEEP_MM behind that keeps receding (or ends)
     # one ring width further out; a step onto a wall or a table close behind does not recede.
-    ru, rv = ring_idx % w, ring_idx // w
-    du, dv = ru - near % w, rv - near // w
+    nv, nu = np.divmod(near, w)
+    du, dv = ru - nu, rv - nv
     reach = (OUTLINE_RING_PX[1] - OUTLINE_RING_PX[0]) / np.maximum(np.hypot(du, dv), 1e-6)
     ou = np.clip(np.rint(ru + du * reach).astype(np.int64), 0, w - 1)
     ov = np.clip(np.rint(rv + dv * reach).astype(np.int64), 0, on_model.shape[0] - 1)
@@ -421,6 +417,8 @@ def _finger_ends(
     assert result.pose is not None and result.fingertips_mm is not None
     sk = skeleton_points(model, result.pose)  # (the kinematic joints: the fingers' bones)
     tips = np.asarray(result.fingertips_mm)
+    radii = model.tip_radii.tolist()
+    # (Per finger in Python floats from its unit direction on: the same IEEE operations.)
     gh, gw = -(-full.shape[0] // s), -(-full.shape[1] // s)
     bh, bw = on_model.shape
     checked = ended = 0
@@ -428,18 +426,20 @@ def _finger_ends(
         tip = tips[c]
         d = tip - sk[4 * c + 3]
         base = sk[4 * c + 2] - sk[4 * c + 1]
-        n, nb = float(np.linalg.norm(d)), float(np.linalg.norm(base))
+        n, nb = math.sqrt(d @ d), math.sqrt(base @ base)  # (as np.linalg.norm takes them)
         if n < 1e-6 or nb < 1e-6 or (d @ base) / (n * nb) < END_STRAIGHT_COS:
             continue  # a curled finger ends against the palm
-        d /= n
-        lateral = math.hypot(d[0], d[1])
+        ux, uy, _ = (d / n).tolist()
+        lateral = math.hypot(ux, uy)
         if lateral < 0.6:  # end-on: the end is not seen against the image
             continue
-        dxy = np.array([d[0], d[1], 0.0]) / lateral
+        ux, uy = ux / lateral, uy / lateral
+        tx, ty, tz = tip.tolist()
         fg = samples = 0
         for gap in (END_GAP_MM, 1.5 * END_GAP_MM):
-            p = tip + (float(model.tip_radii[c]) + gap) * dxy
-            iu, iv = int(round(fx * p[0] / p[2] + cx)), int(round(fy * p[1] / p[2] + cy))
+            step = radii[c] + gap
+            px, py = tx + step * ux, ty + step * uy  # (z: the tip's)
+            iu, iv = int(round(fx * px / tz + cx)), int(round(fy * py / tz + cy))
             if not (0 <= iu < gw and 0 <= iv < gh):
                 continue
             bu, bv = iu - origin[0], iv - origin[1]
@@ -449,7 +449,7 @@ def _finger_ends(
                 continue  # another hand lies there (touching fingertips): cannot tell
             dz = float(np.float32(full[iv * s, iu * s]))  # (the grid's pixel: 0 without data)
             dz = dz if math.isfinite(dz) and dz > 0 else 0.0
-            surface = tip[2] - float(model.tip_radii[c])
+            surface = tz - radii[c]
             if 0 < dz < surface - DEPTH_TOL_MM:
                 continue  # something in front of the finger: cannot tell
             samples += 1
