@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from hand_sog_tracker.errors import HandSogError
+from hand_sog_tracker.ros.blas import limit_blas_threads
 from hand_sog_tracker.tools.bagio import BagTopics, open_bag, topic_table
 from hand_sog_tracker.tools.bagset import PROTOCOL, BagEntry, discover_bags
 from hand_sog_tracker.tools.evaluation import evaluate_core
@@ -227,6 +228,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--calibrate cannot be combined with --through-node (call the node's ~/calibrate service instead)")
     if not 0 <= args.domain_id <= 232:
         parser.error("--domain-id must be in [0, 232]")
+    if not args.through_node:
+        limit_blas_threads(1)  # (the node's one BLAS thread: core mode gives the node's answers to the bit)
     topics = BagTopics(depth=args.depth_topic, info=args.info_topic, truth=args.gt_topic)
     try:
         entries = discover_bags(args.bags)

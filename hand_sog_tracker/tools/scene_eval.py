@@ -42,6 +42,7 @@ from hand_sog_tracker.core.hands import MultiHandTracker
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig
 from hand_sog_tracker.errors import HandSogError
+from hand_sog_tracker.ros.blas import limit_blas_threads
 from hand_sog_tracker.synth.scenes import ABSENT, FULL, scene_group
 from hand_sog_tracker.tools.bagio import DepthBagReader
 from hand_sog_tracker.tools.bagset import read_sidecar
@@ -286,6 +287,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     for a in args.paths:
         pa = Path(a)
         bags += [pa] if (pa / "metadata.yaml").is_file() else sorted(q.parent for q in pa.glob("*/scene_truth.json"))
+    if not args.through_node:
+        limit_blas_threads(1)  # (the node's one BLAS thread: core mode gives the node's answers to the bit)
     results: dict[str, Any] = {}
     try:
         values = parse_set(args.set)
