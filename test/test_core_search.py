@@ -231,3 +231,24 @@ def test_the_race_stops_candidates_and_changes_no_answer(monkeypatch: pytest.Mon
         runs.append(_answers(frames, intr))
     assert any(stopped)
     assert runs[0] == runs[1]
+
+
+def test_the_shift_costs_from_one_batch_of_fingertips_are_those_pose_by_pose() -> None:
+    from hand_sog_tracker.core.kinematics import centres_batch, fingertips
+    from hand_sog_tracker.core.salient import Detections
+    from hand_sog_tracker.core.search.candidates import shifted
+    from hand_sog_tracker.core.search.score import assignment_cost
+
+    rng = np.random.default_rng(5)
+    model = default_hand_model()
+    for _ in range(20):
+        x = rest_pose() + rng.normal(0.0, 0.3, 26)
+        x[:3] = (0.0, 0.0, 400.0) + rng.normal(0.0, 20.0, 3)
+        poses = np.array([shifted(x, s) for s in (0, 1, -1)])
+        tips = centres_batch(model, poses, pullback=False)[0].take(model.tip_index, axis=1)
+        points = (0.0, 0.0, 400.0) + rng.normal(0.0, 60.0, (5, 3))
+        det = Detections(points, points[:, :2], rng.uniform(0.2, 1.0, 5), rng.uniform(size=5) < 0.3)
+        for p, t in zip(poses, tips):
+            # (Equal bit for bit: the shift proposal decides on differences of these costs.)
+            assert np.array_equal(t, fingertips(model, p))
+            assert assignment_cost(model, p, det, True, t) == assignment_cost(model, p, det, True)

@@ -27,7 +27,7 @@ from hand_sog_tracker.core.hand_model import (
     HandModel,
     chain_slice,
 )
-from hand_sog_tracker.core.kinematics import fingertips, global_rotation
+from hand_sog_tracker.core.kinematics import centres_batch, fingertips, global_rotation
 from hand_sog_tracker.core.objective import Objective, TipTargets
 from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.rotations import euler_from_matrix, rot_y
@@ -242,7 +242,9 @@ def SHIFT(f: Frame) -> Iterator[Candidate]:
         return  # each fingertip has a detection of its own
     else:
         # The side whose shifted pose the detections explain better than the fit, if any.
-        cost = {s: assignment_cost(f.model, shifted(x, s), f.det, True) for s in (0, 1, -1)}
+        poses = np.array([shifted(x, s) for s in (0, 1, -1)])  # (their fingertips from one batch: the same bits)
+        tips = centres_batch(f.model, poses, pullback=False)[0].take(f.model.tip_index, axis=1)
+        cost = {s: assignment_cost(f.model, p, f.det, True, t) for s, p, t in zip((0, 1, -1), poses, tips)}
         sides = tuple(s for s in (1, -1) if cost[s] < cost[0] and cost[s] <= cost[-s])
     for side in sides:
         yield Candidate("shift", shifted(x, side), margin)
