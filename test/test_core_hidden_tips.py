@@ -15,7 +15,7 @@ from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.optimizer import OptimizeResult, maximise
 from hand_sog_tracker.core.rotations import euler_from_matrix, rot_x
 from hand_sog_tracker.core.salient import Detections, assign_detections
-from hand_sog_tracker.core.search import Frame, candidates, plain, score
+from hand_sog_tracker.core.search import Frame, candidates, score
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig
 from hand_sog_tracker.synth.render import RenderOptions, render_depth
@@ -98,7 +98,7 @@ def test_two_model_tips_on_one_seen_tip_score_worse_than_a_curled_finger() -> No
 def _shift_sides(tracker: Tracker, fit: np.ndarray, det: Detections) -> list[int]:
     """The sides of the shift proposal's candidates for a frame fitted at ``fit`` (26,)."""
     res = OptimizeResult(fit, 0.0, 0, True, 0, "", np.zeros(1))
-    frame = candidates.Frame(tracker.model, res, None, None, None, det, tracker._limits())  # type: ignore[arg-type]
+    frame = candidates.Frame(tracker.model, res, None, None, det, tracker._limits())  # type: ignore[arg-type]
     out = []
     for c in candidates.SHIFT.generate(frame):
         side = [s for s in (1, -1) if np.array_equal(c.x0, candidates.shifted(fit, s))]
@@ -145,7 +145,7 @@ def test_a_fist_seen_from_the_back_scores_above_its_fingers_pointing_away(tilt: 
     obj = Objective(tracker.model, data, tracker.config, targets=tracker._targets(truth, det), silhouette=sil)
     bounds = tracker._limits()
     fist, wrong = (maximise(obj, x, iterations=7, bounds=bounds) for x in (truth, away))
-    frame = Frame(tracker.model, wrong, obj, plain(obj), data, det, bounds)
+    frame = Frame(tracker.model, wrong, obj, data, det, bounds)
     off = np.linalg.norm(fingertips(tracker.model, wrong.x) - fingertips(tracker.model, truth), axis=1)
     assert global_rotation(truth)[2, 2] > score.HIDDEN_PALM_COS and det.n > 0 and off[2:4].min() > 40.0
     assert frame.score(fist.x) > frame.score(wrong.x) + candidates.CURL_MARGIN

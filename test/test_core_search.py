@@ -53,8 +53,9 @@ def test_the_highest_score_that_beats_the_fit_by_its_margin_wins(
         x[0] = k
         starts.append(Candidate(f"c{int(k)}", x, margin))
     proposal = Proposal("test", "two candidates", lambda f: iter(starts))
-    plain = SimpleNamespace(batch=None, data=SimpleNamespace(n=100))  # (the stand-in fit does not evaluate it)
-    frame = Frame(default_hand_model(), fit, plain, plain, None, None, (None, None))  # type: ignore[arg-type]
+    # (The stand-in fit does not evaluate it; without targets it is its own plain objective.)
+    plain = SimpleNamespace(batch=None, data=SimpleNamespace(n=100), targets=None)
+    frame = Frame(default_hand_model(), fit, plain, None, None, (None, None))  # type: ignore[arg-type]
     res, name = search(frame, (proposal,))
     if expected is None:
         assert res is fit and name is None
@@ -64,7 +65,7 @@ def test_the_highest_score_that_beats_the_fit_by_its_margin_wins(
 
 def test_no_candidate_no_fit() -> None:
     fit = OptimizeResult(rest_pose(), 0.5, 7, True, 0, "", np.zeros(1))
-    frame = Frame(default_hand_model(), fit, None, None, None, None, (None, None))  # type: ignore[arg-type]
+    frame = Frame(default_hand_model(), fit, None, None, None, (None, None))  # type: ignore[arg-type]
     assert search(frame, (Proposal("none", "never applies", lambda f: iter(())),)) == (fit, None)
 
 
@@ -99,7 +100,7 @@ def test_a_detection_whose_pulls_lost_is_not_pulled_onto_again_where_it_stays() 
     fit = OptimizeResult(theta, 0.5, 7, True, 0, "", np.zeros(1))
 
     def target(lost: np.ndarray) -> int | None:
-        frame = Frame(model, fit, None, None, None, det, (None, None), lost_pulls=lost)  # type: ignore[arg-type]
+        frame = Frame(model, fit, None, None, det, (None, None), lost_pulls=lost)  # type: ignore[arg-type]
         return pull_target(frame)
 
     assert target(np.zeros((0, 3))) == 0
@@ -155,7 +156,7 @@ def test_the_fits_plain_value_is_its_value_with_the_salient_term_added_back() ->
     obj = Objective(model, data_near(model, theta, rng), TrackerConfig(), targets=targets)
     x = theta + rng.normal(0.0, 0.01, theta.size)
     fit = OptimizeResult(x, obj(x, gradient=False)[0], 7, True, 0, "", np.zeros(1))
-    frame = Frame(model, fit, obj, plain(obj), obj.data, None, (None, None))  # type: ignore[arg-type]
+    frame = Frame(model, fit, obj, obj.data, None, (None, None))  # type: ignore[arg-type]
     assert obj.salient(x) > 0.0
     assert fit_module._plain_value(frame) == pytest.approx(plain(obj)(x, gradient=False)[0], rel=1e-13, abs=1e-13)
 
@@ -174,7 +175,7 @@ def test_a_fingertip_against_another_hand_calls_for_no_curl() -> None:
     fit = OptimizeResult(theta, 0.5, 7, True, 0, "", np.zeros(1))
 
     def curls(covered) -> int:
-        frame = Frame(model, fit, None, None, None, det, (None, None), covered=covered)  # type: ignore[arg-type]
+        frame = Frame(model, fit, None, None, det, (None, None), covered=covered)  # type: ignore[arg-type]
         return len(list(CURL.generate(frame)))
 
     assert curls(None) == 4  # (each open finger curled)
@@ -199,7 +200,7 @@ def test_a_fingertip_another_hand_hides_does_not_dangle() -> None:
     fit = OptimizeResult(theta, 0.5, 7, True, 0, "", np.zeros(1))
 
     def dangling(covered) -> int:
-        frame = Frame(model, fit, None, None, data, None, (None, None), covered=covered)  # type: ignore[arg-type]
+        frame = Frame(model, fit, None, data, None, (None, None), covered=covered)  # type: ignore[arg-type]
         return len(list(DANGLING.generate(frame)))
 
     assert dangling(None) == 3  # (the index finger extended, curled, like the others)
@@ -230,3 +231,24 @@ def test_the_race_stops_candidates_and_changes_no_answer(monkeypatch: pytest.Mon
         runs.append(_answers(frames, intr))
     assert any(stopped)
     assert runs[0] == runs[1]
+
+
+def test_the_shift_costs_from_one_batch_of_fingertips_are_those_pose_by_pose() -> None:
+    from hand_sog_tracker.core.kinematics import centres_batch, fingertips
+    from hand_sog_tracker.core.salient import Detections
+    from hand_sog_tracker.core.search.candidates import shifted
+    from hand_sog_tracker.core.search.score import assignment_cost
+
+    rng = np.random.default_rng(5)
+    model = default_hand_model()
+    for _ in range(20):
+        x = rest_pose() + rng.normal(0.0, 0.3, 26)
+        x[:3] = (0.0, 0.0, 400.0) + rng.normal(0.0, 20.0, 3)
+        poses = np.array([shifted(x, s) for s in (0, 1, -1)])
+        tips = centres_batch(model, poses, pullback=False)[0].take(model.tip_index, axis=1)
+        points = (0.0, 0.0, 400.0) + rng.normal(0.0, 60.0, (5, 3))
+        det = Detections(points, points[:, :2], rng.uniform(0.2, 1.0, 5), rng.uniform(size=5) < 0.3)
+        for p, t in zip(poses, tips):
+            # (Equal bit for bit: the shift proposal decides on differences of these costs.)
+            assert np.array_equal(t, fingertips(model, p))
+            assert assignment_cost(model, p, det, True, t) == assignment_cost(model, p, det, True)

@@ -23,7 +23,7 @@ from hand_sog_tracker.core.kinematics import fingertips, gaussian_centres, globa
 from hand_sog_tracker.core.objective import Objective
 from hand_sog_tracker.core.optimizer import OptimizeResult, maximise
 from hand_sog_tracker.core.salient import Detections
-from hand_sog_tracker.core.search import TRACK_PROPOSALS, Frame, plain, search
+from hand_sog_tracker.core.search import TRACK_PROPOSALS, Frame, search
 from hand_sog_tracker.core.search.candidates import (
     CURL,
     DETECTION,
@@ -415,7 +415,7 @@ def _counting_one_shifted() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
 
 def _frame(tracker: Tracker, obj: Objective, res: OptimizeResult, data: ImageSoG, det: Detections) -> Frame:
     """The search's view of a tracked frame fitted to ``res`` on ``obj``."""
-    return Frame(tracker.model, res, obj, plain(obj), data, det, tracker._limits())
+    return Frame(tracker.model, res, obj, data, det, tracker._limits())
 
 
 def _fit_wrong(

@@ -54,18 +54,23 @@ class SupportPlane:
     area_mm2: float
 
 
-def _grid_points(depth: NDArray[np.float32], intr: Intrinsics) -> tuple[NDArray[np.float64], NDArray[np.bool_], int]:
-    """Back-projected grid points (gh, gw, 3) mm, their validity (gh, gw) and the stride (px)."""
+def _grid_depths(depth: NDArray[np.float32]) -> tuple[NDArray[np.float64], NDArray[np.bool_], int]:
+    """The depths (gh, gw) mm of the grid the plane is fitted on, their validity (gh, gw) and its stride (px)."""
     h, w = depth.shape
     s = max(1, int(round(np.sqrt(h * w / _GRID_POINTS))))
     z = depth[s // 2 :: s, s // 2 :: s].astype(np.float64)
-    vs = np.arange(s // 2, h, s, dtype=np.float64)[: z.shape[0]]
-    us = np.arange(s // 2, w, s, dtype=np.float64)[: z.shape[1]]
+    return z, np.isfinite(z) & (z > 0), s
+
+
+def _grid_points(z: NDArray[np.float64], s: int, intr: Intrinsics) -> NDArray[np.float64]:
+    """The grid depths ``z`` (gh, gw) mm of stride ``s`` (px) back-projected (gh, gw, 3) mm."""
+    vs = np.arange(s // 2, s // 2 + s * z.shape[0], s, dtype=np.float64)
+    us = np.arange(s // 2, s // 2 + s * z.shape[1], s, dtype=np.float64)
     P = np.empty(z.shape + (3,))
     P[..., 0] = z * ((us[None, :] - intr.cx) / intr.fx)
     P[..., 1] = z * ((vs[:, None] - intr.cy) / intr.fy)
     P[..., 2] = z
-    return P, np.isfinite(z) & (z > 0), s
+    return P
 
 
 def find_support(
@@ -73,18 +78,16 @@ def find_support(
 ) -> SupportPlane | None:
     """The dominant plane of ``depth_mm`` (H, W) mm (0, NaN invalid) if its inliers cover more
     than ``min_area_mm2``, else None.  Deterministic (a fixed seed per call)."""
-    depth = np.asarray(depth_mm, dtype=np.float32)
-    P, valid, s = _grid_points(depth, intr)
+    z, valid, s = _grid_depths(np.asarray(depth_mm, dtype=np.float32))
     gh, gw = valid.shape
     idx = np.flatnonzero(valid)
     if idx.size < 3:
         return None
-    flat = P.reshape(-1, 3)
-    pts = flat[idx]
-    f2 = intr.fx * intr.fy
-    foot = pts[:, 2] ** 2 * (s * s / f2)  # each grid point's footprint (mm^2)
+    foot = z.ravel()[idx] ** 2 * (s * s / (intr.fx * intr.fy))  # each grid point's footprint (mm^2)
     if foot.sum() <= min_area_mm2:
-        return None
+        return None  # (before the back-projection: a hand alone never covers it)
+    flat = _grid_points(z, s, intr).reshape(-1, 3)
+    pts = flat[idx]
     rng = np.random.default_rng(0)
     a = idx[rng.integers(0, idx.size, _HYPOTHESES)]
     ar, ac = np.divmod(a, gw)

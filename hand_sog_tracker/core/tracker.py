@@ -41,7 +41,7 @@ from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.optimizer import OptimizeResult, StepSizes, maximise
 from hand_sog_tracker.core.region import SURFACE_SEARCH_MM, WINDOW_BEHIND_MM, before_surface, coverage, hand_roi
 from hand_sog_tracker.core.salient import MAX_DETECTIONS, Detections, assigned_targets, detect_fingertips
-from hand_sog_tracker.core.search import ASSIGN_LAMBDA_MM, NEW_TRACK_PROPOSALS, TRACK_PROPOSALS, Frame, plain, search
+from hand_sog_tracker.core.search import ASSIGN_LAMBDA_MM, NEW_TRACK_PROPOSALS, TRACK_PROPOSALS, Frame, search
 from hand_sog_tracker.core.search.candidates import ROLL, pull_target
 from hand_sog_tracker.core.search.fit import fit_parts, part
 from hand_sog_tracker.core.search.start import NEW_TRACK_DATA, Finalists, on_hand_side, start_search
@@ -345,7 +345,7 @@ class Tracker:
         )
         self._steps = fit.steps
         frame = Frame(
-            self._model, fit, obj, plain(obj), data, det, self._limits(), lost_pulls=self._lost_pulls,
+            self._model, fit, obj, data, det, self._limits(), lost_pulls=self._lost_pulls,
             covered=self.covered_tips,
         )
         res, self.last_proposal = search(frame, TRACK_PROPOSALS)
@@ -462,7 +462,7 @@ class Tracker:
         values = shared.batch(np.array([r.x for r in results]), gradient=False, parts=None if parts.all() else parts)[0]
         fits = []
         for (k, _, obj), fit, value in zip(items, results, values.tolist()):
-            frame = Frame(self._model, fit, obj, plain(obj), obj.data, det, self._limits(), new_track=True)
+            frame = Frame(self._model, fit, obj, obj.data, det, self._limits(), new_track=True)
             fits.append((k, (frame.score(fit.x, value), frame)))
         fits.sort(key=lambda f: f[1][0], reverse=True)  # (stable: the earlier first on a tie)
         return fits

@@ -8,6 +8,7 @@ candidate must beat the fit's score by where the score tells them apart poorly (
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Callable, Iterator
 
 import numpy as np
@@ -26,7 +27,7 @@ from hand_sog_tracker.core.hand_model import (
     HandModel,
     chain_slice,
 )
-from hand_sog_tracker.core.kinematics import fingertips, global_rotation
+from hand_sog_tracker.core.kinematics import centres_batch, fingertips, global_rotation
 from hand_sog_tracker.core.objective import Objective, TipTargets
 from hand_sog_tracker.core.optimizer import OptimizeResult
 from hand_sog_tracker.core.rotations import euler_from_matrix, rot_y
@@ -36,6 +37,7 @@ from hand_sog_tracker.core.search.score import (
     assignment_cost,
     lonely_detections,
     own_detections,
+    plain,
     score,
     sq_distances,
 )
@@ -73,7 +75,6 @@ class Frame:
     model: HandModel
     fit: OptimizeResult  #: the frame's fit (a tracked frame's, or a new track's best finalist)
     obj: Objective  #: the frame's objective (with the salient term's targets)
-    plain: Objective  #: ``obj`` without its salient term: candidates are fitted and scored on it
     data: ImageSoG
     det: Detections
     limits: tuple[NDArray[np.float64], NDArray[np.float64]]  #: joint limits (low, high) (26,) each, +-inf: wrist
@@ -83,6 +84,22 @@ class Frame:
     #: ``covered(tips (5, 3) mm) -> (5,) bool``: the fingertips against or behind another hand (no end to
     #: see: no curl, no dangling; :mod:`..hands`); None: none
     covered: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None
+
+    # (Made when first read, once: most tracked frames make no candidate; several proposals ask.)
+    @cached_property
+    def plain(self) -> Objective:
+        """``obj`` without its salient term (:func:`~.score.plain`): candidates are fitted and scored on it."""
+        return plain(self.obj)
+
+    @cached_property
+    def own(self) -> NDArray[np.bool_]:
+        """:func:`~.score.own_detections` at the fit's pose (5,): not to be written."""
+        return own_detections(self.model, self.fit.x, self.det)
+
+    @cached_property
+    def lonely(self) -> NDArray[np.int64]:
+        """:func:`~.score.lonely_detections` at the fit's pose (k,)."""
+        return lonely_detections(self.model, self.fit.x, self.det)
 
     def score(self, theta: NDArray[np.float64], value: float | None = None) -> float:
         """:func:`~hand_sog_tracker.core.search.score.score` of ``theta`` (26,) on this frame."""
@@ -204,9 +221,9 @@ def CURL(f: Frame) -> Iterator[Candidate]:
     fingers = [c for c in range(1, 5) if flex[c - 1] < CURL_MAX_FLEX_RAD]
     if not fingers:
         return
-    seen = own_detections(f.model, x, f.det)
+    seen = f.own
     if f.covered is not None and not seen[fingers].all():
-        seen |= f.covered(fingertips(f.model, x))  # (a tip against another hand has no end to see)
+        seen = seen | f.covered(fingertips(f.model, x))  # (a tip against another hand has no end to see)
     if not seen[fingers].all():
         for c in fingers:
             yield Candidate("curl", _with_chain(x, c, FINGER_CURLED), CURL_MARGIN)
@@ -216,16 +233,18 @@ def CURL(f: Frame) -> Iterator[Candidate]:
 def SHIFT(f: Frame) -> Iterator[Candidate]:
     x = f.fit.x
     margin = SHIFT_MARGIN
-    if f.new_track or lonely_detections(f.model, x, f.det).size:
+    if f.new_track or f.lonely.size:
         sides: tuple[int, ...] = (1, -1)
         margin = 0.0
     elif f.det.n == 0 or _view_cos(x) < EDGE_ON_PALM_COS:
         return  # no detection says where the fingers are, or they overlap in the image (edge-on)
-    elif f.det.n >= 5 and own_detections(f.model, x, f.det).all():
+    elif f.det.n >= 5 and f.own.all():
         return  # each fingertip has a detection of its own
     else:
         # The side whose shifted pose the detections explain better than the fit, if any.
-        cost = {s: assignment_cost(f.model, shifted(x, s), f.det, True) for s in (0, 1, -1)}
+        poses = np.array([shifted(x, s) for s in (0, 1, -1)])  # (their fingertips from one batch: the same bits)
+        tips = centres_batch(f.model, poses, pullback=False)[0].take(f.model.tip_index, axis=1)
+        cost = {s: assignment_cost(f.model, p, f.det, True, t) for s, p, t in zip((0, 1, -1), poses, tips)}
         sides = tuple(s for s in (1, -1) if cost[s] < cost[0] and cost[s] <= cost[-s])
     for side in sides:
         yield Candidate("shift", shifted(x, side), margin)
@@ -255,7 +274,7 @@ def pull_objective(obj: Objective) -> Objective:
 def pull_target(f: Frame) -> int | None:
     """The detection the detection proposal pulls fingers onto, or None: the most confident one no
     fingertip explains, unless its pulls lost last frame there (``SAME_DETECTION_MM``, ``lost_pulls``)."""
-    lonely = lonely_detections(f.model, f.fit.x, f.det)
+    lonely = f.lonely
     if lonely.size and f.lost_pulls.shape[0]:
         near = np.sqrt(sq_distances(f.det.points[lonely], f.lost_pulls)).min(axis=1) < SAME_DETECTION_MM
         lonely = lonely[~near]

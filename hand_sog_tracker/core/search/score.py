@@ -58,14 +58,16 @@ def tip_lambdas(theta: NDArray[np.float64]) -> NDArray[np.float64]:
     return lam
 
 
-def assignment_cost(model: HandModel, theta: NDArray[np.float64], det: Detections, hidden_tips: bool) -> float:
-    """Seed 001's assignment cost (eq. 11) at ``theta`` (26,) per ``SALIENT_SCALE_MM``: assigned
-    pairs cost their distance, detections left over lambda x their confidence, fingertips
-    without one lambda, less with ``hidden_tips`` (:func:`tip_lambdas`; tracked frames: a curled
-    tip the detector cannot see, the palm or the back to the camera)."""
+def assignment_cost(
+    model: HandModel, theta: NDArray[np.float64], det: Detections, hidden_tips: bool, tips: NDArray | None = None
+) -> float:
+    """Seed 001's assignment cost (eq. 11) at ``theta`` (26,; its fingertips ``tips`` (5, 3) mm when known)
+    per ``SALIENT_SCALE_MM``: assigned pairs cost their distance, detections left over lambda x their
+    confidence, fingertips without one lambda, less with ``hidden_tips`` (:func:`tip_lambdas`; tracked
+    frames: a curled tip the detector cannot see, the palm or the back to the camera)."""
     if det.n == 0:
         return 0.0
-    tips = fingertips(model, theta)
+    tips = fingertips(model, theta) if tips is None else tips
     lam = tip_lambdas(theta) if hidden_tips else np.full(5, ASSIGN_LAMBDA_MM)
     assigned = assign_detections(tips, det, ASSIGN_LAMBDA_MM, lam)
     has = assigned >= 0
