@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 import pytest
@@ -273,21 +274,28 @@ def test_grid_depth_takes_each_blocks_first_valid_pixel(s: int) -> None:
             assert grid[gv, gu] == (first[0] if first.size else 0.0)
 
 
+def _hand_and_cylinder(
+    seed: int, centre: np.ndarray, radius_mm: float, length_mm: float
+) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], np.ndarray]]:
+    """The hand at ``THETA`` rendered (1 mm noise), the same with a cylinder along y at
+    ``centre`` (3,) mm drawn over it where nearer, and ``theirs``: points within 12 mm of it."""
+    rng = np.random.default_rng(seed)
+    hand = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), rng)
+    other = _mesh_depth(_cylinder(centre, radius_mm, length_mm, np.eye(3)))
+    depth = np.where((other > 0) & ((hand == 0) | (other < hand)), other, hand).astype(np.float32)
+
+    def theirs(points: np.ndarray) -> np.ndarray:
+        return np.linalg.norm((points - centre)[:, [0, 2]], axis=1) < radius_mm + 12.0
+
+    return hand, depth, theirs
+
+
 def test_data_another_hand_explains_count_neither_way() -> None:
     """A forearm-sized cylinder lying across the hand's side at its depth (another hand's, as
     the multi-hand tracker's split says): it leaves data to explain and hides the outline, so
     the check doubts the hand; given as ``theirs`` it counts neither way and the hand passes."""
-    rng = np.random.default_rng(3)
-    hand = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), rng)
-    centre = THETA[:3] + np.array([75.0, 0.0, 10.0])
-    other = _mesh_depth(_cylinder(centre, 25.0, 300.0, np.eye(3)))
-    depth = np.where((other > 0) & ((hand == 0) | (other < hand)), other, hand).astype(np.float32)
+    hand, depth, theirs = _hand_and_cylinder(3, THETA[:3] + np.array([75.0, 0.0, 10.0]), 25.0, 300.0)
     res = _result(THETA)
-
-    def theirs(points: np.ndarray) -> np.ndarray:
-        d = np.linalg.norm((points - centre)[:, [0, 2]], axis=1)  # (the cylinder's axis is y)
-        return d < 25.0 + 12.0
-
     doubted = check_hand(depth, INTR, MODEL, res)
     given = check_hand(depth, INTR, MODEL, res, theirs)
     clean = check_hand(hand, INTR, MODEL, res)
@@ -300,20 +308,10 @@ def test_a_finger_another_hand_hides_wholly_is_left_out_of_fingers_on() -> None:
     multi-hand tracker's split says): without ``theirs`` the hidden finger counts as none of it
     on data (the one-hand rule); with it, the finger is left out of ``fingers_on``, which stays
     that of the four fingers shown."""
-    rng = np.random.default_rng(4)
-    hand = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), rng)
-    c = gaussian_centres(MODEL, THETA)
-    index = c[MODEL.g_chain == 1]
+    index = gaussian_centres(MODEL, THETA)[MODEL.g_chain == 1]
     centre = index.mean(axis=0) - np.array([0.0, 0.0, 60.0])
-    half = 0.5 * np.ptp(index[:, 1]) + 20.0
-    bar = _mesh_depth(_cylinder(centre, 14.0, 2.0 * half, np.eye(3)))
-    depth = np.where((bar > 0) & ((hand == 0) | (bar < hand)), bar, hand).astype(np.float32)
+    hand, depth, theirs = _hand_and_cylinder(4, centre, 14.0, np.ptp(index[:, 1]) + 40.0)
     res = _result(THETA)
-
-    def theirs(points: np.ndarray) -> np.ndarray:
-        d = np.linalg.norm((points - centre)[:, [0, 2]], axis=1)  # (the bar's axis is y)
-        return d < 14.0 + 12.0
-
     alone = check_hand(depth, INTR, MODEL, res)
     given = check_hand(depth, INTR, MODEL, res, theirs)
     clean = check_hand(hand, INTR, MODEL, res)
