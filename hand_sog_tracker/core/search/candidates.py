@@ -331,6 +331,33 @@ def ROLL(f: Frame) -> Iterator[Candidate]:
         yield Candidate("roll", rolled(f.fit.x), ROLL_MARGIN)
 
 
+import os
+_SL = [float(v) for v in os.environ.get("SLIDE", "20").split(",")]
+_MODE = os.environ.get("SLIDE_MODE", "both")
+_FLEX = float(os.environ.get("SLIDE_FLEX", "1.5"))
+_MARGIN = float(os.environ.get("SLIDE_MARGIN", "0.0"))
+
+
+@_proposal("slide", "a fist seen from its back: the hand moved along its finger axis, fingers as they are and curled")
+def SLIDE(f: Frame) -> Iterator[Candidate]:
+    x = f.fit.x
+    R = global_rotation(x)
+    if R[2, 2] <= 0 or _view_cos(x) < FACING_COS:
+        return
+    flex = x[FINGER_MCP] + x[FINGER_PIP] + x[FINGER_DIP]
+    if np.mean(flex) < _FLEX:
+        return
+    for d in _SL:
+        x0 = x.copy()
+        x0[:3] += d * R[:, 1]
+        if _MODE in ("both", "asis"):
+            yield Candidate("slide", x0, _MARGIN)
+        if _MODE in ("both", "curled"):
+            for c in range(1, 5):
+                x0[chain_slice(c)] = FINGER_CURLED
+            yield Candidate("slide", x0.copy(), _MARGIN)
+
+
 #: The proposals of a tracked frame and of a new track's first frame.
-TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SWAP, CURL, SHIFT, DETECTION, ROLL)
+TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SWAP, CURL, SHIFT, DETECTION, SLIDE, ROLL)
 NEW_TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SHIFT, LATERAL)
