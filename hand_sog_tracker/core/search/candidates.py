@@ -66,6 +66,7 @@ SHIFT_MARGIN = 0.02  #: a shift without an unexplained detection wins by this (a
 LATERAL_MM = 15.0  #: a new track's lateral candidates move the hand this far across the palm (mm: a finger's spacing)
 LATERAL_MARGIN = 0.01  #: ... and must win by this (issue 11)
 ROLL_MARGIN = 0.0  #: a hand turned about its finger axis wins by this
+SLIDE_MM = 20.0  #: a fist seen from its back moved this far (mm) toward its fingers (15, 25: worse on dev)
 
 
 @dataclass(frozen=True, eq=False)
@@ -331,31 +332,11 @@ def ROLL(f: Frame) -> Iterator[Candidate]:
         yield Candidate("roll", rolled(f.fit.x), ROLL_MARGIN)
 
 
-import os
-_SL = [float(v) for v in os.environ.get("SLIDE", "20").split(",")]
-_MODE = os.environ.get("SLIDE_MODE", "both")
-_FLEX = float(os.environ.get("SLIDE_FLEX", "1.5"))
-_MARGIN = float(os.environ.get("SLIDE_MARGIN", "0.0"))
-
-
-@_proposal("slide", "a fist seen from its back: the hand moved along its finger axis, fingers as they are and curled")
+@_proposal("slide", "a fist seen from its back, the knuckles hiding the fingers: the hand moved toward its fingers")
 def SLIDE(f: Frame) -> Iterator[Candidate]:
-    x = f.fit.x
-    R = global_rotation(x)
-    if R[2, 2] <= 0 or _view_cos(x) < FACING_COS:
-        return
-    flex = x[FINGER_MCP] + x[FINGER_PIP] + x[FINGER_DIP]
-    if np.mean(flex) < _FLEX:
-        return
-    for d in _SL:
-        x0 = x.copy()
-        x0[:3] += d * R[:, 1]
-        if _MODE in ("both", "asis"):
-            yield Candidate("slide", x0, _MARGIN)
-        if _MODE in ("both", "curled"):
-            for c in range(1, 5):
-                x0[chain_slice(c)] = FINGER_CURLED
-            yield Candidate("slide", x0.copy(), _MARGIN)
+    x, R = f.fit.x, global_rotation(f.fit.x)  # (fingers not open: mean MCP + PIP + DIP over CURL_MAX_FLEX_RAD)
+    if R[2, 2] >= FACING_COS and np.mean(x[FINGER_MCP] + x[FINGER_PIP] + x[FINGER_DIP]) >= CURL_MAX_FLEX_RAD:
+        yield Candidate("slide", np.concatenate([x[:3] + SLIDE_MM * R[:, 1], x[3:]]))
 
 
 #: The proposals of a tracked frame and of a new track's first frame.
