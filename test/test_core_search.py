@@ -18,7 +18,7 @@ from hand_sog_tracker.synth.sequence import default_intrinsics, synthetic_sequen
 
 def test_every_proposal_has_a_name_and_a_reason() -> None:
     names = [p.name for p in (*TRACK_PROPOSALS, *NEW_TRACK_PROPOSALS)]
-    assert len(set(names)) == 7 and all(p.reason for p in (*TRACK_PROPOSALS, *NEW_TRACK_PROPOSALS))
+    assert len(set(names)) == 8 and all(p.reason for p in (*TRACK_PROPOSALS, *NEW_TRACK_PROPOSALS))
     assert {"lateral"} == {p.name for p in NEW_TRACK_PROPOSALS} - {p.name for p in TRACK_PROPOSALS}
 
 

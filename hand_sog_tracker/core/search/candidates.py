@@ -66,6 +66,7 @@ SHIFT_MARGIN = 0.02  #: a shift without an unexplained detection wins by this (a
 LATERAL_MM = 15.0  #: a new track's lateral candidates move the hand this far across the palm (mm: a finger's spacing)
 LATERAL_MARGIN = 0.01  #: ... and must win by this (issue 11)
 ROLL_MARGIN = 0.0  #: a hand turned about its finger axis wins by this
+SLIDE_MM = 20.0  #: a fist seen from its back moved this far (mm) toward its fingers (15, 25: worse on dev)
 
 
 @dataclass(frozen=True, eq=False)
@@ -331,6 +332,13 @@ def ROLL(f: Frame) -> Iterator[Candidate]:
         yield Candidate("roll", rolled(f.fit.x), ROLL_MARGIN)
 
 
+@_proposal("slide", "a fist seen from its back, the knuckles hiding the fingers: the hand moved toward its fingers")
+def SLIDE(f: Frame) -> Iterator[Candidate]:
+    x, R = f.fit.x, global_rotation(f.fit.x)  # (fingers not open: mean MCP + PIP + DIP over CURL_MAX_FLEX_RAD)
+    if R[2, 2] >= FACING_COS and np.mean(x[FINGER_MCP] + x[FINGER_PIP] + x[FINGER_DIP]) >= CURL_MAX_FLEX_RAD:
+        yield Candidate("slide", np.concatenate([x[:3] + SLIDE_MM * R[:, 1], x[3:]]))
+
+
 #: The proposals of a tracked frame and of a new track's first frame.
-TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SWAP, CURL, SHIFT, DETECTION, ROLL)
+TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SWAP, CURL, SHIFT, DETECTION, SLIDE, ROLL)
 NEW_TRACK_PROPOSALS: tuple[Proposal, ...] = (DANGLING, SHIFT, LATERAL)

@@ -86,11 +86,7 @@ def plain(obj: Objective) -> Objective:
 
 
 def score(
-    plain_obj: Objective,
-    theta: NDArray[np.float64],
-    det: Detections,
-    w_sal: float,
-    hidden_tips: bool,
+    plain_obj: Objective, theta: NDArray[np.float64], det: Detections, w_sal: float, hidden_tips: bool,
     value: float | None = None,
 ) -> float:
     """``plain_obj`` (a :func:`plain` objective) at ``theta`` (26,; ``value`` when known) minus
@@ -105,10 +101,9 @@ def lonely_detections(model: HandModel, theta: NDArray[np.float64], det: Detecti
     if det.n == 0:
         return np.zeros(0, dtype=np.int64)
     dist = np.sqrt(sq_distances(det.points, fingertips(model, theta))).min(axis=1)
-    conf = det.confidence
     return np.flatnonzero(
-        ((dist > UNEXPLAINED_DETECTION_MM) & (conf >= UNEXPLAINED_CONFIDENCE))
-        | ((dist > FAR_UNEXPLAINED_MM) & (conf >= FAR_UNEXPLAINED_CONFIDENCE))
+        ((dist > UNEXPLAINED_DETECTION_MM) & (det.confidence >= UNEXPLAINED_CONFIDENCE))
+        | ((dist > FAR_UNEXPLAINED_MM) & (det.confidence >= FAR_UNEXPLAINED_CONFIDENCE))
     )
 
 
