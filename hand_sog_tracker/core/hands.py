@@ -438,8 +438,9 @@ class MultiHandTracker:
             s.present = answer.hand is not None and answer.hand.present
             out.append((s, answer))
         if any(s.dropped for s in self._slots):
+            if any(s.dropped and ok for s, ok in zip(self._slots, vouched)):
+                self._searched = self._frame + 1 - SEARCH_EVERY  # (a hand lost: look for it at once)
             self._slots = [s for s in self._slots if not s.dropped]
-            self._searched = self._frame + 1 - SEARCH_EVERY
         return out
 
     def _judge(self, slot: _Slot) -> None:
