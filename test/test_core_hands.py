@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -298,3 +299,69 @@ def test_a_hand_keeps_its_track_while_the_other_claps_against_it() -> None:
             if f.index <= 8:
                 assert err < 15.0, (f.index, err)
     assert len(set(ids)) == 1, ids
+
+
+def test_only_a_lost_hand_calls_for_a_search_on_the_next_frame(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A track the hand gate drops calls for a search on the next frame when it was a hand on
+    its last frame; one that never was (a new track that is not a hand) leaves the search's
+    cadence as it was (every ``SEARCH_EVERY`` frames)."""
+    from hand_sog_tracker.core.handcheck import HandGate
+    from hand_sog_tracker.core.hands import SEARCH_EVERY
+    from hand_sog_tracker.core.types import HandDecision, TrackResult
+
+    depth, intr, _ = next(_frames(1))
+    res = TrackResult(TrackerStatus.TRACKING, rest_pose(), np.zeros((5, 3)), np.zeros((21, 3)), 0.6, 0.0, 10, {})
+    no = HandDecision(False, 0.01, np.zeros(5), None)
+
+    def dropped(present: bool) -> MultiHandTracker:
+        mt = MultiHandTracker(TrackerConfig(), max_hands=2)
+        mt._frame, mt._searched = 7, 6
+        kept, lost = _slot("right", rest_pose(), 0), _slot("left", rest_pose(), 1)
+        kept.present, lost.present = True, present
+        kept.result = lost.result = res
+        mt._slots = [kept, lost]
+
+        def gate(self, slot, *a, **kw):  # type: ignore[no-untyped-def]
+            if slot is lost:
+                slot.reset()
+            return replace(res, hand=no)
+
+        monkeypatch.setattr(HandGate, "gate", gate)
+        mt._gate(depth, intr)
+        assert mt.tracks == (("right", 0),)
+        return mt
+
+    mt = dropped(present=True)
+    assert mt._frame + 1 - mt._searched >= SEARCH_EVERY  # (the next frame searches)
+    mt = dropped(present=False)
+    assert mt._searched == 6  # (the next search 5 frames after the last)
+
+
+def test_a_search_that_starts_no_track_waits_twice_as_long_up_to_search_every_max(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With one hand tracked, the search for a second runs every ``SEARCH_EVERY`` frames; each
+    search that starts no track doubles the wait up to ``SEARCH_EVERY_MAX``, and a new track
+    that is a hand brings it back to ``SEARCH_EVERY``."""
+    from hand_sog_tracker.core.handcheck import HandGate
+    from hand_sog_tracker.core.hands import SEARCH_EVERY, SEARCH_EVERY_MAX
+    from hand_sog_tracker.core.types import HandDecision, TrackResult
+
+    depth, intr, _ = next(_frames(1))
+    mt = MultiHandTracker(TrackerConfig(), max_hands=2)
+    mt._slots = [_slot("right", rest_pose(), 0)]
+    searched: list[int] = []
+    monkeypatch.setattr(mt, "_track", lambda pre: None)  # (the tracked hand stays, without a result)
+    monkeypatch.setattr(mt, "_search", lambda pre: searched.append(mt._frame))
+    for _ in range(60):
+        mt.process(depth, intr)
+    assert (SEARCH_EVERY, SEARCH_EVERY_MAX) == (5, 20)
+    assert searched == [0, 10, 30, 50]  # (each started none: waits of 10, 20, 20)
+    new = _slot("left", rest_pose(), 1)
+    res = TrackResult(TrackerStatus.TRACKING, rest_pose(), np.zeros((5, 3)), np.zeros((21, 3)), 0.6, 0.0, 10, {})
+    new.result = res
+    mt._slots.append(new)
+    present = HandDecision(True, 0.9, np.ones(5), None)
+    monkeypatch.setattr(HandGate, "gate", lambda self, slot, *a, **kw: replace(res, hand=present))
+    mt._gate(depth, intr)
+    assert new.reported and mt._every == SEARCH_EVERY

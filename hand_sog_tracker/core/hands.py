@@ -22,7 +22,9 @@ Per frame the depth is preprocessed once and shared:
   (:mod:`.search.start`) runs on the depth with every tracked hand's pixels (its skin and
   forearm, :data:`PIXEL_MARGIN_MM`) removed, so a second hand starts its own track without
   touching the first.  Without any track it runs every frame; with one, every
-  :data:`SEARCH_EVERY` frames (a one-hand user does not pay for it on every frame).
+  :data:`SEARCH_EVERY` frames (a one-hand user does not pay for it on every frame), twice as
+  many after each search that started no track (up to :data:`SEARCH_EVERY_MAX`).  A track the
+  gate drops makes the next frame search only when it was a hand on its last frame.
 * **Handedness** is fixed when a track starts and held while it lasts.  A free label is given
   when the other one is taken (one person, two hands); with both free it comes from the data:
   the new track is started with the right model, the mirrored (left) one from the found pose
@@ -70,6 +72,7 @@ __all__ = [
     "SAME_HAND_MM",
     "SHARED_VOLUME",
     "SEARCH_EVERY",
+    "SEARCH_EVERY_MAX",
     "TRIAL_FRAMES",
     "TRIAL_LEAD",
     "hidden_by",
@@ -117,8 +120,11 @@ SAME_HAND_MM: Final[float] = 40.0
 #: inside the other's skin: a majority (two fits of one hand overlap; two hands in contact
 #: interpenetrate at their surfaces only, 0-11% of the centres on dev ``clap`` frames 5-31).
 SHARED_VOLUME: Final[float] = 0.5
-#: With at least one hand tracked, a new hand is searched for every this many frames.
+#: With at least one hand tracked, a new hand is searched for every this many frames; after a
+#: search that started no new track, twice as many, up to ``SEARCH_EVERY_MAX`` (a hand that comes
+#: into view is then found within 0.67 s at 30 Hz), until a new track is a hand.
 SEARCH_EVERY: Final[int] = 5
+SEARCH_EVERY_MAX: Final[int] = 4 * SEARCH_EVERY
 #: A track started with both labels free is tracked with both models (its trial) until the
 #: summed confidence of one model leads by ``TRIAL_LEAD``, at most ``TRIAL_FRAMES`` frames, and
 #: reported from then on with the label whose model explained it better.
@@ -260,6 +266,7 @@ class _Slot:
     gate: HandGate = field(default_factory=HandGate)
     dropped: bool = False
     present: bool = False  # the gate's last decision: a hand
+    reported: bool = False  # the gate said "a hand" on some frame of the track
 
     def reset(self) -> None:
         """The gate's reset of the track: drop it (:meth:`MultiHandTracker._gate`)."""
@@ -323,6 +330,7 @@ class MultiHandTracker:
         self._next_id = 0
         self._frame = 0
         self._searched = -SEARCH_EVERY  # frame of the last search for a new hand
+        self._every = SEARCH_EVERY  # frames between two searches (SEARCH_EVERY_MAX)
 
     @property
     def config(self) -> TrackerConfig:
@@ -345,6 +353,7 @@ class MultiHandTracker:
         """Forget every track."""
         self._slots = []
         self._searched = -SEARCH_EVERY
+        self._every = SEARCH_EVERY
 
     def process(self, depth_mm: NDArray, intrinsics: Intrinsics) -> HandsResult:
         """Track the hands in one depth frame (``depth_mm`` (H, W) mm, as :meth:`Tracker.process`).
@@ -363,10 +372,12 @@ class MultiHandTracker:
         self._track(pre)
         t2 = time.perf_counter()
         if len(self._slots) < self.max_hands and (
-            not self._slots or self._frame - self._searched >= SEARCH_EVERY
+            not self._slots or self._frame - self._searched >= self._every
         ):
-            self._searched = self._frame
+            self._searched, n = self._frame, len(self._slots)
             self._search(pre)
+            if n and len(self._slots) == n:
+                self._failed()
         self._decide()
         t3 = time.perf_counter()
         answers = self._gate(depth_mm, intrinsics)
@@ -436,11 +447,18 @@ class MultiHandTracker:
             theirs = _theirs(s.tracker.model, s.result.pose, poses) if poses else None
             answer = s.gate.gate(s, depth_mm, intrinsics, s.tracker.model, s.result, theirs=theirs)
             s.present = answer.hand is not None and answer.hand.present
+            if s.present and not s.reported:
+                s.reported, self._every = True, SEARCH_EVERY  # (a new hand: the search found one)
             out.append((s, answer))
         if any(s.dropped for s in self._slots):
+            if any(s.dropped and ok for s, ok in zip(self._slots, vouched)):
+                self._searched = self._frame + 1 - self._every  # (a hand lost: look for it at once)
             self._slots = [s for s in self._slots if not s.dropped]
-            self._searched = self._frame + 1 - SEARCH_EVERY
         return out
+
+    def _failed(self) -> None:
+        """A search started no new track: the next one waits twice as long (``SEARCH_EVERY_MAX``)."""
+        self._every = min(2 * self._every, SEARCH_EVERY_MAX)
 
     def _judge(self, slot: _Slot) -> None:
         """One frame of ``slot``'s trial: its confidence lead summed, its leader the track's
