@@ -255,9 +255,8 @@ class Validation:
     widths_from_measurement : bool
         Whether the fit took width, depth and sigma from the measurement (else from the search).
     current_sigma, fitted_sigma : float
-        The finger thickness (sigma factor) of the current model and of the hand the fit found
-        (before the fitted model's :data:`~hand_sog_tracker.core.calibration.TRACKING_THICKNESS`;
-        NaN: not known); with :attr:`measured_sigma` for :meth:`thickness_contradicted`.
+        The finger thickness (sigma factor) of the current and of the fitted model (NaN: not
+        known); with :attr:`measured_sigma` for :meth:`thickness_contradicted`.
     per_frame : tuple of tuple of float
         Per held-out frame, :data:`PER_FRAME_COLUMNS` each as (current, fitted) (16 values).
     retrack_frames : tuple of tuple of float
