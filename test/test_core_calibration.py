@@ -14,7 +14,6 @@ from hand_sog_tracker.core.calibration import (
     GUARD_MARGIN,
     GUARD_THICKNESS_NOISE,
     MAX_THICKNESS_PER_WIDTH,
-    TRACKING_THICKNESS,
     CalibrationRejected,
     Validation,
     calibrate,
@@ -52,9 +51,7 @@ def test_scaled_hands_are_fitted_within_five_percent(length: float, width: float
           f"{res.score_after:.3f} in {res.seconds:.2f} s")
     assert res.shape.length == pytest.approx(length, rel=0.05)
     assert res.shape.width == pytest.approx(width, rel=0.05)
-    # The model's fingers are thinner than the hand's by TRACKING_THICKNESS (the tracker follows them better).
-    assert res.shape.sigma == pytest.approx(TRACKING_THICKNESS * truth.sigma, rel=0.05)
-    assert res.shape.depth == pytest.approx(TRACKING_THICKNESS * truth.depth, rel=0.05)
+    assert res.shape.sigma == pytest.approx(truth.sigma, rel=0.05)
     assert res.score_after > res.score_before and res.seconds > 0
     assert res.energy_after == res.score_after  # the old name still reads
     assert res.model.shape == res.shape and res.pose.shape == (26,)
@@ -91,12 +88,10 @@ def test_width_and_thickness_drawn_independently_are_fitted_within_five_percent(
     print(f"truth {truth}: fitted {res.shape}; {v.describe() if v else ''}")
     assert res.shape.length == pytest.approx(truth.length, rel=0.05)
     assert res.shape.width == pytest.approx(width, rel=0.05)
-    # Fingers thicker than the palm's width allows are fitted at the bound (MAX_THICKNESS_PER_WIDTH); the
-    # model's are TRACKING_THICKNESS times the hand's (the guard's ``fitted_sigma``).
+    # Fingers thicker than the palm's width allows are fitted at the bound (MAX_THICKNESS_PER_WIDTH).
+    assert res.shape.sigma == pytest.approx(min(thickness, MAX_THICKNESS_PER_WIDTH * res.shape.width), rel=0.05)
     assert v is not None and v.widths_from_measurement
-    hand = min(v.measured_sigma, MAX_THICKNESS_PER_WIDTH * res.shape.width)
-    assert v.fitted_sigma == pytest.approx(hand) and res.shape.sigma == pytest.approx(TRACKING_THICKNESS * hand)
-    assert v.fitted_sigma == pytest.approx(min(thickness, MAX_THICKNESS_PER_WIDTH * res.shape.width), rel=0.05)
+    assert res.shape.sigma == pytest.approx(min(v.measured_sigma, MAX_THICKNESS_PER_WIDTH * res.shape.width))
     assert len(v.measured_finger_mm) == 4 and v.measured_knuckle_mm == pytest.approx(57.0 * width, rel=0.05)
     path = save_hand_shape(tmp_path / "m.yaml", res.shape, right=True, extra=v.metadata())
     assert load_hand_shape(path) == (res.shape, True)

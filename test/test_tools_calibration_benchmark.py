@@ -10,7 +10,6 @@ from pathlib import Path
 
 import pytest
 
-from hand_sog_tracker.core.calibration import TRACKING_THICKNESS
 from hand_sog_tracker.tools.calibration_benchmark import (
     FACTOR_RANGE,
     MESH_AT_ONE,
@@ -42,8 +41,7 @@ def test_one_capsule_hand_is_fitted_accepted_and_tracked() -> None:
     assert (hand["fit_frames"], hand["holdout_frames"], hand["tracked_frames"]) == (3, 4, 15)
     fitted = hand["fitted"]
     assert fitted[2] == fitted[3]  # palm depth follows the measured finger thickness
-    # The thickness's error is the hand's (the model's fingers are TRACKING_THICKNESS times thinner).
-    for f, t, e in zip((fitted[0], fitted[1], fitted[3] / TRACKING_THICKNESS), hand["truth"], hand["errors"]):
+    for f, t, e in zip((fitted[0], fitted[1], fitted[3]), hand["truth"], hand["errors"]):
         assert f == pytest.approx(t, rel=0.03) and e == pytest.approx(f / t - 1.0)
     assert hand["guard_gain"] >= 0.003 and 0.0 < hand["fit_cpu_s"] < 30.0
     assert 0.5 < hand["tip_calibrated_mm"] < hand["tip_default_mm"] < 10.0

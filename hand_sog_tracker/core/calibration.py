@@ -73,11 +73,6 @@ Guard.  With ``holdout`` frames (not used for the fit) :func:`calibrate` runs th
 Thickness.  The fitted depth and sigma are at most :data:`MAX_THICKNESS_PER_WIDTH` times the
 fitted width (:func:`_bounded_thickness`): fingers thicker relative to the palm than the
 default model's crowd each other and are tracked worse, with the hand's true thickness too.
-The model returned has depth and sigma :data:`TRACKING_THICKNESS` times the hand's so fitted
-(:func:`_tracking_thickness`): the tracker follows a hand better with thinner fingers than the
-hand's.  The guard judges the hand's shape (its scores measure how well the data are
-explained, which the thinner model does less well by design); the thickness the guard's rule
-on the measurement compares is the hand's too.
 """
 
 from __future__ import annotations
@@ -154,7 +149,6 @@ __all__ = [
     "GUARD_NOISE_SE",
     "GUARD_TIP_FLOOR_MM",
     "MAX_THICKNESS_PER_WIDTH",
-    "TRACKING_THICKNESS",
     "PER_FRAME_COLUMNS",
     "RETRACK_COLUMNS",
     "retrack",
@@ -171,11 +165,6 @@ DEFAULT_FIT_FRAMES = 3
 #: The fitted thickness (depth and sigma) is at most this times the fitted width (unitless;
 #: the default model's ratio): see :func:`_bounded_thickness`.
 MAX_THICKNESS_PER_WIDTH = 1.0
-#: The fitted model's depth and sigma are this times the hand's (fitted, bounded) thickness
-#: (unitless): the tracker follows a hand better with fingers thinner than the hand's (dev
-#: renders, every fit tracked with its thickness times 0.95 / 0.9 / 0.85; see
-#: doc/design/calibration_guard.md, "Thinner than the hand"): :func:`_tracking_thickness`.
-TRACKING_THICKNESS = 0.9
 #: Search rounds: span and step of the grid each factor is searched on about the best so far.
 #: A third round like the second (poses refitted and widths measured again with the second
 #: round's model, the length searched again) was tried on ``calibration_benchmark``: on the dev
@@ -539,8 +528,6 @@ def calibrate(
             fr.pose = _refine(ref_model, th, fr.data, config, _REFIT_ITERATIONS, _RIGID_FINGERS)
         best_val, best_poses = evaluate(best_shape, ref_model)
         best_shape, best_val, best_poses = _fit_finger_lengths(best_shape, best_val, best_poses, evaluate, ref_model)
-    hand_shape = best_shape
-    best_shape = _tracking_thickness(hand_shape)
     fitted = mirrored.scaled(best_shape)
     after = best_val
     if not after > before and not (widths_fixed and len(holdout)):
@@ -555,10 +542,7 @@ def calibrate(
         hp = list(holdout_poses) if holdout_poses is not None else [None] * len(holdout)
         if len(hp) != len(holdout):
             raise CalibrationError(f"got {len(hp)} poses for {len(holdout)} held-out frames")
-        # The guard judges the hand the fit found (its scores measure how the data are explained;
-        # the thinner tracking model explains them less well by design and tracks better).
-        hand = mirrored.scaled(hand_shape)
-        validation = validate(holdout, hp, intrinsics, config, mirrored, hand, margin, frame_drop)
+        validation = validate(holdout, hp, intrinsics, config, mirrored, fitted, margin, frame_drop)
         if measured is not None:
             validation = replace(
                 validation,
@@ -569,7 +553,7 @@ def calibrate(
                 measured_width=float(m_width),
                 widths_from_measurement=widths_fixed,
                 current_sigma=float(model.shape.sigma),
-                fitted_sigma=float(hand_shape.sigma),
+                fitted_sigma=float(best_shape.sigma),
             )
         if not validation.accepted:
             raise CalibrationRejected(best_shape, validation)
@@ -643,13 +627,6 @@ def _bounded_thickness(shape: HandShape) -> HandShape:
     if shape.sigma <= top and shape.depth <= top:
         return shape
     return HandShape(shape.length, shape.width, min(shape.depth, top), min(shape.sigma, top), shape.fingers)
-
-
-def _tracking_thickness(shape: HandShape) -> HandShape:
-    """``shape`` with depth and sigma times :data:`TRACKING_THICKNESS` (the model the tracker
-    follows the hand best with; the search and the measurement found the hand's thickness)."""
-    k = TRACKING_THICKNESS
-    return HandShape(shape.length, shape.width, k * shape.depth, k * shape.sigma, shape.fingers)
 
 
 def _fit_finger_lengths(

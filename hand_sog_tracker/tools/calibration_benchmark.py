@@ -36,9 +36,7 @@ truth is the drawn factors (thickness: the model's ``sigma``, which the fit sets
 (:data:`MESH_AT_ONE`); the width and thickness truths are these times the drawn factors, the
 length truth is 0.935 times the mesh's wrist-to-middle-fingertip length (straight finger, zero
 pose) relative to the mesh at 1.0 (:func:`mesh_length_ratio`: the mesh's length factor scales
-only the fingers).  Factor errors are ``fitted / truth - 1``, the thickness's of the hand's
-thickness the fit found (the model's sigma over
-:data:`~hand_sog_tracker.core.calibration.TRACKING_THICKNESS`: the model's fingers are thinner).
+only the fingers).  Factor errors are ``fitted / truth - 1``.
 
 Choices the README's description leaves open, made here: the drawing order and generator
 (above); the second sequence's seed (``seed + 500``) and frame rate (30 Hz, the camera's); the
@@ -335,7 +333,6 @@ def run_hand(renderer: str, seed: int, track: bool = True, motion: str = "moving
     from hand_sog_tracker.core.calibration import (
         DEFAULT_FIT_FRAMES,
         DEFAULT_HOLDOUT_FRAMES,
-        TRACKING_THICKNESS,
         CalibrationRejected,
         calibrate,
         select_frames,
@@ -395,7 +392,7 @@ def run_hand(renderer: str, seed: int, track: bool = True, motion: str = "moving
         evidence = _evidence(validation, [depth[i] for i in range(len(depth)) if i not in fit_i], default, shape)
     errors = None
     if fitted is not None:
-        fit3 = (fitted[0], fitted[1], fitted[3] / TRACKING_THICKNESS)
+        fit3 = (fitted[0], fitted[1], fitted[3])
         errors = tuple(float(f / t - 1.0) for f, t in zip(fit3, truth))
     tip_default = tip_calibrated = tip_fitted = tip_truth = float("nan")
     if track:
