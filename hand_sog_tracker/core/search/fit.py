@@ -20,6 +20,7 @@ SEARCH_ITERATIONS = 12
 #: Most candidates fitted in one call at the data cap: a batch holds its model x data arrays once
 #: per candidate (memory, issue 50); fewer data Gaussians fit as many more (:func:`batch_size`).
 MAX_BATCH = 4
+NEW_TRACK_KEEP = 4  #: a new track's candidates racing on after half the iterations (the best above their floors)
 
 
 def batch_size(n_data: int) -> int:
@@ -105,12 +106,15 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
     base = frame.score(frame.fit.x, _plain_value(frame))
     floor = base + np.array([c.margin for c in candidates])
     fits = fit_batch(
-        frame.plain.batch, starts, frame.plain.data.n, iterations=SEARCH_ITERATIONS, bounds=frame.limits, floor=floor
+        frame.plain.batch, starts, frame.plain.data.n, iterations=SEARCH_ITERATIONS, bounds=frame.limits, floor=floor,
+        keep=NEW_TRACK_KEEP if frame.new_track else None,
     )
     best, best_val, name = frame.fit, -np.inf, None
-    for c, res in zip(candidates, fits):
+    for c, res, low in zip(candidates, fits, floor.tolist()):
+        if res.fun <= max(low, best_val):
+            continue  # (a score is at most the value: not scored)
         val = frame.score(res.x, res.fun)
-        if val > base + c.margin and val > best_val:
+        if val > low and val > best_val:
             best, best_val, name = res, val, c.proposal
     return best, name
 

@@ -125,8 +125,7 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
             more = initial_hypotheses(model, HandBlob(blob.palm, [d]), 2)
             starts += more
             sides += [back_toward(x) for x in more]
-    rigid = np.zeros(starts[0].size, dtype=bool)
-    rigid[:6] = True
+    rigid = np.arange(starts[0].size) < 6  # (the wrist pose only)
 
     def fitted(data: ImageSoG, poses: list, **kwargs: object) -> list[tuple[int, NDArray, OptimizeResult]]:
         """(k, pose, fit) of each of ``poses`` with data on its hand side, fitted on its part."""
@@ -158,23 +157,23 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
     keeps = [on_hand_side(coarse.points, x) for x in starts]
     screened = _screened(model, cfg, coarse, starts[:n_blob], keeps[:n_blob], eff.screened, sides)
     chosen = [i for i in range(len(starts)) if i >= n_blob or i in screened]
-    # The best combination of curled fingers at the first two start poses (palm toward and away), for
-    # a hand found mid-motion, is fitted beside the others (a fit does not depend on its batch).
-    ks, n_starts = [k for k in range(2) if keeps[k].any()], len(starts)
-    combos = [best_combination(starts[k], _values(Objective(model, part(coarse, keeps[k]), cfg))) for k in ks]
-    aligned = align(chosen + [n_starts + k for k in ks], [starts[i] for i in chosen] + combos)
+    aligned = align(chosen, [starts[i] for i in chosen])
     # The blob's start poses compete for ``kept``; the best of the extra directions' joins them.
     blob_aligned = [a for a in aligned if -a[1] < n_blob]
     kept = _balanced(sorted(blob_aligned, key=lambda a: a[:2], reverse=True), eff.kept)
-    extra = [a for a in aligned if n_blob <= -a[1] < n_starts]
-    kept += [max(extra, key=lambda a: a[:2])] if extra else []
-    done = sorted(articulate(kept + [a for a in aligned if -a[1] >= n_starts]), key=lambda s: s[:2], reverse=True)
-    ranked, tried = [s for s in done if -s[1] < n_starts], [s for s in done if -s[1] >= n_starts]
+    if len(blob_aligned) < len(aligned):
+        kept.append(max((a for a in aligned if -a[1] >= n_blob), key=lambda a: a[:2]))
+    ranked = sorted(articulate(kept), key=lambda s: s[:2], reverse=True)
     if not ranked:
         return None
-    # They compete by ``combination_margin`` when even the best of the others scores poorly.
-    if ranked[0][0] < eff.combination_below and tried and tried[0][0] >= ranked[0][0] + eff.combination_margin:
-        ranked = done
+    if ranked[0][0] < eff.combination_below:
+        # A poor best: maybe a hand found mid-motion.  The best combination of curled fingers at
+        # the first two start poses (palm toward and away) competes by ``combination_margin``.
+        ks = [k for k in range(2) if keeps[k].any()]
+        combos = [best_combination(starts[k], _values(Objective(model, part(coarse, keeps[k]), cfg))) for k in ks]
+        tried = sorted(articulate(align([len(starts) + k for k in ks], combos)), key=lambda s: s[:2], reverse=True)
+        if tried and tried[0][0] >= ranked[0][0] + eff.combination_margin:
+            ranked = sorted(ranked + tried, key=lambda s: s[:2], reverse=True)
     # The best of the other palm side joins the finalists when none of them has it: the search
     # scores without the silhouette, and the finish's full objective tells the two apart.
     poses = [x for _, _, x in ranked[: eff.finalists]]
