@@ -95,8 +95,8 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
     """The frame's answer and the name of the proposal it came from (None: the frame's fit).
 
     Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain`` as one batch (a pull first on
-    its own objective); the best :meth:`Frame.score` beating the fit's by its margin wins.  A
-    candidate whose value cannot reach that (a score is the value minus a cost >= 0) stops early.
+    its own objective); the best :meth:`Frame.score` beating the fit's by its margin wins.  One whose value
+    cannot reach that stops early (a score is at most the value); a new track keeps its ``NEW_TRACK_KEEP`` best halfway.
     """
     candidates = [c for p in proposals if not p.rides_along for c in p.generate(frame)]
     if not candidates:
