@@ -20,7 +20,7 @@ SEARCH_ITERATIONS = 12
 #: Most candidates fitted in one call at the data cap: a batch holds its model x data arrays once
 #: per candidate (memory, issue 50); fewer data Gaussians fit as many more (:func:`batch_size`).
 MAX_BATCH = 4
-NEW_TRACK_KEEP = 4  #: a new track's candidates racing on after half the iterations (the best above their floors)
+NEW_TRACK_KEEP = 6  #: a new track's candidates racing on after half the iterations (the best above their floors)
 
 
 def batch_size(n_data: int) -> int:
