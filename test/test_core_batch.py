@@ -256,31 +256,6 @@ def test_a_batch_with_parts_gives_each_pose_its_parts_objective(options: tuple[s
         obj.batch(thetas[:1], parts=np.zeros((1, obj.data.n), dtype=bool))
 
 
-def test_keep_lets_the_candidates_highest_above_their_floors_race_on_after_half() -> None:
-    rng = np.random.default_rng(8)
-    peak = rng.normal(0, 1, N_PARAMS)
-    bowl = BatchBowl(peak, rng.uniform(0.5, 2.0, N_PARAMS))
-    x0 = peak + rng.normal(0, 5, (6, N_PARAMS))
-    free = maximise_batch(bowl, x0, iterations=12)
-    floor = np.array([-1e9, -2e9, -1e9, -1e9, -3e9, -1e9])  # (every candidate reaches its floor)
-    ahead = np.array([np.max(r.history[:7]) for r in free]) - floor  # (after 6 of the 12 iterations)
-    kept = set(np.argsort(-ahead, kind="stable")[:2].tolist())
-    assert kept == {1, 4}  # (the floors decide here: the values are alike beside them)
-    poses = bowl.poses
-    raced = maximise_batch(bowl, x0, iterations=12, floor=floor, keep=2)
-    assert bowl.poses - poses == 6 * 7 + 2 * 6
-    for b in range(6):
-        if b in kept:
-            _same(raced[b], free[b])
-        else:
-            assert raced[b].status == 2 and raced[b].nit == 6
-            assert np.array_equal(raced[b].history, free[b].history[:7])
-    # Without a floor, or with no more candidates than ``keep``, nothing changes.
-    for kwargs in ({"keep": 2}, {"keep": 6, "floor": floor}):
-        for a, b in zip(maximise_batch(bowl, x0, iterations=12, **kwargs), free):
-            _same(a, b)
-
-
 def test_a_candidate_that_cannot_reach_its_floor_stops_and_the_others_run_as_without() -> None:
     rng = np.random.default_rng(6)
     peak = rng.normal(0, 1, N_PARAMS)

@@ -217,14 +217,12 @@ def test_the_race_stops_candidates_and_changes_no_answer(monkeypatch: pytest.Mon
     stopped = []
 
     def counted(fun, starts, n_data, **kwargs):
-        kwargs.pop("keep", None)  # (a new track's ``keep`` may change its answer: the floor alone here)
         out = fit_batch(fun, starts, n_data, **kwargs)
         stopped.extend(r.status == 2 for r in out)
         return out
 
     def unraced(fun, starts, n_data, **kwargs):
         kwargs.pop("floor", None)
-        kwargs.pop("keep", None)
         return fit_batch(fun, starts, n_data, **kwargs)
 
     runs = []

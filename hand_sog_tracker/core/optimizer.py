@@ -292,7 +292,6 @@ def maximise_batch(
     initial_steps: NDArray[np.float64] | None = None,
     with_index: bool = False,
     floor: NDArray[np.float64] | None = None,
-    keep: int | None = None,
 ) -> list[OptimizeResult]:
     """Maximise from every start pose of ``x0`` (B, 26) in lockstep: one call of ``fun_batch``
     per iteration evaluates all candidates still running.
@@ -328,10 +327,6 @@ def maximise_batch(
         adapted), a candidate whose best value plus the iterations left times its last gain
         stays below its floor stops (status 2): it cannot reach the floor unless its gains
         grow again.  Without ``floor`` nothing stops early but by negligible steps.
-    keep : int, optional
-        With ``floor``: after half the iterations only the ``keep`` candidates whose best
-        values lie highest above their floors go on, the others stop (status 2; for a race
-        whose candidates nearly all reach their floors, a new track's search).
 
     Returns
     -------
@@ -408,10 +403,6 @@ def maximise_batch(
             # (The best-so-far history: its last gain is >= 0.)
             gain = best_val[run_] - np.fmax.reduce(history[: it, run_], axis=0)
             out = best_val[run_] + (iterations - it) * gain < floor[run_]
-            if keep is not None and it == iterations // 2 and run_.size - out.sum() > keep:
-                # (The first of equal margins above the floor ahead.)
-                order = np.argsort(np.where(out, np.inf, floor[run_] - best_val[run_]), kind="stable")
-                out[order[keep:]] = True
             if out.any():
                 status[run_[out]] = 2
                 run_ = run_[~out]

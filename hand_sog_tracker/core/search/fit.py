@@ -20,7 +20,6 @@ SEARCH_ITERATIONS = 12
 #: Most candidates fitted in one call at the data cap: a batch holds its model x data arrays once
 #: per candidate (memory, issue 50); fewer data Gaussians fit as many more (:func:`batch_size`).
 MAX_BATCH = 4
-NEW_TRACK_KEEP = 6  #: a new track's candidates racing on after half the iterations (the best above their floors)
 
 
 def batch_size(n_data: int) -> int:
@@ -95,8 +94,8 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
     """The frame's answer and the name of the proposal it came from (None: the frame's fit).
 
     Every candidate is fitted ``SEARCH_ITERATIONS`` on ``frame.plain`` as one batch (a pull first on
-    its own objective); the best :meth:`Frame.score` beating the fit's by its margin wins.  One whose value
-    cannot reach that stops early (a score is at most the value); a new track keeps its ``NEW_TRACK_KEEP`` best halfway.
+    its own objective); the best :meth:`Frame.score` beating the fit's by its margin wins.  A
+    candidate whose value cannot reach that (a score is the value minus a cost >= 0) stops early.
     """
     candidates = [c for p in proposals if not p.rides_along for c in p.generate(frame)]
     if not candidates:
@@ -106,8 +105,7 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
     base = frame.score(frame.fit.x, _plain_value(frame))
     floor = base + np.array([c.margin for c in candidates])
     fits = fit_batch(
-        frame.plain.batch, starts, frame.plain.data.n, iterations=SEARCH_ITERATIONS, bounds=frame.limits, floor=floor,
-        keep=NEW_TRACK_KEEP if frame.new_track else None,
+        frame.plain.batch, starts, frame.plain.data.n, iterations=SEARCH_ITERATIONS, bounds=frame.limits, floor=floor
     )
     best, best_val, name = frame.fit, -np.inf, None
     for c, res, low in zip(candidates, fits, floor.tolist()):

@@ -125,7 +125,8 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
             more = initial_hypotheses(model, HandBlob(blob.palm, [d]), 2)
             starts += more
             sides += [back_toward(x) for x in more]
-    rigid = np.arange(starts[0].size) < 6  # (the wrist pose only)
+    rigid = np.zeros(starts[0].size, dtype=bool)
+    rigid[:6] = True
 
     def fitted(data: ImageSoG, poses: list, **kwargs: object) -> list[tuple[int, NDArray, OptimizeResult]]:
         """(k, pose, fit) of each of ``poses`` with data on its hand side, fitted on its part."""
