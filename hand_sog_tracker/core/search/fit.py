@@ -108,9 +108,11 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
         frame.plain.batch, starts, frame.plain.data.n, iterations=SEARCH_ITERATIONS, bounds=frame.limits, floor=floor
     )
     best, best_val, name = frame.fit, -np.inf, None
-    for c, res in zip(candidates, fits):
+    for c, res, low in zip(candidates, fits, floor.tolist()):
+        if res.fun <= max(low, best_val):
+            continue  # (a score is at most the value: not scored)
         val = frame.score(res.x, res.fun)
-        if val > base + c.margin and val > best_val:
+        if val > low and val > best_val:
             best, best_val, name = res, val, c.proposal
     return best, name
 
