@@ -102,17 +102,14 @@ def search(frame: Frame, proposals: Sequence[Proposal]) -> tuple[OptimizeResult,
         return frame.fit, None
     candidates += [c for p in proposals if p.rides_along for c in p.generate(frame)]
     starts = _pulled(candidates, frame.obj, frame.limits)
-    base = frame.score(frame.fit.x, _plain_value(frame))
-    floor = base + np.array([c.margin for c in candidates])
+    floor = frame.score(frame.fit.x, _plain_value(frame)) + np.array([c.margin for c in candidates])
     fits = fit_batch(
         frame.plain.batch, starts, frame.plain.data.n, iterations=SEARCH_ITERATIONS, bounds=frame.limits, floor=floor
     )
     best, best_val, name = frame.fit, -np.inf, None
     for c, res, low in zip(candidates, fits, floor.tolist()):
-        if res.fun <= max(low, best_val):
-            continue  # (a score is at most the value: not scored)
-        val = frame.score(res.x, res.fun)
-        if val > low and val > best_val:
+        # (a score is at most the value: a candidate whose value cannot win is not scored)
+        if res.fun > max(low, best_val) and (val := frame.score(res.x, res.fun)) > max(low, best_val):
             best, best_val, name = res, val, c.proposal
     return best, name
 
