@@ -463,6 +463,7 @@ def test_the_slide_proposal_moves_a_fist_seen_from_its_back_onto_its_knuckles() 
     # (where the dev scenes' tracks drift as the fingers curl: design/hand_check.md).  The slide
     # candidate, SLIDE_MM toward the fingers, wins on the frame's own score: the palm comes back.
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, render_mesh_depth
+    from hand_sog_tracker.tools.scene_eval import PALM_ROWS  # (wrist and finger MCPs)
 
     intr = default_intrinsics()
     truth = _fist_from_the_back()
@@ -476,8 +477,9 @@ def test_the_slide_proposal_moves_a_fist_seen_from_its_back_onto_its_knuckles() 
     res = _maximise(tracker, obj, wrong, iterations=1)
     out, name = search(_frame(tracker, obj, res, data, det), (SLIDE,))
 
+    rows = list(PALM_ROWS)
+
     def palm_mm(x: NDArray[np.float64]) -> float:
-        rows = [0, 5, 9, 13, 17]
         diff = keypoint_skeleton(tracker.model, x)[rows] - keypoint_skeleton(tracker.model, truth)[rows]
         return float(np.linalg.norm(diff, axis=1).mean())
 

@@ -376,8 +376,8 @@ class MultiHandTracker:
         ):
             self._searched, n = self._frame, len(self._slots)
             self._search(pre)
-            if n and len(self._slots) == n:
-                self._failed()
+            if n and len(self._slots) == n:  # (no new track: the next search waits twice as long)
+                self._every = min(2 * self._every, SEARCH_EVERY_MAX)
         self._decide()
         t3 = time.perf_counter()
         answers = self._gate(depth_mm, intrinsics)
@@ -455,10 +455,6 @@ class MultiHandTracker:
                 self._searched = self._frame + 1 - self._every  # (a hand lost: look for it at once)
             self._slots = [s for s in self._slots if not s.dropped]
         return out
-
-    def _failed(self) -> None:
-        """A search started no new track: the next one waits twice as long (``SEARCH_EVERY_MAX``)."""
-        self._every = min(2 * self._every, SEARCH_EVERY_MAX)
 
     def _judge(self, slot: _Slot) -> None:
         """One frame of ``slot``'s trial: its confidence lead summed, its leader the track's
