@@ -11,12 +11,15 @@ import pytest
 from hand_sog_tracker.core.depth_sog import Preprocessed
 from hand_sog_tracker.core.hand_model import chain_slice, default_hand_model, rest_pose
 from hand_sog_tracker.core.hands import (
+    COVERED_MM,
     FOREARM_RADIUS_MM,
+    OWN_MARGIN_MM,
     SAME_HAND_MM,
     SHARED_VOLUME,
     MultiHandTracker,
     _palm,
     _Slot,
+    _theirs,
     hidden_by,
     shared_volume,
     skin_distance,
@@ -365,3 +368,37 @@ def test_a_search_that_starts_no_track_waits_twice_as_long_up_to_search_every_ma
     monkeypatch.setattr(HandGate, "gate", lambda self, slot, *a, **kw: replace(res, hand=present))
     mt._gate(depth, intr)
     assert new.reported and mt._every == SEARCH_EVERY
+
+
+def test_skin_distance_within_measures_only_what_can_be_that_near() -> None:
+    # ``within``: the same distance for every point nearer than ``within`` (hand and forearm),
+    # inf only for points farther, around a turned hand (a box test must hold at any rotation).
+    rng = np.random.default_rng(47)
+    model = default_hand_model()
+    theta = rest_pose((20.0, -10.0, 450.0))
+    theta[3:6] = (0.4, -0.7, 0.9)
+    centre = posed_centres(model, theta).mean(axis=0)
+    points = centre + rng.normal(0.0, 80.0, (4000, 3))
+    full = skin_distance(model, theta, points)
+    for within in (OWN_MARGIN_MM, COVERED_MM, 60.0):
+        d = skin_distance(model, theta, points, within)
+        near = full < within
+        assert 100 < near.sum() < 3900  # (both kinds of point are tested)
+        np.testing.assert_allclose(d[near], full[near], rtol=0, atol=1e-9)
+        assert np.all(np.isinf(d) | (np.abs(d - full) < 1e-9))
+        assert np.isinf(d[~near]).mean() > 0.2  # (the box leaves many far points unmeasured)
+    assert skin_distance(model, theta, np.zeros((0, 3)), OWN_MARGIN_MM).shape == (0,)
+
+
+def test_the_split_gives_another_hand_the_points_near_its_skin_and_nearer_to_it() -> None:
+    # The split's definition, on every point: within OWN_MARGIN_MM of the other hand's skin and
+    # nearer to it than to this hand's (the box of ``within`` only skips points it cannot give).
+    rng = np.random.default_rng(470)
+    model = default_hand_model()
+    mine, other = rest_pose((-60.0, 0.0, 450.0)), rest_pose((60.0, 10.0, 460.0))
+    other[3:6] = (0.2, 0.3, -0.4)
+    points = np.array([0.0, 0.0, 450.0]) + rng.normal(0.0, 90.0, (3000, 3))
+    d_mine, d_other = skin_distance(model, mine, points), skin_distance(model, other, points)
+    want = (d_other < OWN_MARGIN_MM) & (d_other < d_mine)
+    assert 50 < want.sum() < 2950
+    np.testing.assert_array_equal(_theirs(model, mine, [(model, other)])(points), want)

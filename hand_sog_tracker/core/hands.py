@@ -138,20 +138,47 @@ TRIAL_LEAD: Final[float] = 0.03
 PAIR_LEAD: Final[float] = 0.5 * TRIAL_LEAD
 
 
-def skin_distance(model: HandModel, theta: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.float64]:
+def skin_distance(
+    model: HandModel, theta: NDArray[np.float64], points: NDArray[np.float64], within: float | None = None
+) -> NDArray[np.float64]:
     """Distance (mm) of ``points`` (n, 3) mm from the skin of the hand at ``theta`` (26,) and
     its forearm: the minimum over the model's Gaussians of (distance to the centre - sigma) and
-    over the forearm capsule (see :data:`FOREARM_LENGTH_MM`); negative inside.  Shape (n,)."""
+    over the forearm capsule (see :data:`FOREARM_LENGTH_MM`); negative inside.  Shape (n,).
+
+    With ``within`` (mm), only the points inside the box that holds the skin and forearm grown
+    by ``within`` are measured, the others are ``inf`` (they are farther than ``within``): a
+    caller that asks ``< within`` gets the same answer without the (n, m) distances of points
+    far from the hand (another hand's pixels, most of a region's data)."""
+    out = np.full(points.shape[0], np.inf)
+    if points.shape[0] == 0:
+        return out
+    centres = posed_centres(model, theta)
+    axis = global_rotation(theta)[:, 1]  # wrist -> fingers
+    if within is not None:
+        grow = model.g_sigmas[:, None] + within
+        arm = np.stack([theta[:3], theta[:3] - FOREARM_LENGTH_MM * axis])  # the capsule's ends
+        lo = np.minimum((centres - grow).min(axis=0), arm.min(axis=0) - FOREARM_RADIUS_MM - within)
+        hi = np.maximum((centres + grow).max(axis=0), arm.max(axis=0) + FOREARM_RADIUS_MM + within)
+        near = np.flatnonzero(np.all((points > lo) & (points < hi), axis=1))
+        if near.size < points.shape[0]:
+            out[near] = _skin(model, theta, centres, axis, points[near])
+            return out
+    return _skin(model, theta, centres, axis, points)
+
+
+def _skin(
+    model: HandModel, theta: NDArray[np.float64], centres: NDArray[np.float64], axis: NDArray[np.float64],
+    points: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`skin_distance` of ``points`` (n, 3) mm, ``centres`` (m, 3) and ``axis`` (3,) posed."""
     if points.shape[0] == 0:
         return np.zeros(0)
-    centres = posed_centres(model, theta)
     d2 = (
         np.einsum("ij,ij->i", points, points)[:, None]
         - 2.0 * points @ centres.T
         + np.einsum("ij,ij->i", centres, centres)[None, :]
     )
     skin = (np.sqrt(np.maximum(d2, 0.0)) - model.g_sigmas[None, :]).min(axis=1)
-    axis = global_rotation(theta)[:, 1]  # wrist -> fingers
     rel = points - theta[:3]
     t = np.clip(-(rel @ axis), 0.0, FOREARM_LENGTH_MM)  # along the forearm, from the wrist
     lateral = np.linalg.norm(rel + t[:, None] * axis[None, :], axis=1)
@@ -215,7 +242,7 @@ def hidden_by(
     pts = intr.backproject(np.stack([u[k], v[k]], 1), d)
     theirs = np.zeros(k.size, dtype=bool)
     for m, x in hands:
-        theirs |= skin_distance(m, x, pts) < OWN_MARGIN_MM
+        theirs |= skin_distance(m, x, pts, OWN_MARGIN_MM) < OWN_MARGIN_MM
     out[k[theirs]] = True
     return out
 
@@ -289,11 +316,12 @@ def _theirs(
     :data:`OWN_MARGIN_MM` of its skin and nearer to it than to this hand's."""
 
     def theirs(points: NDArray[np.float64]) -> NDArray[np.bool_]:
-        own = skin_distance(model, theta, points)
         out = np.zeros(points.shape[0], dtype=bool)
-        for m, x in others:
-            d = skin_distance(m, x, points)
-            out |= (d < OWN_MARGIN_MM) & (d < own)
+        for m, x in others:  # (only a point near another hand asks for its own skin's distance)
+            d = skin_distance(m, x, points, OWN_MARGIN_MM)
+            k = np.flatnonzero(d < OWN_MARGIN_MM)
+            if k.size:
+                out[k] |= d[k] < skin_distance(model, theta, points[k])
         return out
 
     return theirs
@@ -523,8 +551,8 @@ class MultiHandTracker:
             theirs = _theirs(model, theta, poses)
             if data.n:
                 drop = theirs(data.points)
-                if drop.any() and KEEP_OCCLUDERS:
-                    drop &= ~in_front(model, theta, data.points)
+                if drop.any() and KEEP_OCCLUDERS:  # (pointwise: asked of the dropped points only)
+                    drop[drop] = ~in_front(model, theta, data.points[drop])
                 if drop.any():
                     data = data.subset(~drop)
             if det.n:
@@ -557,7 +585,7 @@ class MultiHandTracker:
         def covered(tips: NDArray[np.float64]) -> NDArray[np.bool_]:
             out = np.zeros(tips.shape[0], dtype=bool)
             for m, x in poses:
-                out |= skin_distance(m, x, tips) < COVERED_MM
+                out |= skin_distance(m, x, tips, COVERED_MM) < COVERED_MM
             if HOLD_HIDDEN:
                 out |= hidden(tips, radii)
             return out
@@ -612,7 +640,7 @@ class MultiHandTracker:
                 continue
             uv = np.stack([us + u0, vs + v0], 1).astype(np.float64)
             pts = intr.backproject(uv, box[vs, us].astype(np.float64))
-            near = skin_distance(s.tracker.model, x, pts) < PIXEL_MARGIN_MM
+            near = skin_distance(s.tracker.model, x, pts, PIXEL_MARGIN_MM) < PIXEL_MARGIN_MM
             box[vs[near], us[near]] = 0.0
         return Preprocessed(depth_mm=depth, intrinsics=intr, decimation=pre.decimation)
 
