@@ -11,6 +11,7 @@ measurements behind the constants: ``doc/design/search.md``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -192,10 +193,27 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
         hand_direction = None  # (the blob's own direction already)
     if hand_direction is not None:
         angles = angles[:3]  # (its two start poses replace the four of the most turned directions)
+    tilt = _tilt(pts[hand_end])
     return HandBlob(
-        palm=palm, directions=[_in_plane(main, a) for a in angles], hand_direction=hand_direction,
-        far_mm=_surface_far(depth, blob),
+        palm=palm, directions=[tilt(_in_plane(main, a)) for a in angles],
+        hand_direction=None if hand_direction is None else tilt(hand_direction), far_mm=_surface_far(depth, blob),
     )
+
+
+def _tilt(pts: NDArray[np.float64]) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
+    """A map of in-plane unit directions (3,) onto the plane fitted to ``pts`` (n, 3) mm (depth
+    against image position, least squares): a hand tilted in depth (seen from above and behind)
+    starts tilted, its wrist at its depth; the identity with fewer than 3 points."""
+    if pts.shape[0] < 3:
+        return lambda d: d
+    xy = np.column_stack([pts[:, :2] - pts[:, :2].mean(axis=0), np.ones(pts.shape[0])])
+    grad = np.linalg.lstsq(xy, pts[:, 2], rcond=None)[0][:2]  # (dz / dx, dz / dy)
+
+    def tilted(d: NDArray[np.float64]) -> NDArray[np.float64]:
+        v = np.array([d[0], d[1], float(grad @ d[:2])])
+        return v / np.linalg.norm(v)
+
+    return tilted
 
 
 def _surface_far(depth: NDArray[np.float32], blob: NDArray[np.bool_]) -> float:
@@ -287,6 +305,6 @@ def detection_direction(blob: HandBlob, points: NDArray[np.float64]) -> NDArray[
         return None
     toward = _in_plane_unit(points.mean(axis=0) - blob.palm)
     cos_min = np.cos(np.deg2rad(DETECTION_DIRECTION_MIN_DEG))
-    if toward is None or any(float(toward @ d) > cos_min for d in blob.directions):
+    if toward is None or any(float(toward @ _in_plane_unit(d)) > cos_min for d in blob.directions):
         return None
     return toward
