@@ -193,10 +193,10 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
         hand_direction = None  # (the blob's own direction already)
     if hand_direction is not None:
         angles = angles[:3]  # (its two start poses replace the four of the most turned directions)
-    tilt = _tilt(pts[hand_end])
+    directions = [_in_plane(main, a) for a in angles]
     return HandBlob(
-        palm=palm, directions=[tilt(_in_plane(main, a)) for a in angles],
-        hand_direction=None if hand_direction is None else tilt(hand_direction), far_mm=_surface_far(depth, blob),
+        palm=palm, directions=directions + [_tilt(pts[hand_end])(main)], hand_direction=hand_direction,
+        far_mm=_surface_far(depth, blob),
     )
 
 

@@ -414,7 +414,7 @@ class Tracker:
         timings = {"quadtree": (time.perf_counter() - tq) * 1e3}
         if data.n == 0:
             return self._no_hand(timings)
-        fits = self._finalist_fits(found, data, det, sil)
+        fits = [f for f in self._finalist_fits(found, data, det, sil) if f[0] not in found.tilted or f[1][0] >= INIT_SEARCH.combination_below]
         best = fits[0][1] if fits else None
         if best is not None and self._sizes is not None and _open(best[1].fit.x):
             self._model = self._sizes[1]

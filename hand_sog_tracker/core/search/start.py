@@ -49,6 +49,9 @@ class Finalists:
 
     poses: list[NDArray[np.float64]]  #: the finalist poses (26,), best first
     end_mm: float = np.inf  #: where the search's depth window ended (mm): the finish's ends there too
+    #: indices of ``poses`` from a start tilted in depth (the hand end's plane, which an object in the
+    #: blob tilts too): they count once refined when they explain a hand (``combination_below``)
+    tilted: frozenset[int] = frozenset()
 
 
 def on_hand_side(points: NDArray[np.float64], theta: NDArray[np.float64]) -> NDArray[np.bool_]:
@@ -177,6 +180,9 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
             ranked = sorted(ranked + tried, key=lambda s: s[:2], reverse=True)
     # The best of the other palm side joins the finalists when none of them has it: the search
     # scores without the silhouette, and the finish's full objective tells the two apart.
-    poses = [x for _, _, x in ranked[: eff.finalists]]
-    sides = {back_toward(x) for x in poses}
-    return Finalists(poses + [x for _, _, x in ranked if back_toward(x) not in sides][:1], end_mm)
+    best = ranked[: eff.finalists]
+    sides = {back_toward(x) for _, _, x in best}
+    best += [s for s in ranked if back_toward(s[2]) not in sides][:1]
+    # (The flat start poses' R[2, 1] is 0 to rounding; combinations, ranks from len(starts), are flat.)
+    tilted = frozenset(i for i, s in enumerate(best) if -s[1] < len(starts) and abs(global_rotation(starts[-s[1]])[2, 1]) > 1e-9)
+    return Finalists([x for _, _, x in best], end_mm, tilted)
