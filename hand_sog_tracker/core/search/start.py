@@ -49,8 +49,7 @@ class Finalists:
 
     poses: list[NDArray[np.float64]]  #: the finalist poses (26,), best first
     end_mm: float = np.inf  #: where the search's depth window ended (mm): the finish's ends there too
-    #: indices of ``poses`` from a start tilted in depth (the hand end's plane, which an object in the
-    #: blob tilts too): they count once refined when they explain a hand (``combination_below``)
+    #: ``poses`` (indices) from a start tilted in depth: kept once refined if over ``combination_below`` (objects tilt)
     tilted: frozenset[int] = frozenset()
 
 
@@ -181,8 +180,7 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
     # The best of the other palm side joins the finalists when none of them has it: the search
     # scores without the silhouette, and the finish's full objective tells the two apart.
     best = ranked[: eff.finalists]
-    sides = {back_toward(x) for _, _, x in best}
-    best += [s for s in ranked if back_toward(s[2]) not in sides][:1]
-    # (The flat start poses' R[2, 1] is 0 to rounding; combinations, ranks from len(starts), are flat.)
-    tilted = frozenset(i for i, s in enumerate(best) if -s[1] < len(starts) and abs(global_rotation(starts[-s[1]])[2, 1]) > 1e-9)
-    return Finalists([x for _, _, x in best], end_mm, tilted)
+    best += [s for s in ranked if back_toward(s[2]) not in {back_toward(x) for _, _, x in best}][:1]
+    # (A flat start's R[2, 1] is 0 to rounding; the combinations, ranks len(starts) on, are flat.)
+    tilted = [-r < len(starts) and abs(global_rotation(starts[-r])[2, 1]) > 1e-9 for _, r, _ in best]
+    return Finalists([x for _, _, x in best], end_mm, frozenset(np.flatnonzero(tilted).tolist()))
