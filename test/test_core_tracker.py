@@ -1001,3 +1001,30 @@ def test_the_dear_settings_cost_a_bounded_multiple_of_a_clean_new_track(monkeypa
     dear["new track, fx 10x, top 15% invalid"] = frame_pairs(Tracker(), scene, wrong_k)
     ratios = {k: round(v / reference, 2) for k, v in dear.items()}
     assert all(r <= 2.5 for r in ratios.values()), (reference, ratios)
+
+
+def test_a_new_track_of_a_hand_seen_from_above_and_behind_starts_tilted_with_its_back_up() -> None:
+    # A dev scene's back of the hand (scenes_dev back_1, time of flight, default shape): the camera
+    # above and behind tilts the hand about 30 deg in depth.  From the in-plane start poses alone
+    # the new track starts it flipped (the palm where the back is, about 50 mm off); the start
+    # tilted onto the hand end's depth plane (handfind ``_tilted``) starts it right (design/hand_check.md).
+    import zlib
+
+    from hand_sog_tracker.core.handfind import find_hand
+    from hand_sog_tracker.core.search.start import back_toward
+    from hand_sog_tracker.synth.scenes import scene_frames
+    from hand_sog_tracker.tools.scene_eval import PALM_ROWS
+
+    intr = default_intrinsics(320, 240)
+    seed = zlib.crc32(b"scenes_dev/back/1") & 0x7FFFFFFF
+    frame = next(iter(scene_frames("back", 1, intr, seed=seed, sensor="tof")))
+    assert frame.joints_mm is not None
+    tracker = Tracker(TrackerConfig(), withhold=False)
+    blob = find_hand(preprocess(frame.depth_mm, intr, tracker.config), tracker.config)
+    fingers = frame.joints_mm[9] - frame.joints_mm[0]  # (wrist to middle MCP)
+    fingers /= np.linalg.norm(fingers)
+    assert blob is not None and fingers[2] < -0.4 and float(blob.directions[-1] @ fingers) > np.cos(np.radians(12.0))
+    res = tracker.process(frame.depth_mm, intr)
+    assert res.pose is not None and res.skeleton_mm is not None
+    palm = np.linalg.norm(res.skeleton_mm[list(PALM_ROWS)] - frame.joints_mm[list(PALM_ROWS)], axis=1).mean()
+    assert back_toward(res.pose) and palm < 15.0, palm

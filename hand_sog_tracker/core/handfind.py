@@ -61,7 +61,9 @@ class HandBlob:
     """A hand candidate in the depth image (mm, camera frame)."""
 
     palm: NDArray[np.float64]  #: (3,) the centre of the palm's bones (behind the visible surface)
-    directions: list[NDArray[np.float64]]  #: unit vectors (3,) from the wrist toward the fingers, likeliest first
+    #: unit vectors (3,) from the wrist toward the fingers, likeliest first, in the image plane but a
+    #: last one: the first tilted onto the hand end's plane (depth; :func:`_tilted`)
+    directions: list[NDArray[np.float64]]
     #: (3,) the in-plane principal direction of the hand end alone, toward the fingers, when a forearm
     #: was recognised and it lies ``DETECTION_DIRECTION_MIN_DEG`` off ``directions[0]`` (which then
     #: leaves out the most turned ones); else None
@@ -192,10 +194,18 @@ def find_hand(pre: Preprocessed, config: TrackerConfig) -> HandBlob | None:
         hand_direction = None  # (the blob's own direction already)
     if hand_direction is not None:
         angles = angles[:3]  # (its two start poses replace the four of the most turned directions)
-    return HandBlob(
-        palm=palm, directions=[_in_plane(main, a) for a in angles], hand_direction=hand_direction,
-        far_mm=_surface_far(depth, blob),
-    )
+    directions = [_in_plane(main, a) for a in angles] + [_tilted(pts[hand_end], main)]
+    return HandBlob(palm=palm, directions=directions, hand_direction=hand_direction, far_mm=_surface_far(depth, blob))
+
+
+def _tilted(pts: NDArray[np.float64], d: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The in-plane unit direction ``d`` (3,) tilted onto the plane fitted to ``pts`` (n, 3) mm
+    (depth against image position, least squares), unit: a hand seen from above and behind lies
+    tilted in depth, its wrist behind its palm, which the in-plane start poses cannot reach."""
+    xy = np.column_stack([pts[:, :2] - pts[:, :2].mean(axis=0), np.ones(pts.shape[0])])
+    grad = np.linalg.lstsq(xy, pts[:, 2], rcond=None)[0][:2]  # (dz / dx, dz / dy)
+    v = np.array([d[0], d[1], float(grad @ d[:2])])
+    return v / np.linalg.norm(v)
 
 
 def _surface_far(depth: NDArray[np.float32], blob: NDArray[np.bool_]) -> float:
@@ -287,6 +297,6 @@ def detection_direction(blob: HandBlob, points: NDArray[np.float64]) -> NDArray[
         return None
     toward = _in_plane_unit(points.mean(axis=0) - blob.palm)
     cos_min = np.cos(np.deg2rad(DETECTION_DIRECTION_MIN_DEG))
-    if toward is None or any(float(toward @ d) > cos_min for d in blob.directions):
+    if toward is None or any(float(toward @ _in_plane_unit(d)) > cos_min for d in blob.directions):
         return None
     return toward

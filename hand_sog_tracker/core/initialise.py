@@ -57,11 +57,12 @@ def _frame(y_dir: NDArray[np.float64], palm_to_camera: bool, roll: float) -> NDA
 
 def initial_hypotheses(model: HandModel, blob: HandBlob, n: int) -> list[NDArray[np.float64]]:
     """Up to ``n`` start poses (26,) for the hand in ``blob``, most likely first: each direction
-    open with the palm toward and away from the camera, closed and half-closed for the first."""
+    open with the palm toward and away from the camera, closed and half-closed for the first; a
+    direction tilted in depth (the hand end's plane) with the back toward it only (seen from above)."""
     combos = []
     for i, d in enumerate(blob.directions):
         for joints in (OPEN, CLOSED, HALF_CLOSED) if i == 0 else (OPEN,):
-            combos += [(d, True, joints), (d, False, joints)]
+            combos += [(d, palm, joints) for palm in (True, False) if not (palm and d[2])]
     return [_start(model, blob.palm, _frame(d, palm, 0.0), joints) for d, palm, joints in combos][:n]
 
 

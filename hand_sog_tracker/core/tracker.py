@@ -149,8 +149,7 @@ class Tracker:
             self._model = model.mirrored(self._config.right_hand)
         self._prev: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None  # last two poses
         self._steps: NDArray[np.float64] | None = None  # last frame's final step lengths (26,)
-        self._low_frames = 0
-        self._status = TrackerStatus.NO_HAND
+        self._low_frames, self._status = 0, TrackerStatus.NO_HAND  # (frames of low confidence in a row)
         self._joint_model: tuple[HandModel, HandModel] | None = None  # (model, with joint Gaussians)
         #: (track pose, answer) (26,) each of the frame before, when it was refined.
         self._refine_last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
@@ -374,21 +373,17 @@ class Tracker:
     def _refined(self, obj: Objective, res: OptimizeResult, p1: NDArray[np.float64]) -> NDArray[np.float64]:
         """A tracked frame's answer (26,): ``res.x`` or, with a PIP over ``REFINE_CURL_RAD``, that refined
         on ``obj`` of the joint model (from the last correction when the track went on from ``p1``)."""
-        x = res.x
-        iterations = self._config.refine_iterations
+        x, iterations = res.x, self._config.refine_iterations
         last, self._refine_last = self._refine_last, None
         if iterations <= 0 or np.max(x[FINGER_PIP]) <= REFINE_CURL_RAD:
             return x
         joint = self._joint_model
         if joint is None or joint[0] is not self._model:
             joint = self._joint_model = (self._model, self._model.with_joint_gaussians())
-        refine = Objective(
-            joint[1], obj.data, obj.config, obj.previous, obj.targets, obj.silhouette, obj.contact,
-            visible_from=x if REFINE_VISIBILITY else None,
-        )
+        refine = Objective(joint[1], obj.data, obj.config, obj.previous, obj.targets, obj.silhouette, obj.contact,
+                           visible_from=x if REFINE_VISIBILITY else None)
         refine.interhand = obj.interhand
-        steps = _warm(res.steps)
-        x0 = x
+        steps, x0 = _warm(res.steps), x
         if last is not None and last[0] is p1:
             x0 = np.clip(x + (last[1] - last[0]), *self._limits())
             steps *= REFINE_WARM_STEPS
@@ -415,6 +410,7 @@ class Tracker:
         if data.n == 0:
             return self._no_hand(timings)
         fits = self._finalist_fits(found, data, det, sil)
+        fits = [f for f in fits if f[0] not in found.tilted or f[1][0] >= INIT_SEARCH.combination_below]
         best = fits[0][1] if fits else None
         if best is not None and self._sizes is not None and _open(best[1].fit.x):
             self._model = self._sizes[1]

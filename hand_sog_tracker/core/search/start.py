@@ -49,6 +49,8 @@ class Finalists:
 
     poses: list[NDArray[np.float64]]  #: the finalist poses (26,), best first
     end_mm: float = np.inf  #: where the search's depth window ended (mm): the finish's ends there too
+    #: ``poses`` (indices) from a start tilted in depth: kept once refined if over ``combination_below`` (objects tilt)
+    tilted: frozenset[int] = frozenset()
 
 
 def on_hand_side(points: NDArray[np.float64], theta: NDArray[np.float64]) -> NDArray[np.bool_]:
@@ -177,6 +179,8 @@ def start_search(pre: Preprocessed, model: HandModel, config: TrackerConfig, bou
             ranked = sorted(ranked + tried, key=lambda s: s[:2], reverse=True)
     # The best of the other palm side joins the finalists when none of them has it: the search
     # scores without the silhouette, and the finish's full objective tells the two apart.
-    poses = [x for _, _, x in ranked[: eff.finalists]]
-    sides = {back_toward(x) for x in poses}
-    return Finalists(poses + [x for _, _, x in ranked if back_toward(x) not in sides][:1], end_mm)
+    best = ranked[: eff.finalists]
+    best += [s for s in ranked if back_toward(s[2]) not in {back_toward(x) for _, _, x in best}][:1]
+    # (A flat start's R[2, 1] is 0 to rounding; the combinations, ranks len(starts) on, are flat.)
+    tilted = [-r < len(starts) and abs(global_rotation(starts[-r])[2, 1]) > 1e-9 for _, r, _ in best]
+    return Finalists([x for _, _, x in best], end_mm, frozenset(np.flatnonzero(tilted).tolist()))
