@@ -53,11 +53,12 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess
 from hand_sog_tracker.core.hand_model import HandModel, chain_slice
-from hand_sog_tracker.core.handcheck import HandGate, Theirs
-from hand_sog_tracker.core.kinematics import global_rotation, posed_centres
+from hand_sog_tracker.core.handcheck import RESET_BELOW, HandGate, Theirs, check_hand
+from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation, keypoint_skeleton, posed_centres
 from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import RING_RADIUS_MM, TIP_DEPTH_OFFSET_MM, Detections
+from hand_sog_tracker.core.search.start import Finalists, start_search
 from hand_sog_tracker.core.support import without_support
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
@@ -120,6 +121,9 @@ SAME_HAND_MM: Final[float] = 40.0
 #: inside the other's skin: a majority (two fits of one hand overlap; two hands in contact
 #: interpenetrate at their surfaces only, 0-11% of the centres on dev ``clap`` frames 5-31).
 SHARED_VOLUME: Final[float] = 0.5
+#: Whether a new track's finalists face the hand gate's check before their full fits
+#: (:meth:`MultiHandTracker._checked_start`).
+CHECK_FINALISTS = True
 #: With at least one hand tracked, a new hand is searched for every this many frames; after a
 #: search that started no new track, twice as many, up to ``SEARCH_EVERY_MAX`` (a hand that comes
 #: into view is then found within 0.67 s at 30 Hz), until a new track is a hand.
@@ -403,7 +407,7 @@ class MultiHandTracker:
             not self._slots or self._frame - self._searched >= self._every
         ):
             self._searched, n = self._frame, len(self._slots)
-            self._search(pre)
+            self._search(pre, (depth_mm, intrinsics))
             if n and len(self._slots) == n:  # (no new track: the next search waits twice as long)
                 self._every = min(2 * self._every, SEARCH_EVERY_MAX)
         self._decide()
@@ -648,8 +652,31 @@ class MultiHandTracker:
         cfg = replace(self._config, right_hand=side == "right")
         return Tracker(cfg, self._models[side])
 
-    def _search(self, pre: Preprocessed) -> None:
-        """Start tracks on the hands that no live track holds, until ``max_hands``."""
+    def _checked_start(self, image: tuple[NDArray, Intrinsics]):
+        """A new track's :attr:`Tracker.start_search` in the frame ``image`` (depth (H, W) mm,
+        intrinsics) that finds no hand when the hand gate would reset a track at every finalist
+        at once (:data:`~.handcheck.RESET_BELOW`, as :meth:`_gate` checks the new track's first
+        frame: beside the hands that were one on their last frame), before their full fits."""
+        poses = [(o.tracker.model, self._pose(o)) for o in self._slots if o.present]
+        poses = [(m, x) for m, x in poses if x is not None]
+
+        def start(pre: Preprocessed, model: HandModel, config: TrackerConfig, bounds) -> Finalists | None:
+            found = start_search(pre, model, config, bounds)
+            for x in [] if found is None else found.poses:
+                centres = gaussian_centres(model, x)
+                posed = TrackResult(
+                    TrackerStatus.TRACKING, x, centres[model.tip_index], keypoint_skeleton(model, x), 0.0, 0.0, 0,
+                    gaussians_mm=centres,
+                )
+                if check_hand(*image, model, posed, _theirs(model, x, poses) if poses else None).confidence >= RESET_BELOW:
+                    return found
+            return None
+
+        return start
+
+    def _search(self, pre: Preprocessed, image: tuple[NDArray, Intrinsics]) -> None:
+        """Start tracks on the hands that no live track holds, until ``max_hands`` (the hand
+        gate's check of the new track's finalists first, :meth:`_checked_start`)."""
         while len(self._slots) < self.max_hands:
             masked = self._masked(pre) if self._slots else pre
             free = [s for s in HANDS if s not in {t.side for t in self._slots if t.alt is None}]
@@ -658,6 +685,8 @@ class MultiHandTracker:
             else:
                 sides = ["right", "left"]  # (a trial: see _judge)
             tracker = self._new_tracker(sides[0])
+            if CHECK_FINALISTS:
+                tracker.start_search = self._checked_start(image)
             res = tracker.process_preprocessed(masked)
             if res.status is not TrackerStatus.TRACKING or res.pose is None:
                 return

@@ -156,6 +156,7 @@ class Tracker:
         self._refine_last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self._lost_pulls = _NO_POINTS  # the detection (1, 3) mm whose pulls lost last frame, or none
         # Set by the multi-hand tracker (:mod:`.hands`); None: not used.
+        self.start_search = start_search  #: a new track's search: :func:`~.search.start.start_search`'s contract
         #: What of the data near the hand at ``theta`` is this hand's (drops another hand's).
         self.data_filter: DataFilter | None = None
         #: ``tips (5, 3) mm -> (5,) bool``: the fingertips against another hand (:attr:`Frame.covered`).
@@ -406,7 +407,7 @@ class Tracker:
         self._steps, self._lost_pulls, self.last_proposal = None, _NO_POINTS, None
         if self._sizes is not None:
             self._model = self._sizes[0]
-        found = start_search(pre, self._model, self._config, self._limits())
+        found = self.start_search(pre, self._model, self._config, self._limits())
         if found is None:
             return self._no_hand({})
         tq = time.perf_counter()
