@@ -668,7 +668,8 @@ class MultiHandTracker:
                     TrackerStatus.TRACKING, x, centres[model.tip_index], keypoint_skeleton(model, x), 0.0, 0.0, 0,
                     gaussians_mm=centres,
                 )
-                if check_hand(*image, model, posed, _theirs(model, x, poses) if poses else None).confidence >= RESET_BELOW:
+                theirs = _theirs(model, x, poses) if poses else None
+                if check_hand(*image, model, posed, theirs).confidence >= RESET_BELOW:
                     return found
             return None
 
