@@ -53,7 +53,7 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess
 from hand_sog_tracker.core.hand_model import HandModel, chain_slice
-from hand_sog_tracker.core.handcheck import RESET_BELOW, HandGate, Theirs, check_hand
+from hand_sog_tracker.core.handcheck import EXPLAINED_LOW, HandGate, Theirs, check_hand
 from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation, keypoint_skeleton, posed_centres
 from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.region import hand_roi
@@ -654,9 +654,12 @@ class MultiHandTracker:
 
     def _checked_start(self, image: tuple[NDArray, Intrinsics]):
         """A new track's :attr:`Tracker.start_search` in the frame ``image`` (depth (H, W) mm,
-        intrinsics) that finds no hand when the hand gate would reset a track at every finalist
-        at once (:data:`~.handcheck.RESET_BELOW`, as :meth:`_gate` checks the new track's first
-        frame: beside the hands that were one on their last frame), before their full fits."""
+        intrinsics) that finds no hand when the hand gate would reset the track on its first
+        frame whichever finalist won: at every finalist, the data around the model that it
+        explains (``explained``, as :meth:`_gate` checks: beside the hands that were one on
+        their last frame) lie below :data:`~.handcheck.EXPLAINED_LOW` (the check's confidence
+        0).  Decided before the finalists' full fits: those articulate a model where it lies,
+        and do not reach the data near it that it leaves out (doc/design/two_hands.md)."""
         poses = [(o.tracker.model, self._pose(o)) for o in self._slots if o.present]
         poses = [(m, x) for m, x in poses if x is not None]
 
@@ -668,8 +671,8 @@ class MultiHandTracker:
                     TrackerStatus.TRACKING, x, centres[model.tip_index], keypoint_skeleton(model, x), 0.0, 0.0, 0,
                     gaussians_mm=centres,
                 )
-                theirs = _theirs(model, x, poses) if poses else None
-                if check_hand(*image, model, posed, theirs).confidence >= RESET_BELOW:
+                evidence = check_hand(*image, model, posed, _theirs(model, x, poses) if poses else None).evidence
+                if evidence is None or evidence.explained >= EXPLAINED_LOW:
                     return found
             return None
 
