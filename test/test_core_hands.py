@@ -355,7 +355,7 @@ def test_a_search_that_starts_no_track_waits_twice_as_long_up_to_search_every_ma
     mt._slots = [_slot("right", rest_pose(), 0)]
     searched: list[int] = []
     monkeypatch.setattr(mt, "_track", lambda pre: None)  # (the tracked hand stays, without a result)
-    monkeypatch.setattr(mt, "_search", lambda pre: searched.append(mt._frame))
+    monkeypatch.setattr(mt, "_search", lambda pre, image: searched.append(mt._frame))
     for _ in range(60):
         mt.process(depth, intr)
     assert (SEARCH_EVERY, SEARCH_EVERY_MAX) == (5, 20)

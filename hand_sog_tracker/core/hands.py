@@ -363,6 +363,7 @@ class MultiHandTracker:
         self._frame = 0
         self._searched = -SEARCH_EVERY  # frame of the last search for a new hand
         self._every = SEARCH_EVERY  # frames between two searches (SEARCH_EVERY_MAX)
+        self._doomed = False  # this frame's search ended at finalists the gate would drop (_checked_start)
 
     @property
     def config(self) -> TrackerConfig:
@@ -406,9 +407,10 @@ class MultiHandTracker:
         if len(self._slots) < self.max_hands and (
             not self._slots or self._frame - self._searched >= self._every
         ):
-            self._searched, n = self._frame, len(self._slots)
+            self._searched, n, self._doomed = self._frame, len(self._slots), False
             self._search(pre, (depth_mm, intrinsics))
-            if n and len(self._slots) == n:  # (no new track: the next search waits twice as long)
+            # (No new track: the next search waits twice as long; not after one the gate would drop.)
+            if n and len(self._slots) == n and not self._doomed:
                 self._every = min(2 * self._every, SEARCH_EVERY_MAX)
         self._decide()
         t3 = time.perf_counter()
@@ -628,15 +630,15 @@ class MultiHandTracker:
 
         return interhand
 
-    def _masked(self, pre: Preprocessed) -> Preprocessed:
-        """``pre`` without the pixels of the live tracks' hands and forearms (a new copy)."""
+    def _masked(self, pre: Preprocessed, doomed: Sequence[tuple[HandModel, NDArray[np.float64]]] = ()) -> Preprocessed:
+        """``pre`` without the pixels of the live tracks' hands and forearms and of ``doomed``
+        ((model, pose (26,)) each: new tracks the gate would drop, :meth:`_checked_start`), a new copy."""
         depth = pre.depth_mm.copy()
         intr = pre.intrinsics
-        for s in self._slots:
-            x = self._pose(s)
+        for model, x in [(s.tracker.model, self._pose(s)) for s in self._slots] + list(doomed):
             if x is None:
                 continue
-            roi, _ = hand_roi(s.tracker.model, x, intr, self._config.roi_radius_mm + FOREARM_LENGTH_MM)
+            roi, _ = hand_roi(model, x, intr, self._config.roi_radius_mm + FOREARM_LENGTH_MM)
             u0, v0, u1, v1 = roi
             box = depth[v0:v1, u0:u1]
             vs, us = np.nonzero(box > 0)
@@ -644,7 +646,7 @@ class MultiHandTracker:
                 continue
             uv = np.stack([us + u0, vs + v0], 1).astype(np.float64)
             pts = intr.backproject(uv, box[vs, us].astype(np.float64))
-            near = skin_distance(s.tracker.model, x, pts, PIXEL_MARGIN_MM) < PIXEL_MARGIN_MM
+            near = skin_distance(model, x, pts, PIXEL_MARGIN_MM) < PIXEL_MARGIN_MM
             box[vs[near], us[near]] = 0.0
         return Preprocessed(depth_mm=depth, intrinsics=intr, decimation=pre.decimation)
 
@@ -652,7 +654,7 @@ class MultiHandTracker:
         cfg = replace(self._config, right_hand=side == "right")
         return Tracker(cfg, self._models[side])
 
-    def _checked_start(self, image: tuple[NDArray, Intrinsics]):
+    def _checked_start(self, image: tuple[NDArray, Intrinsics], doomed: list[tuple[HandModel, NDArray[np.float64]]]):
         """A new track's :attr:`Tracker.start_search` in the frame ``image`` (depth (H, W) mm,
         intrinsics) that finds no hand when the hand gate would reset the track on its first
         frame whichever finalist won: at every finalist, the data around the model that it
@@ -674,15 +676,20 @@ class MultiHandTracker:
                 evidence = check_hand(*image, model, posed, _theirs(model, x, poses) if poses else None).evidence
                 if evidence is None or evidence.explained >= EXPLAINED_LOW:
                     return found
+            if found is not None:  # (the best finalist: where the track the gate drops would be)
+                self._doomed = True
+                doomed.append((model, found.poses[0]))
             return None
 
         return start
 
     def _search(self, pre: Preprocessed, image: tuple[NDArray, Intrinsics]) -> None:
         """Start tracks on the hands that no live track holds, until ``max_hands`` (the hand
-        gate's check of the new track's finalists first, :meth:`_checked_start`)."""
-        while len(self._slots) < self.max_hands:
-            masked = self._masked(pre) if self._slots else pre
+        gate's check of the new track's finalists first, :meth:`_checked_start`: a track it would
+        drop takes its id and its pixels are masked for the next search, as after the gate)."""
+        doomed: list[tuple[HandModel, NDArray[np.float64]]] = []
+        while len(self._slots) + len(doomed) < self.max_hands:
+            masked = self._masked(pre, doomed) if self._slots or doomed else pre
             free = [s for s in HANDS if s not in {t.side for t in self._slots if t.alt is None}]
             if len(free) == 1 or self.handedness is not None:
                 sides = free if len(free) == 1 else [self.handedness]
@@ -690,8 +697,12 @@ class MultiHandTracker:
                 sides = ["right", "left"]  # (a trial: see _judge)
             tracker = self._new_tracker(sides[0])
             if CHECK_FINALISTS:
-                tracker.start_search = self._checked_start(image)
+                tracker.start_search = self._checked_start(image, doomed)
+            k = len(doomed)
             res = tracker.process_preprocessed(masked)
+            if len(doomed) > k:
+                self._next_id += 1
+                continue
             if res.status is not TrackerStatus.TRACKING or res.pose is None:
                 return
             slot = _Slot(tracker, sides[0], self._next_id, res)
