@@ -24,7 +24,9 @@ Per frame the depth is preprocessed once and shared:
   touching the first.  Without any track it runs every frame; with one, every
   :data:`SEARCH_EVERY` frames (a one-hand user does not pay for it on every frame), twice as
   many after each search that started no track (up to :data:`SEARCH_EVERY_MAX`).  A track the
-  gate drops makes the next frame search only when it was a hand on its last frame.
+  gate drops makes the next frame search only when it was a hand on its last frame.  A new
+  track whose every finalist leaves the data around it unexplained (the gate would drop it on
+  its first frame) is dropped before the finalists' full fits (:data:`CHECK_FINALISTS`).
 * **Handedness** is fixed when a track starts and held while it lasts.  A free label is given
   when the other one is taken (one person, two hands); with both free it comes from the data:
   the new track is started with the right model, the mirrored (left) one from the found pose
@@ -58,13 +60,14 @@ from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation, 
 from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import RING_RADIUS_MM, TIP_DEPTH_OFFSET_MM, Detections
-from hand_sog_tracker.core.search.start import Finalists, start_search
+from hand_sog_tracker.core.search.start import Bounds, Finalists, start_search
 from hand_sog_tracker.core.support import without_support
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
 from hand_sog_tracker.errors import InputError
 
 __all__ = [
+    "CHECK_FINALISTS",
     "COVERED_MM",
     "HANDS",
     "OWN_MARGIN_MM",
@@ -665,7 +668,7 @@ class MultiHandTracker:
         poses = [(o.tracker.model, self._pose(o)) for o in self._slots if o.present]
         poses = [(m, x) for m, x in poses if x is not None]
 
-        def start(pre: Preprocessed, model: HandModel, config: TrackerConfig, bounds) -> Finalists | None:
+        def start(pre: Preprocessed, model: HandModel, config: TrackerConfig, bounds: Bounds) -> Finalists | None:
             found = start_search(pre, model, config, bounds)
             for x in [] if found is None else found.poses:
                 centres = gaussian_centres(model, x)
