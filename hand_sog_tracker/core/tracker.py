@@ -156,7 +156,7 @@ class Tracker:
         self._refine_last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self._lost_pulls = _NO_POINTS  # the detection (1, 3) mm whose pulls lost last frame, or none
         # Set by the multi-hand tracker (:mod:`.hands`); None: not used.
-        self.start_search = start_search  #: a new track's search: :func:`~.search.start.start_search`'s contract
+        self.start_search = start_search  #: a new track's search (:mod:`.hands` checks its finalists)
         #: What of the data near the hand at ``theta`` is this hand's (drops another hand's).
         self.data_filter: DataFilter | None = None
         #: ``tips (5, 3) mm -> (5,) bool``: the fingertips against another hand (:attr:`Frame.covered`).
