@@ -355,7 +355,7 @@ def test_a_search_that_starts_no_track_waits_twice_as_long_up_to_search_every_ma
     mt._slots = [_slot("right", rest_pose(), 0)]
     searched: list[int] = []
     monkeypatch.setattr(mt, "_track", lambda pre: None)  # (the tracked hand stays, without a result)
-    monkeypatch.setattr(mt, "_search", lambda pre: searched.append(mt._frame))
+    monkeypatch.setattr(mt, "_search", lambda pre, image: searched.append(mt._frame))
     for _ in range(60):
         mt.process(depth, intr)
     assert (SEARCH_EVERY, SEARCH_EVERY_MAX) == (5, 20)
@@ -402,3 +402,40 @@ def test_the_split_gives_another_hand_the_points_near_its_skin_and_nearer_to_it(
     want = (d_other < OWN_MARGIN_MM) & (d_other < d_mine)
     assert 50 < want.sum() < 2950
     np.testing.assert_array_equal(_theirs(model, mine, [(model, other)])(points), want)
+
+
+def test_a_new_track_whose_finalists_leave_the_data_unexplained_is_dropped_before_their_fits(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A new track whose every finalist leaves the data around it unexplained (``explained``
+    below ``EXPLAINED_LOW``: the gate would drop it on its first frame) finds no hand before the
+    finalists' full fits; it takes its track id, as a track the gate drops.  The same finalists
+    on the hands start both tracks."""
+    from hand_sog_tracker.core import hands
+    from hand_sog_tracker.core.search.start import Finalists
+
+    depth, intr, _ = next(_frames(1))
+    real = hands.start_search
+    fitted: list[int] = []
+    finalist_fits = Tracker._finalist_fits
+
+    def counted(self, *a):  # type: ignore[no-untyped-def]
+        fitted.append(1)
+        return finalist_fits(self, *a)
+
+    monkeypatch.setattr(Tracker, "_finalist_fits", counted)
+    for toward_mm in (0.0, 200.0):  # (200 mm toward the camera: the model floats before the data)
+
+        def start(pre, model, config, bounds, toward=toward_mm):  # type: ignore[no-untyped-def]
+            found = real(pre, model, config, bounds)
+            moved = [x - np.eye(x.size)[2] * toward for x in found.poses]
+            return Finalists(moved, found.end_mm)
+
+        monkeypatch.setattr(hands, "start_search", start)
+        fitted.clear()
+        mt = MultiHandTracker(TrackerConfig(), max_hands=2)
+        mt.process(depth, intr)
+        if toward_mm == 0.0:
+            assert len(mt.tracks) == 2 and fitted
+        else:
+            assert mt.tracks == () and not fitted and mt._next_id == 2 and mt._doomed

@@ -24,7 +24,9 @@ Per frame the depth is preprocessed once and shared:
   touching the first.  Without any track it runs every frame; with one, every
   :data:`SEARCH_EVERY` frames (a one-hand user does not pay for it on every frame), twice as
   many after each search that started no track (up to :data:`SEARCH_EVERY_MAX`).  A track the
-  gate drops makes the next frame search only when it was a hand on its last frame.
+  gate drops makes the next frame search only when it was a hand on its last frame.  A new
+  track whose every finalist leaves the data around it unexplained (the gate would drop it on
+  its first frame) is dropped before the finalists' full fits (:data:`CHECK_FINALISTS`).
 * **Handedness** is fixed when a track starts and held while it lasts.  A free label is given
   when the other one is taken (one person, two hands); with both free it comes from the data:
   the new track is started with the right model, the mirrored (left) one from the found pose
@@ -53,17 +55,19 @@ from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess
 from hand_sog_tracker.core.hand_model import HandModel, chain_slice
-from hand_sog_tracker.core.handcheck import HandGate, Theirs
-from hand_sog_tracker.core.kinematics import global_rotation, posed_centres
+from hand_sog_tracker.core.handcheck import EXPLAINED_LOW, HandGate, Theirs, check_hand
+from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation, keypoint_skeleton, posed_centres
 from hand_sog_tracker.core.objective.interhand import InterHand
 from hand_sog_tracker.core.region import hand_roi
 from hand_sog_tracker.core.salient import RING_RADIUS_MM, TIP_DEPTH_OFFSET_MM, Detections
+from hand_sog_tracker.core.search.start import Bounds, Finalists, start_search
 from hand_sog_tracker.core.support import without_support
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerConfig, TrackerStatus, TrackResult
 from hand_sog_tracker.errors import InputError
 
 __all__ = [
+    "CHECK_FINALISTS",
     "COVERED_MM",
     "HANDS",
     "OWN_MARGIN_MM",
@@ -120,6 +124,9 @@ SAME_HAND_MM: Final[float] = 40.0
 #: inside the other's skin: a majority (two fits of one hand overlap; two hands in contact
 #: interpenetrate at their surfaces only, 0-11% of the centres on dev ``clap`` frames 5-31).
 SHARED_VOLUME: Final[float] = 0.5
+#: Whether a new track's finalists face the hand gate's check before their full fits
+#: (:meth:`MultiHandTracker._checked_start`).
+CHECK_FINALISTS = True
 #: With at least one hand tracked, a new hand is searched for every this many frames; after a
 #: search that started no new track, twice as many, up to ``SEARCH_EVERY_MAX`` (a hand that comes
 #: into view is then found within 0.67 s at 30 Hz), until a new track is a hand.
@@ -359,6 +366,7 @@ class MultiHandTracker:
         self._frame = 0
         self._searched = -SEARCH_EVERY  # frame of the last search for a new hand
         self._every = SEARCH_EVERY  # frames between two searches (SEARCH_EVERY_MAX)
+        self._doomed = False  # this frame's search ended at finalists the gate would drop (_checked_start)
 
     @property
     def config(self) -> TrackerConfig:
@@ -402,9 +410,10 @@ class MultiHandTracker:
         if len(self._slots) < self.max_hands and (
             not self._slots or self._frame - self._searched >= self._every
         ):
-            self._searched, n = self._frame, len(self._slots)
-            self._search(pre)
-            if n and len(self._slots) == n:  # (no new track: the next search waits twice as long)
+            self._searched, n, self._doomed = self._frame, len(self._slots), False
+            self._search(pre, (depth_mm, intrinsics))
+            # (No new track: the next search waits twice as long; not after one the gate would drop.)
+            if n and len(self._slots) == n and not self._doomed:
                 self._every = min(2 * self._every, SEARCH_EVERY_MAX)
         self._decide()
         t3 = time.perf_counter()
@@ -624,15 +633,15 @@ class MultiHandTracker:
 
         return interhand
 
-    def _masked(self, pre: Preprocessed) -> Preprocessed:
-        """``pre`` without the pixels of the live tracks' hands and forearms (a new copy)."""
+    def _masked(self, pre: Preprocessed, doomed: Sequence[tuple[HandModel, NDArray[np.float64]]] = ()) -> Preprocessed:
+        """``pre`` without the pixels of the live tracks' hands and forearms and of ``doomed``
+        ((model, pose (26,)) each: new tracks the gate would drop, :meth:`_checked_start`), a new copy."""
         depth = pre.depth_mm.copy()
         intr = pre.intrinsics
-        for s in self._slots:
-            x = self._pose(s)
+        for model, x in [(s.tracker.model, self._pose(s)) for s in self._slots] + list(doomed):
             if x is None:
                 continue
-            roi, _ = hand_roi(s.tracker.model, x, intr, self._config.roi_radius_mm + FOREARM_LENGTH_MM)
+            roi, _ = hand_roi(model, x, intr, self._config.roi_radius_mm + FOREARM_LENGTH_MM)
             u0, v0, u1, v1 = roi
             box = depth[v0:v1, u0:u1]
             vs, us = np.nonzero(box > 0)
@@ -640,7 +649,7 @@ class MultiHandTracker:
                 continue
             uv = np.stack([us + u0, vs + v0], 1).astype(np.float64)
             pts = intr.backproject(uv, box[vs, us].astype(np.float64))
-            near = skin_distance(s.tracker.model, x, pts, PIXEL_MARGIN_MM) < PIXEL_MARGIN_MM
+            near = skin_distance(model, x, pts, PIXEL_MARGIN_MM) < PIXEL_MARGIN_MM
             box[vs[near], us[near]] = 0.0
         return Preprocessed(depth_mm=depth, intrinsics=intr, decimation=pre.decimation)
 
@@ -648,17 +657,55 @@ class MultiHandTracker:
         cfg = replace(self._config, right_hand=side == "right")
         return Tracker(cfg, self._models[side])
 
-    def _search(self, pre: Preprocessed) -> None:
-        """Start tracks on the hands that no live track holds, until ``max_hands``."""
-        while len(self._slots) < self.max_hands:
-            masked = self._masked(pre) if self._slots else pre
+    def _checked_start(self, image: tuple[NDArray, Intrinsics], doomed: list[tuple[HandModel, NDArray[np.float64]]]):
+        """A new track's :attr:`Tracker.start_search` in the frame ``image`` (depth (H, W) mm,
+        intrinsics) that finds no hand when the hand gate would reset the track on its first
+        frame whichever finalist won: at every finalist, the data around the model that it
+        explains (``explained``, as :meth:`_gate` checks: beside the hands that were one on
+        their last frame) lie below :data:`~.handcheck.EXPLAINED_LOW` (the check's confidence
+        0).  Decided before the finalists' full fits: those articulate a model where it lies,
+        and do not reach the data near it that it leaves out (doc/design/two_hands.md)."""
+        poses = [(o.tracker.model, self._pose(o)) for o in self._slots if o.present]
+        poses = [(m, x) for m, x in poses if x is not None]
+
+        def start(pre: Preprocessed, model: HandModel, config: TrackerConfig, bounds: Bounds) -> Finalists | None:
+            found = start_search(pre, model, config, bounds)
+            for x in [] if found is None else found.poses:
+                centres = gaussian_centres(model, x)
+                posed = TrackResult(
+                    TrackerStatus.TRACKING, x, centres[model.tip_index], keypoint_skeleton(model, x), 0.0, 0.0, 0,
+                    gaussians_mm=centres,
+                )
+                evidence = check_hand(*image, model, posed, _theirs(model, x, poses) if poses else None).evidence
+                if evidence is None or evidence.explained >= EXPLAINED_LOW:
+                    return found
+            if found is not None:  # (the best finalist: where the track the gate drops would be)
+                self._doomed = True
+                doomed.append((model, found.poses[0]))
+            return None
+
+        return start
+
+    def _search(self, pre: Preprocessed, image: tuple[NDArray, Intrinsics]) -> None:
+        """Start tracks on the hands that no live track holds, until ``max_hands`` (the hand
+        gate's check of the new track's finalists first, :meth:`_checked_start`: a track it would
+        drop takes its id and its pixels are masked for the next search, as after the gate)."""
+        doomed: list[tuple[HandModel, NDArray[np.float64]]] = []
+        while len(self._slots) + len(doomed) < self.max_hands:
+            masked = self._masked(pre, doomed) if self._slots or doomed else pre
             free = [s for s in HANDS if s not in {t.side for t in self._slots if t.alt is None}]
             if len(free) == 1 or self.handedness is not None:
                 sides = free if len(free) == 1 else [self.handedness]
             else:
                 sides = ["right", "left"]  # (a trial: see _judge)
             tracker = self._new_tracker(sides[0])
+            if CHECK_FINALISTS:
+                tracker.start_search = self._checked_start(image, doomed)
+            k = len(doomed)
             res = tracker.process_preprocessed(masked)
+            if len(doomed) > k:
+                self._next_id += 1
+                continue
             if res.status is not TrackerStatus.TRACKING or res.pose is None:
                 return
             slot = _Slot(tracker, sides[0], self._next_id, res)

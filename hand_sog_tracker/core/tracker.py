@@ -151,9 +151,9 @@ class Tracker:
         self._steps: NDArray[np.float64] | None = None  # last frame's final step lengths (26,)
         self._low_frames, self._status = 0, TrackerStatus.NO_HAND  # (frames of low confidence in a row)
         self._joint_model: tuple[HandModel, HandModel] | None = None  # (model, with joint Gaussians)
-        #: (track pose, answer) (26,) each of the frame before, when it was refined.
-        self._refine_last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+        self._refine_last: tuple[NDArray, NDArray] | None = None  # (track pose, answer) (26,) if refined last frame
         self._lost_pulls = _NO_POINTS  # the detection (1, 3) mm whose pulls lost last frame, or none
+        self.start_search = start_search  #: a new track's search (:mod:`.hands` checks its finalists)
         # Set by the multi-hand tracker (:mod:`.hands`); None: not used.
         #: What of the data near the hand at ``theta`` is this hand's (drops another hand's).
         self.data_filter: DataFilter | None = None
@@ -401,7 +401,7 @@ class Tracker:
         self._steps, self._lost_pulls, self.last_proposal = None, _NO_POINTS, None
         if self._sizes is not None:
             self._model = self._sizes[0]
-        found = start_search(pre, self._model, self._config, self._limits())
+        found = self.start_search(pre, self._model, self._config, self._limits())
         if found is None:
             return self._no_hand({})
         tq = time.perf_counter()
