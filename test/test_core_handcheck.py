@@ -319,3 +319,37 @@ def test_a_finger_another_hand_hides_wholly_is_left_out_of_fingers_on() -> None:
     assert alone.fingers[1] < 0.1  # (the index finger is hidden)
     assert alone.evidence.fingers_on < clean.evidence.fingers_on - 0.1, alone.evidence
     assert given.evidence.fingers_on >= clean.evidence.fingers_on - 0.05, (given.evidence, clean.evidence)
+
+
+def test_a_fresh_start_on_the_same_hand_keeps_the_tracks_confirmation(monkeypatch) -> None:
+    """Issue 46, hands that come back: a confirmed track doubted by its check competes with a
+    fresh start; one that wins on the same hand keeps the track's confirmation, so the frame is
+    reported although no finger is seen to end on it (a new track would be withheld)."""
+    import hand_sog_tracker.core.handcheck as hc
+    import hand_sog_tracker.core.tracker as tr
+    from hand_sog_tracker.core.search.candidates import Frame
+
+    depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), np.random.default_rng(4))
+    fresh: list[np.ndarray] = []
+    init, score = tr.Tracker._initialise, Frame.score
+
+    def initialise(self: Tracker, pre: object) -> TrackResult:
+        res = init(self, pre)
+        fresh.append(res.pose)
+        return res
+
+    def second_frame() -> tuple[Tracker, TrackResult]:
+        t = Tracker()
+        assert t.process(depth, INTR).hand.present  # (a finger seen to end: confirmed)
+        fresh.clear()
+        confidences = iter([0.1, 0.9])  # (the track's check, then the fresh start's; no finger seen)
+        ev = hc.HandEvidence(1.0, 1.0, 1.0, math.nan, 1.0, 1.0)
+        monkeypatch.setattr(hc, "check_hand", lambda *a: hc.HandDecision(False, next(confidences), np.ones(5), ev))
+        monkeypatch.setattr(tr.Tracker, "_initialise", initialise)
+        # (the fresh start scores higher on the track's frame: it wins on the same hand)
+        monkeypatch.setattr(Frame, "score", lambda f, x, v=None: score(f, x, v) + float(np.array_equal(x, fresh[-1])))
+        return t, t.process(depth, INTR)
+
+    t, res = second_frame()
+    assert t.last_proposal == "fresh_start" and res.pose is not None and res.hand.present
+    assert res.hand.evidence is not None and math.isnan(res.hand.evidence.ends)  # (a new track would wait)

@@ -70,7 +70,7 @@ SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
-FRESH_BELOW = HAND_THRESHOLD  #: a tracked frame checked below this competes with a fresh start (issue 46) ...
+FRESH_BELOW = HAND_THRESHOLD  #: a tracked frame checked below this competes with a fresh start (issue 46; 0.5, 0.7: hand_check.md) ...
 FRESH_MARGIN = 0.1  #: ... which wins with a check this much higher (chosen on scenes_dev) ...
 FRESH_APART_MM = 40.0  #: ... and its palm this far (mm, half a palm's width) from the track's
 _PALM_ROWS = [0, 5, 9, 13, 17]  #: wrist and finger MCPs among the skeleton's 21 points
@@ -84,10 +84,8 @@ RoiWindow = tuple[tuple[int, int, int, int], tuple[float, float]]  #: :func:`han
 
 
 class _Keep:
-    """What the hand gate resets when the tracker keeps its track (``withhold=False``): nothing."""
-
     def reset(self) -> None:
-        pass
+        """What the hand gate resets when the tracker keeps its track (``withhold=False``): nothing."""
 
 
 def _apart(track: TrackResult, track_model: HandModel, fresh: TrackResult, fresh_model: HandModel) -> bool:
@@ -272,11 +270,13 @@ class Tracker:
         if fresh.pose is not None:
             fresh_check = handcheck.check_hand(*image, self._model, fresh)
             better = fresh_check.confidence >= checked.confidence + FRESH_MARGIN
-            if better and on_track is not None and not _apart(track, kept["_model"], fresh, self._model):
+            same = on_track is not None and not _apart(track, kept["_model"], fresh, self._model)
+            if better and same:
                 frame, x = on_track  # (the same hand: the track's own score judges the articulation)
                 better = frame.score(fresh.pose) > frame.score(x)
             if better:
-                self._gate.forget()  # (a new track: reported once a finger is seen to end)
+                if not same:  # (elsewhere: a new track, reported once a finger is seen to end; the same hand stays)
+                    self._gate.forget()
                 self.last_proposal = "fresh_start"
                 fresh.timings_ms["quadtree"] = fresh.timings_ms.get("quadtree", 0.0) + track.timings_ms["quadtree"]
                 return fresh, fresh_check
