@@ -329,7 +329,8 @@ def test_a_fresh_start_on_the_same_hand_keeps_the_tracks_confirmation(monkeypatc
     import hand_sog_tracker.core.tracker as tr
     from hand_sog_tracker.core.search.candidates import Frame
 
-    depth = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), np.random.default_rng(4))
+    opts = RenderOptions(noise_mm=1.0, background_mm=None)
+    depth, again = (render_depth(MODEL, THETA, INTR, opts, np.random.default_rng(seed)) for seed in (4, 5))
     fresh: list[np.ndarray] = []
     init, score = tr.Tracker._initialise, Frame.score
 
@@ -337,6 +338,9 @@ def test_a_fresh_start_on_the_same_hand_keeps_the_tracks_confirmation(monkeypatc
         res = init(self, pre)
         fresh.append(res.pose)
         return res
+
+    def won(x: np.ndarray) -> float:
+        return float(bool(fresh) and np.array_equal(x, fresh[-1]))
 
     def second_frame() -> tuple[Tracker, TrackResult]:
         t = Tracker()
@@ -347,8 +351,8 @@ def test_a_fresh_start_on_the_same_hand_keeps_the_tracks_confirmation(monkeypatc
         monkeypatch.setattr(hc, "check_hand", lambda *a: hc.HandDecision(False, next(confidences), np.ones(5), ev))
         monkeypatch.setattr(tr.Tracker, "_initialise", initialise)
         # (the fresh start scores higher on the track's frame: it wins on the same hand)
-        monkeypatch.setattr(Frame, "score", lambda f, x, v=None: score(f, x, v) + float(np.array_equal(x, fresh[-1])))
-        return t, t.process(depth, INTR)
+        monkeypatch.setattr(Frame, "score", lambda f, x, v=None: score(f, x, v) + won(x))
+        return t, t.process(again, INTR)  # (other noise: the track's answer is not the fresh start's)
 
     t, res = second_frame()
     assert t.last_proposal == "fresh_start" and res.pose is not None and res.hand.present
