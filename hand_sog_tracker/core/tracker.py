@@ -70,7 +70,7 @@ SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
-FRESH_BELOW = HAND_THRESHOLD  #: a tracked frame checked below this competes with a fresh start (issue 46) ...
+FRESH_BELOW = 0.7  #: a tracked frame checked below this competes with a fresh start (issue 46; 0.2, 0.5: hand_check.md) ...
 FRESH_MARGIN = 0.1  #: ... which wins with a check this much higher (chosen on scenes_dev) ...
 FRESH_APART_MM = 40.0  #: ... and its palm this far (mm, half a palm's width) from the track's
 _PALM_ROWS = [0, 5, 9, 13, 17]  #: wrist and finger MCPs among the skeleton's 21 points
@@ -275,7 +275,9 @@ class Tracker:
                 frame, x = on_track  # (the same hand: the track's own score judges the articulation)
                 better = frame.score(fresh.pose) > frame.score(x)
             if better:
-                if not same:  # (elsewhere: a new track, reported once a finger is seen to end; the same hand stays)
+                if same:  # (the same hand, confirmed, goes on moving as tracked: a new track's would be at rest)
+                    self._prev = (fresh.pose, fresh.pose - np.subtract(*kept["_prev"]))
+                else:  # (elsewhere: a new track, reported once a finger is seen to end)
                     self._gate.forget()
                 self.last_proposal = "fresh_start"
                 fresh.timings_ms["quadtree"] = fresh.timings_ms.get("quadtree", 0.0) + track.timings_ms["quadtree"]
@@ -345,8 +347,7 @@ class Tracker:
         )
         self._steps = fit.steps
         frame = Frame(
-            self._model, fit, obj, data, det, self._limits(), lost_pulls=self._lost_pulls,
-            covered=self.covered_tips,
+            self._model, fit, obj, data, det, self._limits(), lost_pulls=self._lost_pulls, covered=self.covered_tips
         )
         res, self.last_proposal = search(frame, TRACK_PROPOSALS)
         self._track_frame = (frame, res.x)
