@@ -26,7 +26,7 @@ from hand_sog_tracker.core.depth_sog import (
     quadtree_sog,
 )
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, HandModel, HandShape, default_hand_model
-from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, HandGate
+from hand_sog_tracker.core.handcheck import HandGate
 from hand_sog_tracker.core.initialise import INIT_SEARCH
 from hand_sog_tracker.core.kinematics import (
     fingertips,
@@ -70,7 +70,7 @@ SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
-FRESH_BELOW = 0.7  #: a tracked frame checked below this competes with a fresh start (issue 46; 0.2, 0.5: hand_check.md) ...
+FRESH_BELOW = 0.7  #: a tracked frame checked below this competes with a fresh start (issue 46, hand_check.md) ...
 FRESH_MARGIN = 0.1  #: ... which wins with a check this much higher (chosen on scenes_dev) ...
 FRESH_APART_MM = 40.0  #: ... and its palm this far (mm, half a palm's width) from the track's
 _PALM_ROWS = [0, 5, 9, 13, 17]  #: wrist and finger MCPs among the skeleton's 21 points
