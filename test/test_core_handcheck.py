@@ -319,3 +319,56 @@ def test_a_finger_another_hand_hides_wholly_is_left_out_of_fingers_on() -> None:
     assert alone.fingers[1] < 0.1  # (the index finger is hidden)
     assert alone.evidence.fingers_on < clean.evidence.fingers_on - 0.1, alone.evidence
     assert given.evidence.fingers_on >= clean.evidence.fingers_on - 0.05, (given.evidence, clean.evidence)
+
+
+def test_a_fresh_start_on_the_same_hand_goes_on_as_the_track(monkeypatch) -> None:
+    """Issue 46, hands that come back: a confirmed track doubted by its check competes with a
+    fresh start; one that wins on the same hand keeps the track's confirmation, so the frame is
+    reported although no finger is seen to end on it (a new track would be withheld), and the
+    track's velocity (a new track starts at rest)."""
+    import hand_sog_tracker.core.handcheck as hc
+    import hand_sog_tracker.core.tracker as tr
+    from hand_sog_tracker.core.search.candidates import Frame
+
+    opts = RenderOptions(noise_mm=1.0, background_mm=None)
+    moved = THETA + np.r_[8.0, -5.0, 0.0, np.zeros(23)]  # (the hand moving: mm)
+    depth, again = (render_depth(MODEL, x, INTR, opts, np.random.default_rng(s)) for x, s in ((THETA, 4), (moved, 5)))
+    fresh: list[np.ndarray] = []
+    init, score, track_frame = tr.Tracker._initialise, Frame.score, tr.Tracker._track
+
+    def initialise(self: Tracker, pre: object) -> TrackResult:
+        res = init(self, pre)
+        fresh.append(res.pose)
+        return res
+
+    tracked: list[np.ndarray] = []
+
+    def track(self: Tracker, pre: object) -> TrackResult:
+        res = track_frame(self, pre)
+        tracked.append(res.pose)
+        return res
+
+    def won(x: np.ndarray) -> float:
+        return float(bool(fresh) and np.array_equal(x, fresh[-1]))
+
+    def second_frame() -> tuple[Tracker, TrackResult]:
+        t = Tracker()
+        assert t.process(depth, INTR).hand.present  # (a finger seen to end: confirmed)
+        fresh.clear()
+        tracked.append(t.last_pose)
+        monkeypatch.setattr(tr.Tracker, "_track", track)
+        confidences = iter([0.1, 0.9])  # (the track's check, then the fresh start's; no finger seen)
+        ev = hc.HandEvidence(1.0, 1.0, 1.0, math.nan, 1.0, 1.0)
+        monkeypatch.setattr(hc, "check_hand", lambda *a: hc.HandDecision(False, next(confidences), np.ones(5), ev))
+        monkeypatch.setattr(tr.Tracker, "_initialise", initialise)
+        # (the fresh start scores higher on the track's frame: it wins on the same hand)
+        monkeypatch.setattr(Frame, "score", lambda f, x, v=None: score(f, x, v) + won(x))
+        return t, t.process(again, INTR)
+
+    t, res = second_frame()
+    assert t.last_proposal == "fresh_start" and res.pose is not None and res.hand.present
+    assert res.hand.evidence is not None and math.isnan(res.hand.evidence.ends)  # (a new track would wait)
+    # ... and it goes on with the track's velocity (a new track's is at rest: the hand moving in lags)
+    assert t.last_pose is not None and np.array_equal(t.last_pose, res.pose)
+    step = tracked[1] - tracked[0]  # (the track's own answer on the second frame less its first)
+    assert np.abs(step).max() > 0 and np.allclose(t._prev[0] - t._prev[1], step)

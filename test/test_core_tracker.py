@@ -462,8 +462,8 @@ def test_the_slide_proposal_moves_a_fist_seen_from_its_back_onto_its_knuckles() 
     # A mesh fist seen from its back (time of flight); the fit left 25 mm toward the forearm
     # (where the dev scenes' tracks drift as the fingers curl: design/hand_check.md).  The slide
     # candidate, SLIDE_MM toward the fingers, wins on the frame's own score: the palm comes back.
+    from hand_sog_tracker.core.kinematics import PALM_ROWS  # (wrist and finger MCPs)
     from hand_sog_tracker.synth.mesh import MeshRenderOptions, render_mesh_depth
-    from hand_sog_tracker.tools.scene_eval import PALM_ROWS  # (wrist and finger MCPs)
 
     intr = default_intrinsics()
     truth = _fist_from_the_back()
@@ -1011,9 +1011,9 @@ def test_a_new_track_of_a_hand_seen_from_above_and_behind_starts_tilted_with_its
     import zlib
 
     from hand_sog_tracker.core.handfind import find_hand
+    from hand_sog_tracker.core.kinematics import PALM_ROWS
     from hand_sog_tracker.core.search.start import back_toward
     from hand_sog_tracker.synth.scenes import scene_frames
-    from hand_sog_tracker.tools.scene_eval import PALM_ROWS
 
     intr = default_intrinsics(320, 240)
     seed = zlib.crc32(b"scenes_dev/back/1") & 0x7FFFFFFF

@@ -45,6 +45,7 @@ __all__ = [
     "skeleton_points",
     "keypoint_skeleton",
     "PALM_KEYPOINT_ROWS",
+    "PALM_ROWS",
     "keep_palm_centre",
     "SKELETON_CHAINS",
 ]
@@ -907,6 +908,8 @@ def skeleton_points(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.
 #: Rows of :func:`skeleton_points` (and of the 21 keypoints) that are rigid in the palm: the
 #: wrist, the thumb CMC and the four finger MCPs (:data:`~hand_sog_tracker.core.hand_model.KEYPOINT_OFFSETS_MM`).
 PALM_KEYPOINT_ROWS: tuple[int, ...] = (0,) + tuple(1 + CHAIN_JOINTS * c for c in range(5))
+#: The wrist and the four finger MCPs of :data:`PALM_KEYPOINT_ROWS` (the palm keypoints issue 46 scores).
+PALM_ROWS: tuple[int, ...] = PALM_KEYPOINT_ROWS[:1] + PALM_KEYPOINT_ROWS[2:]
 
 
 def keypoint_skeleton(model: HandModel, theta: NDArray[np.float64]) -> NDArray[np.float64]:

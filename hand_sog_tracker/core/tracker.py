@@ -26,9 +26,10 @@ from hand_sog_tracker.core.depth_sog import (
     quadtree_sog,
 )
 from hand_sog_tracker.core.hand_model import FINGER_MCP, FINGER_PIP, HandModel, HandShape, default_hand_model
-from hand_sog_tracker.core.handcheck import HAND_THRESHOLD, HandGate
+from hand_sog_tracker.core.handcheck import HandGate
 from hand_sog_tracker.core.initialise import INIT_SEARCH
 from hand_sog_tracker.core.kinematics import (
+    PALM_ROWS,
     fingertips,
     gaussian_centres,
     keep_palm_centre,
@@ -70,10 +71,9 @@ SMALL_HAND_LENGTH = 0.85
 SMALL_HAND_GAIN = 0.04
 SMALL_HAND_MAX_FLEX = 0.6
 SMALL_HAND_FINALISTS = 2
-FRESH_BELOW = HAND_THRESHOLD  #: a tracked frame checked below this competes with a fresh start (issue 46) ...
+FRESH_BELOW = 0.7  #: a tracked frame checked below this competes with a fresh start (issue 46, hand_check.md) ...
 FRESH_MARGIN = 0.1  #: ... which wins with a check this much higher (chosen on scenes_dev) ...
 FRESH_APART_MM = 40.0  #: ... and its palm this far (mm, half a palm's width) from the track's
-_PALM_ROWS = [0, 5, 9, 13, 17]  #: wrist and finger MCPs among the skeleton's 21 points
 _INITIAL_STEPS = StepSizes().expand(StepSizes().initial)
 #: What :meth:`Tracker._fresh_start` keeps of the track when the fresh start loses.
 _TRACK_STATE = ("_prev", "_steps", "_low_frames", "_status", "_model", "_refine_last", "last_proposal", "_lost_pulls")
@@ -84,19 +84,16 @@ RoiWindow = tuple[tuple[int, int, int, int], tuple[float, float]]  #: :func:`han
 
 
 class _Keep:
-    """What the hand gate resets when the tracker keeps its track (``withhold=False``): nothing."""
-
     def reset(self) -> None:
-        pass
+        """What the hand gate resets when the tracker keeps its track (``withhold=False``): nothing."""
 
 
 def _apart(track: TrackResult, track_model: HandModel, fresh: TrackResult, fresh_model: HandModel) -> bool:
     """Whether the palms (wrist and MCPs) of two results lie ``FRESH_APART_MM`` apart (or one has none)."""
     if track.pose is None or fresh.pose is None:
         return True
-    a = skeleton_points(track_model, track.pose)[_PALM_ROWS].mean(0)
-    b = skeleton_points(fresh_model, fresh.pose)[_PALM_ROWS].mean(0)
-    return float(np.linalg.norm(a - b)) > FRESH_APART_MM
+    a, b = (skeleton_points(m, r.pose).take(PALM_ROWS, 0) for m, r in ((track_model, track), (fresh_model, fresh)))
+    return float(np.linalg.norm(a.mean(0) - b.mean(0))) > FRESH_APART_MM
 
 
 def _open(theta: NDArray[np.float64]) -> bool:
@@ -271,11 +268,15 @@ class Tracker:
         if fresh.pose is not None:
             fresh_check = handcheck.check_hand(*image, self._model, fresh)
             better = fresh_check.confidence >= checked.confidence + FRESH_MARGIN
-            if better and on_track is not None and not _apart(track, kept["_model"], fresh, self._model):
+            same = on_track is not None and not _apart(track, kept["_model"], fresh, self._model)
+            if better and same:
                 frame, x = on_track  # (the same hand: the track's own score judges the articulation)
                 better = frame.score(fresh.pose) > frame.score(x)
             if better:
-                self._gate.forget()  # (a new track: reported once a finger is seen to end)
+                if same:  # (the same hand, confirmed, goes on moving as tracked: a new track's would be at rest)
+                    self._prev = (fresh.pose, fresh.pose - np.subtract(*kept["_prev"]))
+                else:  # (elsewhere: a new track, reported once a finger is seen to end)
+                    self._gate.forget()
                 self.last_proposal = "fresh_start"
                 fresh.timings_ms["quadtree"] = fresh.timings_ms.get("quadtree", 0.0) + track.timings_ms["quadtree"]
                 return fresh, fresh_check
@@ -344,8 +345,7 @@ class Tracker:
         )
         self._steps = fit.steps
         frame = Frame(
-            self._model, fit, obj, data, det, self._limits(), lost_pulls=self._lost_pulls,
-            covered=self.covered_tips,
+            self._model, fit, obj, data, det, self._limits(), lost_pulls=self._lost_pulls, covered=self.covered_tips
         )
         res, self.last_proposal = search(frame, TRACK_PROPOSALS)
         self._track_frame = (frame, res.x)

@@ -39,6 +39,7 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 
 from hand_sog_tracker.core.hands import MultiHandTracker
+from hand_sog_tracker.core.kinematics import PALM_ROWS
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import TrackerConfig
 from hand_sog_tracker.errors import HandSogError
@@ -54,7 +55,6 @@ __all__ = [
     "main",
 ]
 
-PALM_ROWS = (0, 5, 9, 13, 17)
 GOOD_MM, BAD_MM, PALM_MM = 20.0, 40.0, 15.0
 
 
