@@ -10,6 +10,7 @@ from hand_sog_tracker.core.hand_model import HandShape, default_hand_model, rest
 from hand_sog_tracker.core.measure import (
     FINGER_FRACTIONS,
     WidthMeasurement,
+    _median,
     measure_widths,
     reference_widths,
     shape_from_widths,
@@ -128,3 +129,17 @@ def test_the_robust_mean_of_two_clusters_without_a_value_near_their_median_is_na
         assert np.isnan(_robust_mean([2.67, 2.72, 2.73, 15.0, 13.3, 14.7]))
         assert _robust_mean([10.0, 10.5, 30.0]) == pytest.approx(10.25)
         assert np.isnan(_robust_mean([]))
+
+
+def test_the_profile_median_is_numpys_median() -> None:
+    """The fit's per-profile median (a sorted Python list: cheaper than NumPy's call on a few
+    dozen samples) gives NumPy's value bit for bit: odd and even counts, ties, whole and
+    fractional depths, the order of the samples."""
+    rng = np.random.default_rng(49)
+    for n in range(1, 40):
+        for _ in range(20):
+            z = rng.uniform(250.0, 700.0, n)
+            if rng.random() < 0.5:
+                z = np.round(z)  # (ties: depth in whole millimetres)
+            assert _median(z.tolist()) == float(np.median(z))
+            assert _median(z[::-1].tolist()) == float(np.median(z))

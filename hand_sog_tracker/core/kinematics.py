@@ -753,8 +753,17 @@ class _FlatTables:
     org_idx: NDArray[np.int64]  # (m 3,) flat index into the origins (20 3,) of each Gaussian's origin
 
 
-def _flat_tables(model: HandModel, layout: dict[str, NDArray]) -> _FlatTables:
-    """The :class:`_FlatTables` of ``model`` (``layout``: its :func:`_layout_kinematics`)."""
+#: The shape-independent index tables of :func:`_flat_tables` by the identity of their layout
+#: (:func:`_layout_kinematics`'s dict, kept alive here): a calibration scores a hundred scaled
+#: models of one layout, each built once.
+_FLAT_INDEX: dict[int, tuple[dict[str, NDArray], dict[str, NDArray]]] = {}
+
+
+def _flat_index(layout: dict[str, NDArray]) -> dict[str, NDArray]:
+    """The fields of :class:`_FlatTables` that only ``layout`` decides (read-only, cached)."""
+    hit = _FLAT_INDEX.get(id(layout))
+    if hit is not None and hit[0] is layout:
+        return hit[1]
     r0_mix = layout["r0_mix"]  # (2, 4, 5, 3): a (ca / sa), k (bx, -by, 0, by), chain, coordinate
     rows = np.array([0, 1, 3])  # (k = 2 is bz, set as r0z)
     # base entries (a, k, c, i): trig[a, c, 0] (the abduction's cos / sin) times r0_mix[a, k, c, i]
@@ -767,7 +776,6 @@ def _flat_tables(model: HandModel, layout: dict[str, NDArray]) -> _FlatTables:
     axis_base = row_of[a, b] + 3 * c + i
     c2, s2, i2 = np.meshgrid(np.arange(5), np.arange(3), np.arange(3), indexing="ij")
     y_idx = 60 + ((3 * c2 + s2) * 2 + 0) * 3 + i2
-    lengths = np.repeat(np.asarray(model.lengths, dtype=np.float64)[:, :, None], 3, axis=2)
     g_rot = layout["g_rot"]
     gc, gs = g_rot // 3, g_rot % 3
     m = g_rot.size
@@ -777,22 +785,33 @@ def _flat_tables(model: HandModel, layout: dict[str, NDArray]) -> _FlatTables:
         60 + ((3 * gc[:, None] + gs[:, None]) * 2 + 0) * 3 + gi,
         60 + ((3 * gc[:, None] + gs[:, None]) * 2 + 1) * 3 + gi,
     ])  # (3, m, 3)
+    index = {
+        "ang": layout["angle_idx"].reshape(-1),
+        "base_trig": base_trig.reshape(-1),
+        "base_mix": np.ascontiguousarray(base_mix).reshape(-1),
+        "bz": np.ascontiguousarray(layout["r0z"]).reshape(-1),
+        "axis_trig": axis_trig.reshape(-1),
+        "axis_base": axis_base.reshape(-1),
+        "y_idx": y_idx.reshape(-1),
+        "local_idx": local_idx.reshape(-1),
+        "org_idx": (3 * layout["g_org"][:, None] + gi).reshape(-1) if m else np.zeros(0, np.int64),
+    }
+    for arr in index.values():
+        arr.setflags(write=False)
+    if len(_FLAT_INDEX) >= 8:
+        _FLAT_INDEX.clear()
+    _FLAT_INDEX[id(layout)] = (layout, index)
+    return index
+
+
+def _flat_tables(model: HandModel, layout: dict[str, NDArray]) -> _FlatTables:
+    """The :class:`_FlatTables` of ``model`` (``layout``: its :func:`_layout_kinematics`)."""
+    lengths = np.repeat(np.asarray(model.lengths, dtype=np.float64)[:, :, None], 3, axis=2)
     off = np.asarray(model.g_offsets, dtype=np.float64)
     local_off = np.repeat(off.T[:, :, None], 3, axis=2)  # (3, m, 3): off[k, j] per coordinate
     bases = np.repeat(np.asarray(model.bases, dtype=np.float64)[:, None, :], 3, axis=1)
     return _FlatTables(
-        ang=layout["angle_idx"].reshape(-1),
-        base_trig=base_trig.reshape(-1),
-        base_mix=np.ascontiguousarray(base_mix).reshape(-1),
-        bz=np.ascontiguousarray(layout["r0z"]).reshape(-1),
-        axis_trig=axis_trig.reshape(-1),
-        axis_base=axis_base.reshape(-1),
-        y_idx=y_idx.reshape(-1),
-        lengths=lengths.reshape(-1),
-        bases=bases,
-        local_idx=local_idx.reshape(-1),
-        local_off=local_off.reshape(-1),
-        org_idx=(3 * layout["g_org"][:, None] + gi).reshape(-1) if m else np.zeros(0, np.int64),
+        **_flat_index(layout), lengths=lengths.reshape(-1), bases=bases, local_off=local_off.reshape(-1)
     )
 
 

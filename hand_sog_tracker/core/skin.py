@@ -94,6 +94,22 @@ def _palm_pairs(model: HandModel, ia: NDArray[np.int64], ib: NDArray[np.int64]) 
     return (pa & pb & (ia != ib)).tolist()
 
 
+#: :func:`_drawn` by (Gaussian count, side, chains).
+_DRAWN_CACHE: dict[tuple[int, bool, tuple[int, ...] | None], list[int]] = {}
+
+
+def _drawn(model: HandModel, chains: tuple[int, ...] | None) -> list[int]:
+    """The capsules of :func:`_skin` in ``chains`` (all: None), cached (a fit draws one chain
+    of a hundred candidates: the lookup costs less than ``np.isin``)."""
+    key = (model.n_gaussians, bool(model.right), None if chains is None else tuple(chains))
+    hit = _DRAWN_CACHE.get(key)
+    if hit is None:
+        chain_of = _skin_topology(model)[5]
+        hit = list(range(len(chain_of))) if chains is None else np.flatnonzero(np.isin(chain_of, chains)).tolist()
+        _DRAWN_CACHE[key] = hit
+    return hit
+
+
 _SUBPIXEL_BITS = 3
 _SUB = float(1 << _SUBPIXEL_BITS)
 
@@ -117,8 +133,8 @@ def draw_skin(
     u0, v0, u1, v1 = roi
     out = np.full((v1 - v0, u1 - u0), np.inf, dtype=np.float32)
     P, radii, ia, ib = _skin(model, theta)
-    has_quad, discs, chain_of = _skin_topology(model)[3:]
-    drawn = list(range(len(ia))) if chains is None else np.flatnonzero(np.isin(chain_of, chains)).tolist()
+    has_quad, discs = _skin_topology(model)[3:5]
+    drawn = _drawn(model, chains)
     if chains is not None:
         ia, ib = ia[drawn], ib[drawn]
     z = np.maximum(P[:, 2], 1.0)
