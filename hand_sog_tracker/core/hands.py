@@ -48,7 +48,7 @@ Per frame the depth is preprocessed once and shared:
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Final, Sequence
+from typing import Callable, Final, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -657,7 +657,9 @@ class MultiHandTracker:
         cfg = replace(self._config, right_hand=side == "right")
         return Tracker(cfg, self._models[side])
 
-    def _checked_start(self, image: tuple[NDArray, Intrinsics], doomed: list[tuple[HandModel, NDArray[np.float64]]]):
+    def _checked_start(
+        self, image: tuple[NDArray, Intrinsics], doomed: list[tuple[HandModel, NDArray[np.float64]]]
+    ) -> Callable[[Preprocessed, HandModel, TrackerConfig, Bounds], Finalists | None]:
         """A new track's :attr:`Tracker.start_search` in the frame ``image`` (depth (H, W) mm,
         intrinsics) that finds no hand when the hand gate would reset the track on its first
         frame whichever finalist won: at every finalist, the data around the model that it
