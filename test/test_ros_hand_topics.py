@@ -1,4 +1,5 @@
-"""The per-hand topics of ``max_hands: 2`` (ros/hand_topics.py), published through a recording node."""
+"""The hand topics (ros/hand_topics.py): the one-hand names and the per-hand topics of ``max_hands: 2``,
+published through a recording node."""
 
 from __future__ import annotations
 
@@ -10,7 +11,16 @@ from std_msgs.msg import Header
 
 from hand_sog_tracker.core.hands import HandsResult
 from hand_sog_tracker.core.types import HandDecision, Intrinsics
-from hand_sog_tracker.ros.hand_topics import HandTopics
+from hand_sog_tracker.interface import (
+    CONFIDENCE_TOPIC,
+    DESCRIPTION_TOPIC,
+    FINGERTIPS_TOPIC,
+    JOINTS_TOPIC,
+    KEYPOINTS_TOPIC,
+    POSE_TOPIC,
+)
+from hand_sog_tracker.ros.hand_topics import HandOutputs, HandTopics
+from hand_sog_tracker.ros.node import HAND_BASE
 
 
 class _Publisher:
@@ -39,13 +49,23 @@ def test_a_withheld_hand_publishes_its_checks_confidence() -> None:
     as the one-hand node does; a label with no track at all publishes zeros."""
     node = _Node()
     qos = QoSProfile(depth=1)
-    topics = HandTopics(node, "", False, False, qos, qos)
+    topics = HandTopics(node, "", qos, qos)
     held = HandDecision(False, 0.13, np.array([0.1, 0.2, 0.3, 0.4, 0.5]), None)
     intr = Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
-    decisions = topics.publish(Header(), HandsResult((), {}, {"right": held}), np.zeros((240, 320)), intr)
+    decisions = topics.publish(Header(), HandsResult((), {}, {"right": held}), np.zeros((240, 320)), intr, False)
     assert decisions == {}
     sent = {name: p.sent for name, p in node.publishers.items() if name.endswith("confidence")}
     (right,) = [msgs for name, msgs in sent.items() if "right" in name]
     (left,) = [msgs for name, msgs in sent.items() if "left" in name]
     np.testing.assert_allclose(right[-1].position, [0.0, 0.13, 0.1, 0.2, 0.3, 0.4, 0.5])
     np.testing.assert_allclose(left[-1].position, [0.0] * 7)
+
+
+def test_the_one_hand_outputs_are_the_interface_topics() -> None:
+    """The node's one-hand outputs use the names the interface documents, and nothing else."""
+    node = _Node()
+    qos = QoSProfile(depth=1)
+    HandOutputs(node, HAND_BASE, qos, qos)
+    assert set(node.publishers) == {
+        JOINTS_TOPIC, POSE_TOPIC, KEYPOINTS_TOPIC, FINGERTIPS_TOPIC, CONFIDENCE_TOPIC, DESCRIPTION_TOPIC,
+    }

@@ -199,11 +199,11 @@ def test_outputs_carry_the_input_stamp_and_frame_and_match_the_core(rig: Rig) ->
 def test_an_output_nobody_subscribes_to_is_not_built(rig: Rig, monkeypatch) -> None:
     """hand/keypoints has no subscriber in the rig: no message is built for it (issue 14: each
     publication costs the node 0.2-0.5 ms) until one subscribes."""
-    import hand_sog_tracker.ros.node as node_module
+    import hand_sog_tracker.ros.hand_topics as topics_module
 
     built: list[int] = []
-    real = node_module.keypoints_msg
-    monkeypatch.setattr(node_module, "keypoints_msg", lambda *a, **k: built.append(1) or real(*a, **k))
+    real = topics_module.keypoints_msg
+    monkeypatch.setattr(topics_module, "keypoints_msg", lambda *a, **k: built.append(1) or real(*a, **k))
     rig.send_info()
     depths = [hand_depth(theta, seed=i) for i, theta in enumerate(hand_poses(2))]
     rig.send(image_msg(depths[0], T0_NS))

@@ -231,7 +231,7 @@ class Bench(CleanFrames):
 
         node._warn = spy_warn
         node._process_pending = timed
-        for pub, sink in ((node._marker_pub, self._markers), (node._joint_pub, self._joints)):
+        for pub, sink in ((node._out.markers, self._markers), (node._out.joints, self._joints)):
             pub.publish = self._spy(pub.publish, sink)
 
     @staticmethod

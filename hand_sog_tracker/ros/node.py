@@ -79,7 +79,6 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseArray, PoseStamped
 from numpy.typing import NDArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -93,10 +92,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.subscription import Subscription
 from rclpy.utilities import remove_ros_args
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
-from std_msgs.msg import Header, String
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import MarkerArray
 
 from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory
 from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
@@ -105,7 +103,6 @@ from hand_sog_tracker.core.model_io import load_hand_shape
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerStatus, TrackResult
-from hand_sog_tracker.core.urdf import UrdfJoint, hand_urdf, urdf_joints
 from hand_sog_tracker.errors import (
     DepthImageError,
     HandSogError,
@@ -115,17 +112,11 @@ from hand_sog_tracker.errors import (
 from hand_sog_tracker.interface import (
     CALIBRATE_SERVICE,
     COMPRESSED_DEPTH_TOPIC,
-    CONFIDENCE_TOPIC,
     DEBUG_IMAGE_TOPIC,
     DEPTH_TOPIC,
-    DESCRIPTION_TOPIC,
     DIAGNOSTICS_TOPIC,
-    FINGERTIPS_TOPIC,
     INFO_TOPIC,
-    JOINTS_TOPIC,
-    KEYPOINTS_TOPIC,
     NODE_NAME,
-    POSE_TOPIC,
     TF_TOPIC,
     camera_info_to_intrinsics,
     compressed_image_to_depth_mm,
@@ -135,18 +126,11 @@ from hand_sog_tracker.interface import (
 from hand_sog_tracker.ros.blas import limit_blas_threads
 from hand_sog_tracker.ros.calibration_service import CalibrationService, FitWorker
 from hand_sog_tracker.ros.conversions import (
-    SerialisedMarkers,
     bgr_to_image_msg,
-    confidence_msg,
-    delete_all_markers,
     diagnostic_array,
-    joint_state_msg,
-    keypoints_msg,
-    pose_msg,
 )
 from hand_sog_tracker.ros.frame_input import INPUT_DEPTH, Backlog, CameraRate
-from hand_sog_tracker.ros.frames import description_transforms
-from hand_sog_tracker.ros.hand_topics import HandTopics
+from hand_sog_tracker.ros.hand_topics import HandOutputs, HandTopics, TfPublish
 from hand_sog_tracker.ros.heap import HeapTrim
 from hand_sog_tracker.ros.params import (
     NodeSettings,
@@ -171,6 +155,8 @@ DEFAULT_FRAME_ID = "camera_depth_optical_frame"
 STAMP_SKEW_S = 30.0
 #: Seconds a fingertip marker stays in RViz without a newer one (so a stopped node's hand goes).
 MARKER_LIFETIME_S = 1.0
+#: The one-hand topics' base name (the prefix of interface.JOINTS_TOPIC, POSE_TOPIC ...).
+HAND_BASE = "hand"
 #: ~/calibrate requests kept while the executor is busy with a frame (each is then answered at
 #: once, "busy" during a fit): more calls arriving within one frame's processing are lost.
 CALIBRATE_QUEUE = 100
@@ -291,8 +277,6 @@ class TrackerNode(CalibrationService, Node):
         self._last_shape: tuple[int, int] | None = None
         self._last_intr: Intrinsics | None = None  # of the last frame that passed the checks
         self._last_intr_shape: tuple[int, int] | None = None
-        self._markers_shown = False
-        self._serialised_markers = SerialisedMarkers(MARKER_LIFETIME_S)
         self._frame_id = ""
         # Recent tracked frames for ~/calibrate and the automatic fit (calibration_service.py),
         # which runs only without a saved user model.
@@ -340,46 +324,29 @@ class TrackerNode(CalibrationService, Node):
         # Triggered while the backlog holds images: the executor's next turn tracks the next one
         # (other callbacks, ~/calibrate and /diagnostics, get their turns in between).
         self._backlog_wake = self.create_guard_condition(self._on_backlog)
-        self._joint_pub = self.create_publisher(JointState, JOINTS_TOPIC, out_qos, qos_overriding_options=overrides)
-        self._pose_pub = self.create_publisher(PoseStamped, POSE_TOPIC, out_qos, qos_overriding_options=overrides)
-        self._marker_pub = self.create_publisher(
-            MarkerArray, FINGERTIPS_TOPIC, out_qos, qos_overriding_options=overrides
-        )
-        self._keypoints_pub = self.create_publisher(
-            PoseArray, KEYPOINTS_TOPIC, out_qos, qos_overriding_options=overrides
-        )
-        # The hand decision of every processed frame (issue 46), "no hand" included.
-        self._confidence_pub = self.create_publisher(
-            JointState, CONFIDENCE_TOPIC, out_qos, qos_overriding_options=overrides
-        )
         latched = QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
         )
-        self._description_pub = self.create_publisher(String, DESCRIPTION_TOPIC, latched)
-        self._described: tuple[HandModel, str | None] | None = None
-        self._description_joints: tuple[UrdfJoint, ...] = ()
+        # The one-hand topics (hand/...): the hand decision of every processed frame (issue 46),
+        # "no hand" included, and the pose of a reported hand.
+        self._out = HandOutputs(
+            self, HAND_BASE, out_qos, latched, overrides, frame_prefix=self._settings.frame_prefix,
+            marker_lifetime_s=MARKER_LIFETIME_S,
+        )
+        self._model_logged: HandModel | None = None
         self._tf_pub: Any = None  # created on first use (tf2_msgs is optional)
         self._debug_pub = self.create_publisher(
             Image, DEBUG_IMAGE_TOPIC, QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         )
         self._diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
-        self._publish_description(None)
+        self._out.describe(self._tracker.model, None)
         # max_hands 2: every hand tracked by the multi-hand tracker and published on its own
         # topics (hand_topics.py); the one-hand topics carry the hand labelled ``handedness``.
         self._hands: MultiHandTracker | None = None
         self._hand_topics: HandTopics | None = None
         if self._settings.max_hands > 1:
             self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
-            self._hand_topics = HandTopics(
-                self,
-                self._settings.frame_prefix,
-                self._settings.publish_tf,
-                self._settings.publish_wrist_joints,
-                out_qos,
-                latched,
-                overrides,
-                self._publish_transforms,
-            )
+            self._hand_topics = HandTopics(self, self._settings.frame_prefix, out_qos, latched, overrides)
 
         self._calibrate_srv = self.create_service(
             Trigger,
@@ -847,7 +814,9 @@ class TrackerNode(CalibrationService, Node):
         if self._settings.tracker != self._hands.config:
             self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
         hands = self._hands.process(depth, intr)
-        decisions = self._hand_topics.publish(header, hands, depth, intr)
+        decisions = self._hand_topics.publish(
+            header, hands, depth, intr, self._settings.publish_wrist_joints, self._tf_publish()
+        )
         side = "right" if self._settings.tracker.right_hand else "left"
         mine = hands.hand(side)
         if mine is None or side not in decisions:
@@ -861,9 +830,7 @@ class TrackerNode(CalibrationService, Node):
         if self._hands is not None:
             self._hands.reset()
         self._last_answer = None
-        if self._markers_shown:
-            self._marker_pub.publish(delete_all_markers(header))
-            self._markers_shown = False
+        self._out.clear(header)
 
     def _publish_result(
         self,
@@ -873,38 +840,18 @@ class TrackerNode(CalibrationService, Node):
         intr: Intrinsics,
         decision: HandDecision | None = None,
     ) -> None:
-        if decision is not None and self._confidence_pub.get_subscription_count():
-            self._confidence_pub.publish(
-                confidence_msg(header, decision.present, decision.confidence, decision.fingers)
-            )
-        if result.pose is not None and result.fingertips_mm is not None:
-            wrist_joints = self._settings.publish_wrist_joints
-            self._publish_description(header.frame_id if wrist_joints else None)
-            # Each message is built and published only while something subscribes to its topic
-            # (issue 14: a publication costs 0.2-0.5 ms between frames, measured on this node's
-            # outputs at 30-100 Hz; a pose and keypoints nobody reads cost 0.45 ms per frame).
-            # The fingertips first: what most listeners (and the evaluations) wait for.
-            if self._marker_pub.get_subscription_count():  # (as CDR bytes: built once, SerialisedMarkers)
-                tips, radii = result.fingertips_mm, self._tracker.model.tip_radii
-                self._marker_pub.publish(self._serialised_markers(header, tips, result.skeleton_mm, radii))
-                self._markers_shown = True
-            if self._joint_pub.get_subscription_count():
-                self._joint_pub.publish(joint_state_msg(header, result.pose, wrist_joints))
-            if self._pose_pub.get_subscription_count():
-                self._pose_pub.publish(pose_msg(header, result.pose))
-            if result.skeleton_mm is not None and self._keypoints_pub.get_subscription_count():
-                self._keypoints_pub.publish(keypoints_msg(header, result.skeleton_mm, result.fingertips_mm))
-            if self._settings.publish_tf:
-                self._publish_tf(header, result.pose, result.fingertips_mm, wrist_joints)
-        elif self._markers_shown:
-            self._marker_pub.publish(delete_all_markers(header))
-            self._markers_shown = False
+        model = self._tracker.model
+        if result.pose is not None and (self._model_logged is None or self._model_logged.shape != model.shape):
+            # (a calibration, or a new track of a small hand on the default model's small size)
+            self.get_logger().info(f"hand model in use: {model.shape}")
+            self._model_logged = model
+        self._out.publish(header, decision, result, model, self._settings.publish_wrist_joints, self._tf_publish())
         if self._settings.debug_image or self._debug_pub.get_subscription_count() > 0:
             cfg = self._tracker.config
             bgr = draw_overlay(
                 depth,
                 intr,
-                self._tracker.model if result.pose is not None else None,
+                model if result.pose is not None else None,
                 result.pose,
                 near_mm=cfg.near_mm,
                 far_mm=cfg.far_mm,
@@ -913,27 +860,9 @@ class TrackerNode(CalibrationService, Node):
             )
             self._debug_pub.publish(bgr_to_image_msg(header, bgr))
 
-    def _publish_description(self, camera_frame: str | None) -> None:
-        """Publish the URDF of the current model on hand/robot_description when it changed."""
-        model = self._tracker.model
-        if self._described is not None and self._described[0] is model and self._described[1] == camera_frame:
-            return
-        if self._described is None or self._described[0].shape != model.shape:
-            # (a calibration, or a new track of a small hand on the default model's small size)
-            self.get_logger().info(f"hand model in use: {model.shape}")
-        self._described = (model, camera_frame)
-        text = hand_urdf(model, camera_frame=camera_frame or None, prefix=self._settings.frame_prefix)
-        self._description_joints = urdf_joints(text)
-        self._description_pub.publish(String(data=text))
-
-    def _publish_tf(
-        self, header: Header, pose: NDArray[np.float64], tips_mm: NDArray[np.float64], wrist_joints: bool
-    ) -> None:
-        """Broadcast the hand's frames on /tf."""
-        transforms = description_transforms(
-            header, self._description_joints, pose, tips_mm, wrist_joints, self._settings.frame_prefix
-        )
-        self._publish_transforms(transforms)
+    def _tf_publish(self) -> TfPublish | None:
+        """What puts transforms on /tf with ``publish_tf`` (its publisher made on first use), else None."""
+        return self._publish_transforms if self._settings.publish_tf else None
 
     def _publish_transforms(self, transforms: list) -> None:
         """Put ``transforms`` (TransformStamped) on /tf (publish_tf is validated: tf2_msgs exists)."""
