@@ -119,6 +119,25 @@ def test_scene_eval_sets_tracker_parameters(tmp_path: Path) -> None:
     assert main([str(tmp_path / "b"), "--set", "no_such_parameter=1"]) == 2
 
 
+def test_scene_eval_scores_test_scenes_but_shows_no_frames_of_them(tmp_path: Path) -> None:
+    """A test-split scene gets its summary, not its per-frame records or overlays, unless
+    ``--allow-test-inspection`` (the dev/test protocol of ``evaluate_bag``)."""
+    import json
+
+    from hand_sog_tracker.tools.scene_eval import main
+
+    spec = scene_set("scenes_test", frames=2)[SCENE_TYPES.index("nohand_head")]
+    write_scene_bag(tmp_path / "b", spec)
+    out = tmp_path / "o.json"
+    assert main([str(tmp_path / "b"), "--json", str(out)]) == 0
+    scored = json.loads(out.read_text())["b"]
+    assert scored["split"] == "test" and scored["records"] == [] and "no_hand_reported" in scored["summary"]
+    assert main([str(tmp_path / "b"), "--overlays", str(tmp_path / "ov")]) == 2
+    assert not (tmp_path / "ov").exists()
+    assert main([str(tmp_path / "b"), "--json", str(out), "--allow-test-inspection"]) == 0
+    assert len(json.loads(out.read_text())["b"]["records"]) == 2
+
+
 def test_a_scene_set_can_be_rendered_with_one_sensor_and_one_shape_and_is_otherwise_unchanged() -> None:
     own = scene_set("scenes_dev", repeats=2)
     assert {s.sensor for s in own if s.kind == "back"} == {"structured"}  # (why --sensor exists)

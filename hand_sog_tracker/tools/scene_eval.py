@@ -25,6 +25,10 @@ hand labelled ``handedness``.  Metrics (:func:`summarise`):
 * ``longest_wrong``: the longest run of frames reporting a wrong hand (:func:`longest_wrong`);
 * ``auc``: ROC AUC of the confidence separating good frames (a pose, mean tip error < 20 mm)
   from bad ones (> 40 mm, or a pose on a frame without a hand), over the frames with a pose.
+
+Bags of the test split (``make_scene_bags --set scenes_test``) are scored, not looked at
+(:data:`~hand_sog_tracker.tools.bagset.PROTOCOL`): ``--overlays`` of them is refused and their
+per-frame records are left out of ``--json`` unless ``--allow-test-inspection`` is given.
 """
 
 from __future__ import annotations
@@ -46,7 +50,7 @@ from hand_sog_tracker.errors import HandSogError
 from hand_sog_tracker.ros.blas import limit_blas_threads
 from hand_sog_tracker.synth.scenes import ABSENT, FULL, scene_group
 from hand_sog_tracker.tools.bagio import DepthBagReader
-from hand_sog_tracker.tools.bagset import read_sidecar
+from hand_sog_tracker.tools.bagset import PROTOCOL, TEST_SPLIT, read_sidecar
 from hand_sog_tracker.tools.make_scene_bags import read_scene_truth
 from hand_sog_tracker.tools.tracker_params import parse_set, tracker_config
 
@@ -274,14 +278,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point; returns the exit status (0 ok, 2 error)."""
     p = argparse.ArgumentParser(prog="scene_eval", description="Score the hand decision on scene bags (issue 46).")
     p.add_argument("paths", nargs="+", help="scene bags or directories of them")
-    p.add_argument("--through-node", action="store_true")
-    p.add_argument("--domain-id", type=int, default=91)
+    p.add_argument("--through-node", action="store_true",
+                   help="replay each bag to tracker_node (loopback DDS) and score what it publishes")
+    p.add_argument("--domain-id", type=int, default=91, help="--through-node: ROS domain id (default 91)")
     p.add_argument("--rate-hz", type=float, default=30.0, help="--through-node: publishing rate (default 30)")
     p.add_argument("--no-gate", action="store_true", help="core mode without the hand gate (evidence only)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="one tracker parameter (repeatable), e.g. --set max_hands=2")
     p.add_argument("--json", default=None, help="write the per-frame records and summaries here")
     p.add_argument("--overlays", default=None, metavar="DIR", help="core mode: overlays of the 2 worst frames per bag")
+    p.add_argument("--allow-test-inspection", action="store_true",
+                   help="allow --overlays and per-frame --json records of test-split bags (a final report)")
     args = p.parse_args(argv)
     bags: list[Path] = []
     for a in args.paths:
@@ -296,6 +303,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         hands = int(values.get("max_hands", 1))
         if hands > 1 and (args.no_gate or args.overlays) and not args.through_node:
             print("error: --no-gate and --overlays need max_hands 1", file=sys.stderr)
+            return 2
+        held_out = [b.name for b in bags if read_sidecar(b).get("split") == TEST_SPLIT]
+        if held_out and args.overlays and not args.allow_test_inspection:
+            print(f"error: --overlays of {', '.join(held_out)}: {PROTOCOL}", file=sys.stderr)
             return 2
         for bag in bags:
             kind = read_sidecar(bag).get("scene", bag.name)
@@ -322,6 +333,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         s = summarise(recs)
         print(f"[{g}] " + " ".join(f"{k}={_fmt(v)}" for k, v in s.items()))
     if args.json:
+        if not args.allow_test_inspection:  # (a test bag's summary only: PROTOCOL)
+            results = {k: r if r["split"] != TEST_SPLIT else {**r, "records": []} for k, r in results.items()}
         Path(args.json).write_text(json.dumps(results, default=float) + "\n", encoding="utf-8")
     return 0
 
