@@ -69,3 +69,35 @@ def test_the_one_hand_outputs_are_the_interface_topics() -> None:
     assert set(node.publishers) == {
         JOINTS_TOPIC, POSE_TOPIC, KEYPOINTS_TOPIC, FINGERTIPS_TOPIC, CONFIDENCE_TOPIC, DESCRIPTION_TOPIC,
     }
+
+
+def test_each_hands_fingertip_markers_expire_as_the_one_hand_markers_do() -> None:
+    """A tracked hand's markers on hand/<side>/fingertips carry the lifetime the node gives (so a
+    stopped node's hands leave RViz), and the hand's other topics get its pose."""
+    from rclpy.serialization import deserialize_message
+    from visualization_msgs.msg import MarkerArray
+
+    from hand_sog_tracker.core.hand_model import default_hand_model
+    from hand_sog_tracker.core.hands import HandTrack
+    from hand_sog_tracker.core.kinematics import fingertips, keypoint_skeleton
+    from hand_sog_tracker.core.types import TrackerStatus, TrackResult
+
+    node = _Node()
+    qos = QoSProfile(depth=1)
+    topics = HandTopics(node, "", qos, qos, marker_lifetime_s=1.5)
+    model = default_hand_model(True)
+    pose = np.zeros(26)
+    pose[2] = 400.0
+    res = TrackResult(
+        TrackerStatus.TRACKING, pose, fingertips(model, pose), keypoint_skeleton(model, pose), 0.9, 0.0, 10,
+        hand=HandDecision(True, 0.9, np.ones(5), None),
+    )
+    intr = Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
+    hands = HandsResult((HandTrack("right", 1, res, model),))
+    decisions = topics.publish(Header(), hands, np.zeros((240, 320)), intr, False)
+    assert set(decisions) == {"right"}
+    (sent,) = node.publishers["hand/right/fingertips"].sent
+    markers = deserialize_message(bytes(sent), MarkerArray)  # (the node publishes them as CDR bytes)
+    assert markers.markers and all((m.lifetime.sec, m.lifetime.nanosec) == (1, 500_000_000) for m in markers.markers)
+    assert node.publishers["hand/right/joint_states"].sent[-1].name[0].startswith("right_")
+    assert node.publishers["hand/left/fingertips"].sent == []

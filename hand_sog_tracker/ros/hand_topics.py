@@ -178,15 +178,19 @@ class HandTopics:
     out_qos, latched : QoSProfile
         The node's output and latched (description) profiles.
     overrides : QoSOverridingOptions or None
+    marker_lifetime_s : float
+        Lifetime of each hand's fingertip markers (0: for ever), as on the one-hand topics.
     """
 
     def __init__(
-        self, node: Node, frame_prefix: str, out_qos: QoSProfile, latched: QoSProfile, overrides: Any = None
+        self, node: Node, frame_prefix: str, out_qos: QoSProfile, latched: QoSProfile, overrides: Any = None,
+        marker_lifetime_s: float = 0.0,
     ) -> None:
         self._sides = {
             s: HandOutputs(
                 node, f"hand/{s}", out_qos, latched, overrides, robot_name=f"{s}_hand",
                 frame_prefix=f"{frame_prefix}{s}_", joint_prefix=hand_joint_prefix(s),
+                marker_lifetime_s=marker_lifetime_s,
             )
             for s in HANDS
         }

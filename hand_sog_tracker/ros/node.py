@@ -346,7 +346,9 @@ class TrackerNode(CalibrationService, Node):
         self._hand_topics: HandTopics | None = None
         if self._settings.max_hands > 1:
             self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
-            self._hand_topics = HandTopics(self, self._settings.frame_prefix, out_qos, latched, overrides)
+            self._hand_topics = HandTopics(
+                self, self._settings.frame_prefix, out_qos, latched, overrides, MARKER_LIFETIME_S
+            )
 
         self._calibrate_srv = self.create_service(
             Trigger,
