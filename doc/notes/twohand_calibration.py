@@ -1,7 +1,8 @@
 """Two hands, each calibrated from its own frames: tip error per hand, default model vs calibrated.
 
 Core mode, deterministic.  Each scene of the two-hand dev set (``twohand_set("twohands_dev",
-frames)``: its shapes, sensors and seeds) is rendered in process and tracked twice by
+frames)``: its shapes, sensors and seeds; ``--set twohands_test`` for the test set, scored
+once) is rendered in process and tracked twice by
 ``MultiHandTracker``: with each hand's default model throughout, and with the node's
 ``~/calibrate`` at frame ``--at`` (each label's history of the last half second as the node keeps
 it: the reported hand's pose, the other live tracks' pixels masked; ``choose_fit_frames``, the
@@ -138,6 +139,8 @@ def main() -> None:
     global INTR
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=90)
+    ap.add_argument("--set", default="twohands_dev", choices=("twohands_dev", "twohands_test"),
+                    help="the set whose scenes, shapes, sensors and seeds are rendered (test: score once)")
     ap.add_argument("--at", type=int, default=20)
     ap.add_argument("--scenes", nargs="*", default=None)
     ap.add_argument("--no-mask", action="store_true")
@@ -150,7 +153,7 @@ def main() -> None:
 
     INTR = default_intrinsics()
     rows = []
-    for spec in twohand_set("twohands_dev", a.frames):
+    for spec in twohand_set(a.set, a.frames):
         if a.scenes and spec.name not in a.scenes:
             continue
         if a.alone:
