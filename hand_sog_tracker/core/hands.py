@@ -412,7 +412,7 @@ class MultiHandTracker:
         """Use ``model`` (e.g. a calibration; mirrored to ``side``) for the hand labelled ``side``
         from now on: its live track switches to it (:meth:`Tracker.set_model`, the palm centre
         kept), every new track of that label starts with it (no small-size choice), and a track
-        whose trial gives it that label takes it when the trial ends (the trial's two models
+        whose trial gives it that label takes it from the frame after (the trial's two models
         share one shape)."""
         if side not in HANDS:
             raise InputError(f"side must be 'left' or 'right', got {side!r}")

@@ -408,8 +408,9 @@ class TrackerNode(CalibrationService, Node):
 
     @property
     def hand_models(self) -> dict[str, HandModel]:
-        """``max_hands: 2``: ``side -> `` the model of the hand labelled ``side`` (left, right);
-        with one hand, the one-hand tracker's under its ``handedness``."""
+        """The model of each hand label: with ``max_hands: 2`` ``{"left": ..., "right": ...}``
+        (:meth:`~hand_sog_tracker.core.hands.MultiHandTracker.model`), with one hand the one-hand
+        tracker's under its ``handedness``."""
         with self._tracker_lock:
             if self._hands is None:
                 return {"right" if self._tracker.config.right_hand else "left": self._tracker.model}
@@ -462,7 +463,7 @@ class TrackerNode(CalibrationService, Node):
         return default_hand_model(right).scaled(shape)
 
     def _initial_side_models(self) -> dict[str, HandModel | None]:
-        """max_hands 2: each hand's model (``side -> `` model, or None for the default hand):
+        """max_hands 2: each hand's model by label (None: the default hand):
         its own file (:func:`~hand_sog_tracker.core.model_io.side_model_path`, written by
         ``~/calibrate`` with two hands) if it exists and is valid, else the shape of the user
         model (``user_model_path``, whichever hand it was calibrated on), else None."""
