@@ -439,3 +439,25 @@ def test_a_new_track_whose_finalists_leave_the_data_unexplained_is_dropped_befor
             assert len(mt.tracks) == 2 and fitted
         else:
             assert mt.tracks == () and not fitted and mt._next_id == 2 and mt._doomed
+
+
+def test_each_label_tracks_with_its_own_model_once_its_trial_ends() -> None:
+    """set_model per label: both tracks start in trials on one shape (the right model's), and
+    each takes its label's model once its label is decided (from the next frame on); model()
+    answers the label's model, a bad label is refused."""
+    from hand_sog_tracker.core.hand_model import HandShape
+
+    shapes = {"left": HandShape(0.92, 1.05, 0.97, 0.96), "right": HandShape(1.06, 0.97, 1.0, 1.02)}
+    mt = MultiHandTracker(TrackerConfig(), max_hands=2)
+    for side, shape in shapes.items():
+        mt.set_model(side, default_hand_model(True).scaled(shape))  # (mirrored to the label)
+        assert mt.model(side).shape == shape and mt.model(side).right == (side == "right")
+    with pytest.raises(InputError):
+        mt.set_model("both", default_hand_model())
+    last = None
+    for depth, intr, _ in _frames(10):
+        last = mt.process(depth, intr)
+    assert last is not None and {h.handedness for h in last.hands} == {"left", "right"}
+    for h in last.hands:
+        assert h.model.shape == shapes[h.handedness] and h.model.right == (h.handedness == "right")
+        assert mt.model(h.handedness) is h.model

@@ -112,12 +112,24 @@ class HistoryFrame:
         The tracked pose (mm, rad); None when the frame was not tracked.
     stamp_ns : int
         The image's stamp (ns).
+    others : tuple of (HandModel, array (26,))
+        The other hands in the frame (model, pose mm / rad) with ``max_hands: 2``; empty with
+        one hand.  Their pixels are not this hand's: :attr:`hand_depth` leaves them out.
     """
 
     depth: NDArray[np.float32]
     intrinsics: Intrinsics
     pose: NDArray[np.float64] | None
     stamp_ns: int
+    others: tuple[tuple[HandModel, NDArray[np.float64]], ...] = ()
+
+    def hand_depth(self, roi_radius_mm: float) -> NDArray[np.float32]:
+        """The depth (H, W) mm the fit of this hand sees: :attr:`depth` without the pixels of
+        :attr:`others` (:func:`~.hands.without_hands`, their boxes of ``roi_radius_mm``); the
+        depth itself without others."""
+        from hand_sog_tracker.core.hands import without_hands  # (hands imports the tracker)
+
+        return without_hands(self.depth, self.intrinsics, self.others, roi_radius_mm)
 
 
 class FrameHistory:
@@ -136,16 +148,23 @@ class FrameHistory:
         return int(self._frames.maxlen or 0)
 
     def remember(
-        self, depth: NDArray[np.float32], intrinsics: Intrinsics, pose: NDArray[np.float64] | None, stamp_ns: int
+        self,
+        depth: NDArray[np.float32],
+        intrinsics: Intrinsics,
+        pose: NDArray[np.float64] | None,
+        stamp_ns: int,
+        others: Sequence[tuple[HandModel, NDArray[np.float64]]] = (),
     ) -> bool:
         """Keep a frame unless the last one kept is less than the spacing older; True if kept.
 
         ``depth`` is kept by reference (not copied): the caller must not modify it later.
+        ``others``: the other hands in the frame (:attr:`HistoryFrame.others`).
         """
         last = self._frames[-1] if self._frames else None
         if last is not None and 0 <= stamp_ns - last.stamp_ns < self._spacing_ns:
             return False
-        self._frames.append(HistoryFrame(depth, intrinsics, None if pose is None else pose.copy(), stamp_ns))
+        kept = tuple((m, np.array(x, dtype=np.float64)) for m, x in others)
+        self._frames.append(HistoryFrame(depth, intrinsics, None if pose is None else pose.copy(), stamp_ns, kept))
         return True
 
     def clear(self) -> None:
@@ -185,11 +204,15 @@ class FitFrames:
         """The arguments of :func:`~hand_sog_tracker.core.calibration.calibrate` for these frames
         (with the tracked poses, and the held-out frames for its guard).  ``automatic`` changes
         nothing: the automatic fit has the guard of ``~/calibrate`` (an accepted fit that tracks
-        worse costs the rest of the run)."""
-        args = ([f.depth for f in self.fit], self.intrinsics, config, model)
+        worse costs the rest of the run).  Each frame's depth without the other hands in it
+        (:meth:`HistoryFrame.hand_depth`)."""
+        def depth(f: HistoryFrame) -> NDArray[np.float32]:
+            return f.hand_depth(config.roi_radius_mm) if f.others else f.depth
+
+        args = ([depth(f) for f in self.fit], self.intrinsics, config, model)
         kwargs: dict = dict(
             poses=[f.pose for f in self.fit],
-            holdout=[f.depth for f in self.holdout],
+            holdout=[depth(f) for f in self.holdout],
             holdout_poses=[f.pose for f in self.holdout],
         )
         return args, kwargs

@@ -54,7 +54,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hand_sog_tracker.core.depth_sog import ImageSoG, Preprocessed, preprocess
-from hand_sog_tracker.core.hand_model import HandModel, chain_slice
+from hand_sog_tracker.core.hand_model import HandModel, chain_slice, default_hand_model
 from hand_sog_tracker.core.handcheck import EXPLAINED_LOW, HandGate, Theirs, check_hand
 from hand_sog_tracker.core.kinematics import gaussian_centres, global_rotation, keypoint_skeleton, posed_centres
 from hand_sog_tracker.core.objective.interhand import InterHand
@@ -81,6 +81,7 @@ __all__ = [
     "TRIAL_LEAD",
     "hidden_by",
     "shared_volume",
+    "without_hands",
     "HandTrack",
     "HandsResult",
     "MultiHandTracker",
@@ -254,6 +255,35 @@ def hidden_by(
     return out
 
 
+def without_hands(
+    depth_mm: NDArray,
+    intrinsics: Intrinsics,
+    hands: Sequence[tuple[HandModel, NDArray[np.float64]]],
+    roi_radius_mm: float,
+) -> NDArray:
+    """``depth_mm`` (H, W) mm without the pixels of ``hands`` ((model, pose (26,)) each): every
+    valid pixel within :data:`PIXEL_MARGIN_MM` of a hand's skin or forearm (:func:`skin_distance`),
+    looked for in the hand's pixel box (:func:`~.region.hand_roi` of ``roi_radius_mm`` plus the
+    forearm's length), set to 0 (invalid).  A new array; ``depth_mm`` itself when ``hands`` is
+    empty.  The finder of a new hand sees the frame so (:meth:`MultiHandTracker._masked`), and so
+    does the calibration of one hand beside another (:class:`~.autocalibration.HistoryFrame`)."""
+    if not hands:
+        return depth_mm
+    depth = depth_mm.copy()
+    for model, x in hands:
+        roi, _ = hand_roi(model, x, intrinsics, roi_radius_mm + FOREARM_LENGTH_MM)
+        u0, v0, u1, v1 = roi
+        box = depth[v0:v1, u0:u1]
+        vs, us = np.nonzero(box > 0)
+        if vs.size == 0:
+            continue
+        uv = np.stack([us + u0, vs + v0], 1).astype(np.float64)
+        pts = intrinsics.backproject(uv, box[vs, us].astype(np.float64))
+        near = skin_distance(model, x, pts, PIXEL_MARGIN_MM) < PIXEL_MARGIN_MM
+        box[vs[near], us[near]] = 0.0
+    return depth
+
+
 @dataclass(frozen=True, eq=False)
 class HandTrack:
     """One tracked hand in one frame: its label, its track's id (new per track) and result."""
@@ -379,11 +409,37 @@ class MultiHandTracker:
         return tuple((s.side, s.track_id) for s in self._slots)
 
     def set_model(self, side: str, model: HandModel) -> None:
-        """Use ``model`` (e.g. a calibration) for the hand labelled ``side`` from now on."""
-        self._models[side] = model
+        """Use ``model`` (e.g. a calibration; mirrored to ``side``) for the hand labelled ``side``
+        from now on: its live track switches to it (:meth:`Tracker.set_model`, the palm centre
+        kept), every new track of that label starts with it (no small-size choice), and a track
+        whose trial gives it that label takes it from the frame after (the trial's two models
+        share one shape)."""
+        if side not in HANDS:
+            raise InputError(f"side must be 'left' or 'right', got {side!r}")
+        self._models[side] = model.mirrored(side == "right")
         for s in self._slots:
-            if s.side == side:
+            if s.side == side and s.alt is None:
                 s.tracker.set_model(model)
+
+    def model(self, side: str) -> HandModel:
+        """The model of the hand labelled ``side``: its live track's (a trial's not counted),
+        else the one :meth:`set_model` gave, else the default of that side."""
+        track = next((s for s in self._slots if s.side == side and s.alt is None), None)
+        if track is not None:
+            return track.tracker.model
+        given = self._models[side]
+        return given if given is not None else default_hand_model(side == "right")
+
+    def hands_in_view(self) -> tuple[tuple[int, HandModel, NDArray[np.float64]], ...]:
+        """(track id, model, pose (26,) mm / rad) of every live track with a pose after the last
+        frame, trials and withheld tracks included (what the calibration of one hand masks out of
+        its frames: :class:`~.autocalibration.HistoryFrame`)."""
+        out = []
+        for s in self._slots:
+            x = self._pose(s)
+            if x is not None:
+                out.append((s.track_id, s.tracker.model, x))
+        return tuple(out)
 
     def reset(self) -> None:
         """Forget every track."""
@@ -447,6 +503,10 @@ class MultiHandTracker:
         ones and the younger of two on one hand."""
         for s in self._slots:
             s.result = None
+            given = self._models[s.side]
+            if s.alt is None and given is not None and s.tracker.model.shape != given.shape:
+                # (its trial ran on the first model's shape: the label's own model from this frame on)
+                s.tracker.set_model(given)
         order = sorted(self._slots, key=lambda s: float(s.tracker.last_pose[2]))  # type: ignore[index]
         for slot in order:
             others = [o for o in self._slots if o is not slot]
@@ -635,23 +695,14 @@ class MultiHandTracker:
 
     def _masked(self, pre: Preprocessed, doomed: Sequence[tuple[HandModel, NDArray[np.float64]]] = ()) -> Preprocessed:
         """``pre`` without the pixels of the live tracks' hands and forearms and of ``doomed``
-        ((model, pose (26,)) each: new tracks the gate would drop, :meth:`_checked_start`), a new copy."""
-        depth = pre.depth_mm.copy()
-        intr = pre.intrinsics
-        for model, x in [(s.tracker.model, self._pose(s)) for s in self._slots] + list(doomed):
-            if x is None:
-                continue
-            roi, _ = hand_roi(model, x, intr, self._config.roi_radius_mm + FOREARM_LENGTH_MM)
-            u0, v0, u1, v1 = roi
-            box = depth[v0:v1, u0:u1]
-            vs, us = np.nonzero(box > 0)
-            if vs.size == 0:
-                continue
-            uv = np.stack([us + u0, vs + v0], 1).astype(np.float64)
-            pts = intr.backproject(uv, box[vs, us].astype(np.float64))
-            near = skin_distance(model, x, pts, PIXEL_MARGIN_MM) < PIXEL_MARGIN_MM
-            box[vs[near], us[near]] = 0.0
-        return Preprocessed(depth_mm=depth, intrinsics=intr, decimation=pre.decimation)
+        ((model, pose (26,)) each: new tracks the gate would drop, :meth:`_checked_start`), a new copy
+        (:func:`without_hands`)."""
+        hands = [(s.tracker.model, self._pose(s)) for s in self._slots] + list(doomed)
+        hands = [(m, x) for m, x in hands if x is not None]
+        depth = without_hands(pre.depth_mm, pre.intrinsics, hands, self._config.roi_radius_mm)
+        if depth is pre.depth_mm:
+            depth = depth.copy()
+        return Preprocessed(depth_mm=depth, intrinsics=pre.intrinsics, decimation=pre.decimation)
 
     def _new_tracker(self, side: str) -> Tracker:
         cfg = replace(self._config, right_hand=side == "right")

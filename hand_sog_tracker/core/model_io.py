@@ -51,6 +51,7 @@ __all__ = [
     "FORMAT_VERSION",
     "FINGER_KEYS",
     "default_model_path",
+    "side_model_path",
     "save_hand_shape",
     "load_hand_shape",
     "read_model_file",
@@ -77,6 +78,21 @@ def default_model_path() -> Path:
     """
     ros_home = os.environ.get("ROS_HOME") or "~/.ros"
     return Path(ros_home).expanduser() / "hand_sog_tracker" / "hand_model.yaml"
+
+
+def side_model_path(path: PathLike, side: str) -> Path:
+    """The file of one hand's model beside the user model ``path`` with ``max_hands: 2``:
+    ``<stem>_<side><suffix>`` (``hand_model.yaml`` -> ``hand_model_left.yaml``), ``~`` expanded.
+
+    Raises
+    ------
+    InputError
+        ``side`` is not ``left`` or ``right``.
+    """
+    if side not in ("left", "right"):
+        raise InputError(f"side must be 'left' or 'right', got {side!r}")
+    p = Path(path).expanduser()
+    return p.with_name(f"{p.stem}_{side}{p.suffix}")
 
 
 def _format_value(key: str, value: Scalar) -> str:

@@ -9,7 +9,9 @@ Prints the service's answer (fitted scale factors, the fit score before and
 after, the guard's held-out scores of the current and the fitted model, where
 the model was saved) and exits 0 on success, 1 otherwise (including a fit the
 guard refused: then nothing was changed or saved).  The node keeps tracking
-while it fits.
+while it fits.  With ``max_hands: 2`` the answer has one part per hand
+(``left hand: ... | right hand: ...``) and success means at least one hand's fit
+was accepted and saved (to that hand's file).
 """
 
 from __future__ import annotations

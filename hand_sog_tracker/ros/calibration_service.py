@@ -18,6 +18,8 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import replace
+from pathlib import Path
 from typing import IO, TYPE_CHECKING
 
 import numpy as np
@@ -42,14 +44,16 @@ from hand_sog_tracker.core.calibration import (
     CalibrationResult,
     calibrate,
 )
-from hand_sog_tracker.core.model_io import calibration_metadata, save_hand_shape
-from hand_sog_tracker.core.types import Intrinsics
+from hand_sog_tracker.core.hands import HANDS
+from hand_sog_tracker.core.model_io import calibration_metadata, save_hand_shape, side_model_path
+from hand_sog_tracker.core.types import Intrinsics, TrackerStatus
 from hand_sog_tracker.errors import CalibrationError, HandSogError
 
 if TYPE_CHECKING:
     from rclpy.guard_condition import GuardCondition
 
     from hand_sog_tracker.core.hand_model import HandModel
+    from hand_sog_tracker.core.hands import HandsResult, MultiHandTracker
     from hand_sog_tracker.core.tracker import Tracker
     from hand_sog_tracker.ros.params import NodeSettings
 
@@ -218,6 +222,10 @@ class CalibrationService:
     _auto_done: threading.Condition  # on _tracker_lock: an automatic fit ended
     _settings: NodeSettings
     _calib_history: FrameHistory
+    _hands: MultiHandTracker | None  # max_hands 2 (else None)
+    _hand_histories: dict[str, FrameHistory]  # max_hands 2: each label's frames
+    _side_models: dict[str, HandModel | None]  # max_hands 2: each label's model (None: default)
+    _last_hands: HandsResult | None
     _auto_calib: AutoCalibration
     _calib_wake: GuardCondition
     _fit_worker: FitWorker
@@ -256,6 +264,29 @@ class CalibrationService:
             return
         auto.started(stamp)
         self._start_auto_fit(frames, self._tracker.model, self._model_generation)
+
+    def _remember_hands(self, depth: NDArray[np.float32], intr: Intrinsics, stamp: int) -> None:
+        """max_hands 2: keep the frame in each label's history (:meth:`_remember` keeps the
+        one-hand history), with that hand's pose (None while no reported hand has that label) and
+        the other live tracks (model, pose), whose pixels the fit of this hand leaves out
+        (:meth:`~hand_sog_tracker.core.autocalibration.HistoryFrame.hand_depth`).  Called with
+        ``_tracker_lock`` held."""
+        assert self._hands is not None
+        hands = self._last_hands
+        tracked = [] if hands is None else [h for h in hands.hands if h.result.status is TrackerStatus.TRACKING]
+        reported = {h.handedness: h for h in tracked if h.result.pose is not None}
+        live = self._hands.hands_in_view()
+        for side in HANDS:
+            hand = reported.get(side)
+            others = [(m, x) for tid, m, x in live if hand is None or tid != hand.track_id]
+            pose = None if hand is None else hand.result.pose
+            self._hand_histories[side].remember(depth, intr, pose, stamp, others if pose is not None else ())
+
+    def _clear_histories(self) -> None:
+        """Forget the frames kept for calibration (a new resolution or camera)."""
+        self._calib_history.clear()
+        for history in self._hand_histories.values():
+            history.clear()
 
     def _apply_auto_fit(self, stamp: int) -> None:
         """Switch to an accepted automatic fit's model once the frame stamped ``stamp`` is due
@@ -367,8 +398,10 @@ class CalibrationService:
         ones) and is checked on up to CALIB_HOLDOUT other frames of it (the guard of
         :func:`~hand_sog_tracker.core.calibration.calibrate`); a refused fit changes and
         saves nothing.  A fit that is saved ends the automatic fits.  Calls are served one at
-        a time (:meth:`_on_calibrate`).
+        a time (:meth:`_on_calibrate`).  With ``max_hands: 2``: :meth:`_calibrate_hands`.
         """
+        if self._hands is not None:
+            return await self._calibrate_hands(response)
         with self._tracker_lock:  # a consistent snapshot of the history and the model
             history = self._calib_history.frames()
             model = self._tracker.model
@@ -439,32 +472,143 @@ class CalibrationService:
             self._tracker.set_model(res.model)
             self._model_generation += 1
             self._auto_calib.stop()
-        s = res.shape
-        v = res.validation
+        response.success = True
+        response.message = self._save_fit(res, frames, settings.user_model_path, settings.tracker.right_hand)
+        self.get_logger().info(f"calibrated: {response.message}")
+        return response
+
+    async def _calibrate_hands(self, response: Trigger.Response) -> Trigger.Response:
+        """``~/calibrate`` with ``max_hands: 2``: each hand with frames in its own history
+        (:meth:`_remember_hands`: its tracked poses, the other hands' pixels left out) is fitted
+        on them and checked by the same guard as one hand, one after the other in the child
+        process; an accepted fit is switched to (:meth:`MultiHandTracker.set_model`) and saved to
+        that hand's file (:func:`~hand_sog_tracker.core.model_io.side_model_path`).  The answer
+        has one part per hand (``left hand: ... | right hand: ...``); ``success`` when at least
+        one hand's fit was accepted."""
+        assert self._hands is not None
+        with self._tracker_lock:  # a consistent snapshot of the histories and the models
+            histories = {side: self._hand_histories[side].frames() for side in HANDS}
+            models = {side: self._hands.model(side) for side in HANDS}
+        settings = self._settings
+        if not any(histories.values()):
+            response.success = False
+            response.message = "no depth frames received yet: start the camera and hold an open hand in view"
+            self.get_logger().warning(f"calibration refused: {response.message}")
+            return response
+        chosen: dict[str, FitFrames] = {}
+        parts: dict[str, str] = {}
+        for side in HANDS:
+            frames = choose_fit_frames(histories[side], settings.calibration_frames, CALIB_HOLDOUT)
+            tracked = 0 if frames is None else frames.tracked
+            if frames is None or tracked == 0:
+                parts[side] = f"not tracked in the last {CALIB_HISTORY * CALIB_SPACING_S:.1f} s, not fitted"
+            elif not frames.usable:
+                parts[side] = (
+                    f"calibration failed: {tracked} tracked frames in the last "
+                    f"{CALIB_HISTORY * CALIB_SPACING_S:.1f} s, {len(frames.fit)} with an open hand; need an open "
+                    "hand on at least one frame and one more frame to check the fit on"
+                )
+            else:
+                chosen[side] = frames
+        if not chosen:
+            response.success = False
+            response.message = _by_hand(parts) + " (hold an open hand toward the camera for a second)"
+            self.get_logger().warning(f"calibration failed: {response.message}")
+            return response
+        self.get_logger().info(
+            "calibrating the hand models: "
+            + ", ".join(f"{side} on {len(f.fit)} frames, checked on {len(f.holdout)}" for side, f in chosen.items())
+            + " (tracking goes on) ..."
+        )
+        future: Future = Future()
+        configs = {side: replace(settings.tracker, right_hand=side == "right") for side in chosen}
+
+        def work() -> None:
+            out: dict[str, CalibrationResult | BaseException] = {}
+            try:
+                for side, frames in chosen.items():
+                    try:  # (the other hands' pixels masked here, off the executor's thread)
+                        args, kwargs = frames.calibrate_args(configs[side], models[side])
+                        out[side] = self._run_fit(args, kwargs)
+                    except Exception as err:  # noqa: BLE001 - answered per hand
+                        out[side] = err
+                future.set_result(out)
+            except BaseException as err:  # noqa: BLE001 - handed to the service callback
+                future.set_exception(err)
+            finally:
+                try:
+                    self._calib_wake.trigger()
+                except Exception:  # noqa: BLE001 - the node was destroyed meanwhile
+                    pass
+
+        threading.Thread(target=work, name="hand_sog_calibration", daemon=True).start()
+        try:
+            results: dict[str, CalibrationResult | BaseException] = await future
+        except Exception as err:  # noqa: BLE001 - a bug in the fit must not kill the node
+            response.success = False
+            response.message = f"calibration error: {err!r}"
+            self.get_logger().error(response.message)
+            return response
+        accepted = []
+        for side, res in results.items():
+            if isinstance(res, CalibrationRejected):
+                if res.validation.already_fits:
+                    parts[side] = f"{res}; nothing changed or saved"
+                else:
+                    parts[side] = f"calibration rejected, nothing changed or saved: {res}"
+            elif isinstance(res, HandSogError):
+                kind = "calibration failed" if isinstance(res, CalibrationError) else "calibration error"
+                parts[side] = f"{kind}: {res}"
+            elif isinstance(res, BaseException):
+                parts[side] = f"calibration error: {res!r}"
+                self.get_logger().error(f"calibration of the {side} hand: {res!r}")
+            else:
+                with self._tracker_lock:  # atomic switch between two frames
+                    self._hands.set_model(side, res.model)
+                    self._side_models[side] = res.model
+                    self._model_generation += 1
+                    self._auto_calib.stop()
+                path = side_model_path(settings.user_model_path, side)
+                parts[side] = self._save_fit(res, chosen[side], path, side == "right", f"the {side} hand's ")
+                accepted.append(side)
+        response.success = bool(accepted)
+        response.message = _by_hand(parts)
+        if accepted:
+            self.get_logger().info(f"calibrated: {response.message}")
+        else:
+            self.get_logger().warning(f"calibration: nothing changed or saved: {response.message}")
+        return response
+
+    def _save_fit(self, res: CalibrationResult, frames: FitFrames, path: Path, right: bool, whose: str = "") -> str:
+        """Save an accepted fit (of a right hand, or not) on ``frames`` to ``path`` with its
+        metadata; the answer's text (the numbers, where it was saved).  ``whose``: what the warning
+        of a failed save says before "calibrated model" (``"the left hand's "``)."""
+        s, v = res.shape, res.validation
         assert v is not None
         try:
-            path = save_hand_shape(
-                settings.user_model_path,
+            where = save_hand_shape(
+                path,
                 s,
-                right=settings.tracker.right_hand,
+                right=right,
                 extra={
                     **calibration_metadata(
                         res,
-                        fit_stamps_ns=[fit[i].stamp_ns for i in res.used_frames],
-                        holdout_stamps_ns=[h.stamp_ns for h in hold],
+                        fit_stamps_ns=[frames.fit[i].stamp_ns for i in res.used_frames],
+                        holdout_stamps_ns=[h.stamp_ns for h in frames.holdout],
                     ),
                     **v.metadata(),
                 },
             )
-            saved = f"saved to {path}"
+            saved = f"saved to {where}"
         except HandSogError as err:
             saved = f"NOT saved: {err}"
-            self.get_logger().warning(f"calibrated model could not be saved: {err}")
-        response.success = True
-        response.message = (
-            f"{s.describe()}; "
-            f"fit score {res.score_before:.4f} -> {res.score_after:.4f} "
+            self.get_logger().warning(f"{whose}calibrated model could not be saved: {err}")
+        return (
+            f"{s.describe()}; fit score {res.score_before:.4f} -> {res.score_after:.4f} "
             f"({len(res.used_frames)} frames, {res.seconds:.2f} s); {v.describe()}; {saved}"
         )
-        self.get_logger().info(f"calibrated: {response.message}")
-        return response
+
+
+def _by_hand(parts: dict[str, str]) -> str:
+    """``left hand: ... | right hand: ...`` (the hands in :data:`HANDS` order)."""
+    return " | ".join(f"{side} hand: {parts[side]}" for side in HANDS if side in parts)

@@ -24,7 +24,7 @@ Everything is stamped with the input image's header.  Labels come from the data
 
 from __future__ import annotations
 
-from typing import Any, Callable, Final
+from typing import Any, Callable, Final, Mapping
 
 from geometry_msgs.msg import PoseArray, PoseStamped
 from numpy.typing import NDArray
@@ -180,11 +180,13 @@ class HandTopics:
     overrides : QoSOverridingOptions or None
     marker_lifetime_s : float
         Lifetime of each hand's fingertip markers (0: for ever), as on the one-hand topics.
+    models : mapping of side to HandModel, optional
+        The model each hand starts with, described at once (default: each side's default model).
     """
 
     def __init__(
         self, node: Node, frame_prefix: str, out_qos: QoSProfile, latched: QoSProfile, overrides: Any = None,
-        marker_lifetime_s: float = 0.0,
+        marker_lifetime_s: float = 0.0, models: Mapping[str, HandModel] | None = None,
     ) -> None:
         self._sides = {
             s: HandOutputs(
@@ -195,7 +197,7 @@ class HandTopics:
             for s in HANDS
         }
         for s in HANDS:
-            self._sides[s].describe(default_hand_model(s == "right"), None)
+            self._sides[s].describe((models or {}).get(s) or default_hand_model(s == "right"), None)
 
     def publish(
         self, header: Header, hands: HandsResult, depth_mm: NDArray, intr: Intrinsics, wrist_joints: bool,

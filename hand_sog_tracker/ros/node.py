@@ -97,9 +97,9 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory
-from hand_sog_tracker.core.hand_model import HandModel, default_hand_model
-from hand_sog_tracker.core.hands import MultiHandTracker
-from hand_sog_tracker.core.model_io import load_hand_shape
+from hand_sog_tracker.core.hand_model import HandModel, HandShape, default_hand_model
+from hand_sog_tracker.core.hands import HANDS, HandsResult, MultiHandTracker
+from hand_sog_tracker.core.model_io import load_hand_shape, side_model_path
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerStatus, TrackResult
@@ -264,8 +264,13 @@ class TrackerNode(CalibrationService, Node):
         self._backlog = Backlog()
         self._rate = CameraRate()  # the camera period, from the received images' stamps
         self._intrinsics: Intrinsics | None = None  # of the newest CameraInfo
-        # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).
-        user_model = self._initial_model()
+        # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).  With
+        # max_hands 2 each hand's saved model (_initial_side_models), the one-hand tracker that
+        # of the hand labelled handedness.
+        two = self._settings.max_hands > 1
+        self._side_models: dict[str, HandModel | None] = self._initial_side_models() if two else {}
+        side = "right" if self._settings.tracker.right_hand else "left"
+        user_model = self._side_models[side] if two else self._initial_model()
         # The node runs the core tracker as evaluate_bag's core mode does: every frame's whole
         # search, nothing timed by the wall clock (issue 45).  A frame that arrives meanwhile
         # waits in the backlog; whole frames are dropped when it falls max_lag_ms behind.
@@ -281,6 +286,8 @@ class TrackerNode(CalibrationService, Node):
         # Recent tracked frames for ~/calibrate and the automatic fit (calibration_service.py),
         # which runs only without a saved user model.
         self._calib_history = FrameHistory()
+        # max_hands 2: each hand's own history, its frames without the other hands' pixels.
+        self._hand_histories = {s: FrameHistory() for s in HANDS}
         self._auto_calib = AutoCalibration(
             enabled=self._settings.auto_calibrate and user_model is None and self._settings.max_hands == 1
         )
@@ -344,10 +351,13 @@ class TrackerNode(CalibrationService, Node):
         # topics (hand_topics.py); the one-hand topics carry the hand labelled ``handedness``.
         self._hands: MultiHandTracker | None = None
         self._hand_topics: HandTopics | None = None
+        self._hand_models_logged: dict[str, HandShape] = {}
+        self._last_hands: HandsResult | None = None  # (max_hands 2: the last frame's, for the histories)
         if self._settings.max_hands > 1:
-            self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
+            self._hands = self._new_hands()
             self._hand_topics = HandTopics(
-                self, self._settings.frame_prefix, out_qos, latched, overrides, MARKER_LIFETIME_S
+                self, self._settings.frame_prefix, out_qos, latched, overrides, MARKER_LIFETIME_S,
+                models={s: self._hands.model(s) for s in HANDS},
             )
 
         self._calibrate_srv = self.create_service(
@@ -392,9 +402,34 @@ class TrackerNode(CalibrationService, Node):
 
     @property
     def hand_model(self) -> HandModel:
-        """The hand model the tracker uses."""
+        """The hand model the tracker uses (``max_hands: 2``: that of the hand labelled ``handedness``)."""
         with self._tracker_lock:
+            return self._one_hand_model()
+
+    @property
+    def hand_models(self) -> dict[str, HandModel]:
+        """The model of each hand label: with ``max_hands: 2`` ``{"left": ..., "right": ...}``
+        (:meth:`~hand_sog_tracker.core.hands.MultiHandTracker.model`), with one hand the one-hand
+        tracker's under its ``handedness``."""
+        with self._tracker_lock:
+            if self._hands is None:
+                return {"right" if self._tracker.config.right_hand else "left": self._tracker.model}
+            return {s: self._hands.model(s) for s in HANDS}
+
+    def _one_hand_model(self) -> HandModel:
+        """The model of the one-hand topics' hand (the one-hand tracker's, or with max_hands 2
+        that of the hand labelled ``handedness``)."""
+        if self._hands is None:
             return self._tracker.model
+        return self._hands.model("right" if self._settings.tracker.right_hand else "left")
+
+    def _new_hands(self) -> MultiHandTracker:
+        """The multi-hand tracker of max_hands 2, with each hand's model (saved or calibrated)."""
+        hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
+        for side, model in self._side_models.items():
+            if model is not None:
+                hands.set_model(side, model)
+        return hands
 
     # -- parameters -------------------------------------------------------------
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
@@ -426,6 +461,46 @@ class TrackerNode(CalibrationService, Node):
             )
         self.get_logger().info(f"loaded hand model {shape} from {path}")
         return default_hand_model(right).scaled(shape)
+
+    def _initial_side_models(self) -> dict[str, HandModel | None]:
+        """max_hands 2: each hand's model by label (None: the default hand):
+        its own file (:func:`~hand_sog_tracker.core.model_io.side_model_path`, written by
+        ``~/calibrate`` with two hands) if it exists and is valid, else the shape of the user
+        model (``user_model_path``, whichever hand it was calibrated on), else None."""
+        path = self._settings.user_model_path
+        shared: tuple[HandShape, bool] | None = None
+        if path.exists():
+            try:
+                shared = load_hand_shape(path)
+            except ModelFileError as err:
+                self.get_logger().warning(f"ignoring the user hand model: {err}")
+        out: dict[str, HandModel | None] = {}
+        for side in HANDS:
+            right = side == "right"
+            own = side_model_path(path, side)
+            loaded: tuple[HandShape, bool, Path] | None = None
+            if own.exists():
+                try:
+                    loaded = (*load_hand_shape(own), own)
+                except ModelFileError as err:
+                    self.get_logger().warning(f"ignoring the {side} hand's model: {err}")
+                else:
+                    if loaded[1] != right:
+                        self.get_logger().warning(
+                            f"{own} was calibrated on a {'right' if loaded[1] else 'left'} hand; using its "
+                            f"shape for the {side} hand"
+                        )
+            if loaded is None and shared is not None:
+                loaded = (*shared, path)
+            if loaded is None:
+                self.get_logger().info(f"no hand model at {own} or {path}: the {side} hand uses the default hand")
+                out[side] = None
+                continue
+            shape, file_right, where = loaded
+            mirrored = "" if file_right == right else f" (calibrated on the {'right' if file_right else 'left'} hand)"
+            self.get_logger().info(f"loaded hand model {shape} from {where} for the {side} hand{mirrored}")
+            out[side] = default_hand_model(right).scaled(shape)
+        return out
 
     # -- input ------------------------------------------------------------------
     def _on_image_message(self, msg: Image | CompressedImage) -> None:
@@ -706,7 +781,7 @@ class TrackerNode(CalibrationService, Node):
                 f"{shape[1]}x{shape[0]}: tracker reset"
             )
             self._reset_track(header)
-            self._calib_history.clear()
+            self._clear_histories()
         self._last_shape = shape
         if shape != (intr.height, intr.width):
             problem = (
@@ -721,7 +796,7 @@ class TrackerNode(CalibrationService, Node):
             # from a K 2x off stayed 60 mm off): start anew, as on a resolution change.
             self._warn(f"CameraInfo changed ({self._last_intr} -> {intr}): tracker reset")
             self._reset_track(header)
-            self._calib_history.clear()
+            self._clear_histories()
         self._last_intr, self._last_intr_shape = intr, shape
 
         top = float(depth.max())
@@ -756,7 +831,10 @@ class TrackerNode(CalibrationService, Node):
         self._publish_result(header, result, depth, intr, decision)
         answered_at = time.perf_counter()
         tracked = result.pose if result.status is TrackerStatus.TRACKING else None
-        self._remember(depth, intr, tracked, stamp)
+        if self._hands is not None:
+            self._remember_hands(depth, intr, stamp)
+        else:
+            self._remember(depth, intr, tracked, stamp)
         latency_ms = (self.get_clock().now().nanoseconds - stamp) * 1e-6
         self._stats = replace(
             self._stats,
@@ -814,11 +892,17 @@ class TrackerNode(CalibrationService, Node):
         "no hand", with the confidence of its withheld track; each hand passed its own hand gate)."""
         assert self._hands is not None and self._hand_topics is not None
         if self._settings.tracker != self._hands.config:
-            self._hands = MultiHandTracker(self._settings.tracker, self._settings.max_hands)
+            self._hands = self._new_hands()
         hands = self._hands.process(depth, intr)
+        self._last_hands = hands
         decisions = self._hand_topics.publish(
             header, hands, depth, intr, self._settings.publish_wrist_joints, self._tf_publish()
         )
+        for hand in hands.hands:
+            if hand.handedness in decisions and self._hand_models_logged.get(hand.handedness) != hand.model.shape:
+                # (a calibration, or a new track of a small hand on the default model's small size)
+                self.get_logger().info(f"hand model in use for the {hand.handedness} hand: {hand.model.shape}")
+                self._hand_models_logged[hand.handedness] = hand.model.shape
         side = "right" if self._settings.tracker.right_hand else "left"
         mine = hands.hand(side)
         if mine is None or side not in decisions:
@@ -842,8 +926,9 @@ class TrackerNode(CalibrationService, Node):
         intr: Intrinsics,
         decision: HandDecision | None = None,
     ) -> None:
-        model = self._tracker.model
-        if result.pose is not None and (self._model_logged is None or self._model_logged.shape != model.shape):
+        model = self._one_hand_model()
+        logged = self._model_logged  # (max_hands 2: logged per hand, _process_hands)
+        if self._hands is None and result.pose is not None and (logged is None or logged.shape != model.shape):
             # (a calibration, or a new track of a small hand on the default model's small size)
             self.get_logger().info(f"hand model in use: {model.shape}")
             self._model_logged = model

@@ -174,7 +174,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = _tracker_specs() + (
         "user_model_path",
         "",
         "Calibrated hand model file (read at start-up, written by ~/calibrate); "
-        "empty = $ROS_HOME/hand_sog_tracker/hand_model.yaml (ROS_HOME defaults to ~/.ros).",
+        "empty = $ROS_HOME/hand_sog_tracker/hand_model.yaml (ROS_HOME defaults to ~/.ros). "
+        "With max_hands 2 ~/calibrate writes each hand's own file beside it (<stem>_left.yaml, "
+        "<stem>_right.yaml), read first for that hand.",
         read_only=True,
     ),
     ParamSpec(
