@@ -20,7 +20,7 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import IO, TYPE_CHECKING
+from typing import IO, TYPE_CHECKING, Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -431,21 +431,8 @@ class CalibrationService:
             f"calibrating the hand model on {len(fit)} frames, checking it on {len(hold)} others "
             "(tracking goes on) ..."
         )
-        future: Future = Future()
         args, kwargs = frames.calibrate_args(settings.tracker, model)
-
-        def work() -> None:
-            try:
-                future.set_result(self._run_fit(args, kwargs))
-            except BaseException as err:  # noqa: BLE001 - handed to the service callback
-                future.set_exception(err)
-            finally:
-                try:
-                    self._calib_wake.trigger()
-                except Exception:  # noqa: BLE001 - the node was destroyed meanwhile
-                    pass
-
-        threading.Thread(target=work, name="hand_sog_calibration", daemon=True).start()
+        future = self._in_fit_thread(lambda: self._run_fit(args, kwargs))
         try:
             res: CalibrationResult = await future
         except CalibrationRejected as err:
@@ -520,28 +507,19 @@ class CalibrationService:
             + ", ".join(f"{side} on {len(f.fit)} frames, checked on {len(f.holdout)}" for side, f in chosen.items())
             + " (tracking goes on) ..."
         )
-        future: Future = Future()
         configs = {side: replace(settings.tracker, right_hand=side == "right") for side in chosen}
 
-        def work() -> None:
+        def fit_each() -> dict[str, CalibrationResult | BaseException]:
             out: dict[str, CalibrationResult | BaseException] = {}
-            try:
-                for side, frames in chosen.items():
-                    try:  # (the other hands' pixels masked here, off the executor's thread)
-                        args, kwargs = frames.calibrate_args(configs[side], models[side])
-                        out[side] = self._run_fit(args, kwargs)
-                    except Exception as err:  # noqa: BLE001 - answered per hand
-                        out[side] = err
-                future.set_result(out)
-            except BaseException as err:  # noqa: BLE001 - handed to the service callback
-                future.set_exception(err)
-            finally:
-                try:
-                    self._calib_wake.trigger()
-                except Exception:  # noqa: BLE001 - the node was destroyed meanwhile
-                    pass
+            for side, frames in chosen.items():
+                try:  # (the other hands' pixels masked here, off the executor's thread)
+                    args, kwargs = frames.calibrate_args(configs[side], models[side])
+                    out[side] = self._run_fit(args, kwargs)
+                except Exception as err:  # noqa: BLE001 - answered per hand
+                    out[side] = err
+            return out
 
-        threading.Thread(target=work, name="hand_sog_calibration", daemon=True).start()
+        future = self._in_fit_thread(fit_each)
         try:
             results: dict[str, CalibrationResult | BaseException] = await future
         except Exception as err:  # noqa: BLE001 - a bug in the fit must not kill the node
@@ -578,6 +556,25 @@ class CalibrationService:
         else:
             self.get_logger().warning(f"calibration: nothing changed or saved: {response.message}")
         return response
+
+    def _in_fit_thread(self, fit: Callable[[], Any]) -> Future:
+        """Run ``fit`` (which waits for the child process) in a thread of its own; the future of
+        its result, done in the executor through the wake-up guard condition."""
+        future: Future = Future()
+
+        def work() -> None:
+            try:
+                future.set_result(fit())
+            except BaseException as err:  # noqa: BLE001 - handed to the service callback
+                future.set_exception(err)
+            finally:
+                try:
+                    self._calib_wake.trigger()
+                except Exception:  # noqa: BLE001 - the node was destroyed meanwhile
+                    pass
+
+        threading.Thread(target=work, name="hand_sog_calibration", daemon=True).start()
+        return future
 
     def _save_fit(self, res: CalibrationResult, frames: FitFrames, path: Path, right: bool, whose: str = "") -> str:
         """Save an accepted fit (of a right hand, or not) on ``frames`` to ``path`` with its
