@@ -87,7 +87,8 @@ def test_two_hands_are_published_per_hand_with_prefixed_names(ros_context, tmp_p
                 info_pub.publish(info)
                 before = node.stats.processed + node.stats.rejected
                 stamp = 1_700_000_000 * 10**9 + f.index * 33_333_333
-                image_pub.publish(_image(f.depth_mm, stamp))
+                last = _image(f.depth_mm, stamp)
+                image_pub.publish(last)
                 assert spin_until(lambda b=before: node.stats.processed + node.stats.rejected > b)
                 truth_at[stamp] = {s: truth[s][f.stamp_ns].fingertips_mm for s in HANDS}
         assert spin_until(lambda: all(joints[s] and tips[s] for s in ("left", "right")) and bool(one_hand), 10.0)
@@ -108,6 +109,14 @@ def test_two_hands_are_published_per_hand_with_prefixed_names(ros_context, tmp_p
         assert tuple(one_hand[-1].name) == JOINT_NAMES
         assert stamp_to_ns(one_hand[-1].header.stamp) == stamp_to_ns(joints["right"][-1].header.stamp)
         np.testing.assert_allclose(one_hand[-1].position, joints["right"][-1].position)
+        # The last image again, with its stamp: the same answer on every hand's topics too.
+        assert spin_until(lambda: all(stamp_to_ns(joints[s][-1].header.stamp) == stamp for s in HANDS), 5.0)
+        sent = {s: len(joints[s]) for s in HANDS}
+        image_pub.publish(last)
+        assert spin_until(lambda: all(len(joints[s]) > sent[s] for s in HANDS), 10.0)
+        for side in HANDS:
+            assert stamp_to_ns(joints[side][-1].header.stamp) == stamp
+            np.testing.assert_array_equal(joints[side][-1].position, joints[side][sent[side] - 1].position)
     finally:
         executor.shutdown()
         node.destroy_node()

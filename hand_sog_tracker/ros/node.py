@@ -812,7 +812,11 @@ class TrackerNode(CalibrationService, Node):
         last = self._last_answer
         try:
             if last is not None and last[0] == stamp and last[3] == intr and np.array_equal(last[2], depth):
-                result = last[1]  # (the same image again: the same answer)
+                result = last[1]  # (the same image again: the same answer, on every topic)
+                if self._hand_topics is not None and self._last_hands is not None:
+                    self._hand_topics.publish(
+                        header, self._last_hands, depth, intr, self._settings.publish_wrist_joints, self._tf_publish()
+                    )
             elif self._hands is not None:
                 result = self._process_hands(header, depth, intr)
                 self._last_answer = (stamp, result, depth, intr)
