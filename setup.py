@@ -14,7 +14,7 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "hand_sog_tracker"
-VERSION = "0.19.0"
+VERSION = "0.20.0"
 
 # In a sourced ROS 2 environment (colcon workspace) rclpy and the message packages come from the
 # ROS installation (see package.xml); only a plain pip install needs the wheels from PyPI.
