@@ -97,9 +97,8 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from hand_sog_tracker.core.autocalibration import AutoCalibration, FrameHistory
-from hand_sog_tracker.core.hand_model import HandModel, HandShape, default_hand_model
+from hand_sog_tracker.core.hand_model import HandModel, HandShape
 from hand_sog_tracker.core.hands import HANDS, HandsResult, MultiHandTracker
-from hand_sog_tracker.core.model_io import load_hand_shape, side_model_path
 from hand_sog_tracker.core.overlay import draw_overlay
 from hand_sog_tracker.core.tracker import Tracker
 from hand_sog_tracker.core.types import HandDecision, Intrinsics, TrackerStatus, TrackResult
@@ -107,7 +106,6 @@ from hand_sog_tracker.errors import (
     DepthImageError,
     HandSogError,
     IntrinsicsError,
-    ModelFileError,
 )
 from hand_sog_tracker.interface import (
     CALIBRATE_SERVICE,
@@ -138,6 +136,7 @@ from hand_sog_tracker.ros.params import (
     read_settings,
     validate_parameter_change,
 )
+from hand_sog_tracker.ros.saved_models import hand_models, one_hand_model
 
 __all__ = ["TrackerNode", "NodeStats", "make_executor", "main", "NODE_NAME"]
 
@@ -265,12 +264,13 @@ class TrackerNode(CalibrationService, Node):
         self._rate = CameraRate()  # the camera period, from the received images' stamps
         self._intrinsics: Intrinsics | None = None  # of the newest CameraInfo
         # Tracking state; the tracker is also used by ~/calibrate (_tracker_lock).  With
-        # max_hands 2 each hand's saved model (_initial_side_models), the one-hand tracker that
+        # max_hands 2 each hand's saved model (saved_models.py), the one-hand tracker that
         # of the hand labelled handedness.
         two = self._settings.max_hands > 1
-        self._side_models: dict[str, HandModel | None] = self._initial_side_models() if two else {}
+        path, log = self._settings.user_model_path, self.get_logger()
+        self._side_models: dict[str, HandModel | None] = hand_models(path, log) if two else {}
         side = "right" if self._settings.tracker.right_hand else "left"
-        user_model = self._side_models[side] if two else self._initial_model()
+        user_model = self._side_models[side] if two else one_hand_model(path, self._settings.tracker.right_hand, log)
         # The node runs the core tracker as evaluate_bag's core mode does: every frame's whole
         # search, nothing timed by the wall clock (issue 45).  A frame that arrives meanwhile
         # waits in the backlog; whole frames are dropped when it falls max_lag_ms behind.
@@ -441,66 +441,6 @@ class TrackerNode(CalibrationService, Node):
     def _on_parameters_set(self, params: list[Parameter]) -> None:
         # Validated in _on_set_parameters; the work group applies it on the next frame.
         self._settings = read_settings(self)
-
-    def _initial_model(self) -> HandModel | None:
-        """The user's calibrated model if its file exists and is valid, else None (default hand)."""
-        path = self._settings.user_model_path
-        right = self._settings.tracker.right_hand
-        if not path.exists():
-            self.get_logger().info(f"no user hand model at {path}: using the default hand")
-            return None
-        try:
-            shape, file_right = load_hand_shape(path)
-        except ModelFileError as err:
-            self.get_logger().warning(f"ignoring the user hand model: {err}; using the default hand")
-            return None
-        if file_right != right:
-            self.get_logger().warning(
-                f"{path} was calibrated on a {'right' if file_right else 'left'} hand; using its "
-                f"shape for the {'right' if right else 'left'} hand (handedness parameter)"
-            )
-        self.get_logger().info(f"loaded hand model {shape} from {path}")
-        return default_hand_model(right).scaled(shape)
-
-    def _initial_side_models(self) -> dict[str, HandModel | None]:
-        """max_hands 2: each hand's model by label (None: the default hand):
-        its own file (:func:`~hand_sog_tracker.core.model_io.side_model_path`, written by
-        ``~/calibrate`` with two hands) if it exists and is valid, else the shape of the user
-        model (``user_model_path``, whichever hand it was calibrated on), else None."""
-        path = self._settings.user_model_path
-        shared: tuple[HandShape, bool] | None = None
-        if path.exists():
-            try:
-                shared = load_hand_shape(path)
-            except ModelFileError as err:
-                self.get_logger().warning(f"ignoring the user hand model: {err}")
-        out: dict[str, HandModel | None] = {}
-        for side in HANDS:
-            right = side == "right"
-            own = side_model_path(path, side)
-            loaded: tuple[HandShape, bool, Path] | None = None
-            if own.exists():
-                try:
-                    loaded = (*load_hand_shape(own), own)
-                except ModelFileError as err:
-                    self.get_logger().warning(f"ignoring the {side} hand's model: {err}")
-                else:
-                    if loaded[1] != right:
-                        self.get_logger().warning(
-                            f"{own} was calibrated on a {'right' if loaded[1] else 'left'} hand; using its "
-                            f"shape for the {side} hand"
-                        )
-            if loaded is None and shared is not None:
-                loaded = (*shared, path)
-            if loaded is None:
-                self.get_logger().info(f"no hand model at {own} or {path}: the {side} hand uses the default hand")
-                out[side] = None
-                continue
-            shape, file_right, where = loaded
-            mirrored = "" if file_right == right else f" (calibrated on the {'right' if file_right else 'left'} hand)"
-            self.get_logger().info(f"loaded hand model {shape} from {where} for the {side} hand{mirrored}")
-            out[side] = default_hand_model(right).scaled(shape)
-        return out
 
     # -- input ------------------------------------------------------------------
     def _on_image_message(self, msg: Image | CompressedImage) -> None:
