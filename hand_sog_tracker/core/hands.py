@@ -416,7 +416,8 @@ class MultiHandTracker:
         share one shape)."""
         if side not in HANDS:
             raise InputError(f"side must be 'left' or 'right', got {side!r}")
-        self._models[side] = model.mirrored(side == "right")
+        model = model.mirrored(side == "right")
+        self._models[side] = model
         for s in self._slots:
             if s.side == side and s.alt is None:
                 s.tracker.set_model(model)
