@@ -35,7 +35,9 @@ coarse pixel grid (about 160 px wide) and measures what a hand gives and those d
   of 10-30 mm that keep receding one ring width further out.
 * **finger ends** (``ends``): past each fingertip, along the finger in the image, the data must
   end or step back by more than ``EDGE_MM`` (a finger-like extremity): a model finger lying on
-  a forearm, a head or a box runs into more surface there.  Fingers seen end-on are left out.
+  a forearm, a head or a box runs into more surface there.  Fingers seen end-on are left out,
+  and so are fingers off the data (their ``fingers_on`` share below ``FINGERS_LOW``): a model
+  finger hanging in the air beside a forearm has no data past its tip either.
 
 The confidence is the product of six of them, each mapped linearly onto [0, 1]: ``on`` from
 ``ON_LOW`` to ``ON_HIGH``, ``fingers_on`` from ``FINGERS_LOW`` to ``FINGERS_HIGH``,
