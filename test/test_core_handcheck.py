@@ -98,6 +98,27 @@ def test_a_head_a_forearm_stump_and_a_wall_are_no_hand() -> None:
         assert dec.confidence < HAND_THRESHOLD, dec.evidence
 
 
+def test_a_finger_off_the_data_is_not_seen_to_end() -> None:
+    """The four fingers run on into a surface (no end); the thumb's data removed (the model's
+    thumb in the air beside a forearm, issue 46): it is not checked, ``ends`` is 0, not 1/5;
+    with the thumb on its data it ends (1/5)."""
+    res = _result(THETA)
+    shown = render_depth(MODEL, THETA, INTR, RenderOptions(noise_mm=1.0, background_mm=None), np.random.default_rng(3))
+    air = shown.copy()
+    c, vv, uu = res.gaussians_mm, *np.mgrid[: INTR.height, : INTR.width]
+    for i in np.flatnonzero(np.asarray(MODEL.g_chain) == 0):  # (the thumb's spheres, 8 mm wider)
+        u, v = INTR.fx * c[i, 0] / c[i, 2] + INTR.cx, INTR.fy * c[i, 1] / c[i, 2] + INTR.cy
+        air[(uu - u) ** 2 + (vv - v) ** 2 <= (INTR.fx * (MODEL.g_sigmas[i] + 8.0) / c[i, 2]) ** 2] = 0.0
+    ends = []
+    for depth in (shown, air):
+        beyond = depth[10:75, 115:205]  # past the four fingertips (v 40-64 px, u 134-184 px)
+        beyond[beyond == 0] = 420.0
+        dec = check_hand(depth, INTR, MODEL, res)
+        assert dec.evidence is not None
+        ends.append(dec.evidence.ends)
+    assert ends == [pytest.approx(0.2), 0.0], ends
+
+
 def test_hidden_fingers_get_a_low_confidence() -> None:
     """A box in front of the index and middle fingers: those two are reported as not shown."""
     rng = np.random.default_rng(4)

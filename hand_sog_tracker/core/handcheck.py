@@ -35,7 +35,9 @@ coarse pixel grid (about 160 px wide) and measures what a hand gives and those d
   of 10-30 mm that keep receding one ring width further out.
 * **finger ends** (``ends``): past each fingertip, along the finger in the image, the data must
   end or step back by more than ``EDGE_MM`` (a finger-like extremity): a model finger lying on
-  a forearm, a head or a box runs into more surface there.  Fingers seen end-on are left out.
+  a forearm, a head or a box runs into more surface there.  Fingers seen end-on are left out,
+  and so are fingers off the data (their ``fingers_on`` share below ``FINGERS_LOW``): a model
+  finger hanging in the air beside a forearm has no data past its tip either.
 
 The confidence is the product of six of them, each mapped linearly onto [0, 1]: ``on`` from
 ``ON_LOW`` to ``ON_HIGH``, ``fingers_on`` from ``FINGERS_LOW`` to ``FINGERS_HIGH``,
@@ -225,11 +227,12 @@ def check_hand(
     outline, finger_edges, steep = _outline(
         data, valid, inside, on_model, own_chain, (uu, vv), (fx, fy, cx, cy), result.pose, axis, other
     )
-    ends = _finger_ends(full, s, result, model, (fx, fy, cx, cy), on_model, (u0, v0), other)
     # Per finger (chains 0-4; -1 the palm, -2 no owner): its core, on and off pixels counted.
     n, n_c_on, n_c_off = (np.bincount(own_chain[mask] + 2, minlength=7)[2:] for mask in (core, on, off))
     fingers = n_c_on / np.maximum(n, 1)  # per finger: on / all (occluded counts against: not shown; 0 without)
     visible_on = n_c_on / np.maximum(n_c_on + n_c_off, 1)  # per finger: on / (on + off)
+    shown = visible_on >= FINGERS_LOW  # (a finger off the data has no end to see)
+    ends = _finger_ends(full, s, result, model, (fx, fy, cx, cy), on_model, (u0, v0), shown, other)
     counted = np.ones(5, dtype=bool)  # the fingers in ``fingers_on``'s mean
     if other is not None:  # (another hand hides the whole finger: it counts neither way)
         counted = (n_c_on + n_c_off > 0) | (np.bincount(own_chain[core & other] + 2, minlength=7)[2:] == 0)
@@ -407,12 +410,15 @@ def _finger_ends(
     k: tuple[float, float, float, float],
     on_model: NDArray[np.bool_],
     origin: tuple[int, int],
+    shown: NDArray[np.bool_],
     other: NDArray[np.bool_] | None = None,
 ) -> float:
     """Share of the extended fingers seen from the side whose data end past the tip (NaN:
     none checked).  ``full``: the depth image (mm), read on the grid of every ``s``-th pixel;
-    ``on_model``: the model's silhouette on the grid box at ``origin`` (u0, v0); ``other``:
-    the box pixels another hand explains (cannot tell)."""
+    ``on_model``: the model's silhouette on the grid box at ``origin`` (u0, v0); ``shown``
+    (5,): the fingers on the data (only those are checked: a model finger hanging in the air
+    beside a forearm has no data past its tip either); ``other``: the box pixels another hand
+    explains (cannot tell)."""
     fx, fy, cx, cy = k
     assert result.pose is not None and result.fingertips_mm is not None
     sk = skeleton_points(model, result.pose)  # (the kinematic joints: the fingers' bones)
@@ -423,6 +429,8 @@ def _finger_ends(
     bh, bw = on_model.shape
     checked = ended = 0
     for c in range(5):
+        if not shown[c]:
+            continue  # off the data: its end says nothing
         tip = tips[c]
         d = tip - sk[4 * c + 3]
         base = sk[4 * c + 2] - sk[4 * c + 1]

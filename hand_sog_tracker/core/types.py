@@ -157,7 +157,8 @@ class HandEvidence:
     fingers_on : float
         Mean over the five fingers of the share of each finger's visible silhouette on data.
     ends : float
-        Share of the checked fingers whose data end past the fingertip (NaN: none checked).
+        Share of the checked fingers (straight, seen from the side, on the data) whose data
+        end past the fingertip (NaN: none checked).
     in_view : float
         Share of the model's silhouette inside the image.
     outline : float
