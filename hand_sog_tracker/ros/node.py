@@ -269,8 +269,8 @@ class TrackerNode(CalibrationService, Node):
         two = self._settings.max_hands > 1
         path, log = self._settings.user_model_path, self.get_logger()
         self._side_models: dict[str, HandModel | None] = hand_models(path, log) if two else {}
-        side = "right" if self._settings.tracker.right_hand else "left"
-        user_model = self._side_models[side] if two else one_hand_model(path, self._settings.tracker.right_hand, log)
+        right = self._settings.tracker.right_hand
+        user_model = self._side_models[self._side] if two else one_hand_model(path, right, log)
         # The node runs the core tracker as evaluate_bag's core mode does: every frame's whole
         # search, nothing timed by the wall clock (issue 45).  A frame that arrives meanwhile
         # waits in the backlog; whole frames are dropped when it falls max_lag_ms behind.
@@ -340,7 +340,7 @@ class TrackerNode(CalibrationService, Node):
             self, HAND_BASE, out_qos, latched, overrides, frame_prefix=self._settings.frame_prefix,
             marker_lifetime_s=MARKER_LIFETIME_S,
         )
-        self._model_logged: HandModel | None = None
+        self._models_logged: dict[str, HandShape] = {}  # (_log_model: by label, "" for one hand)
         self._tf_pub: Any = None  # created on first use (tf2_msgs is optional)
         self._debug_pub = self.create_publisher(
             Image, DEBUG_IMAGE_TOPIC, QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
@@ -351,7 +351,6 @@ class TrackerNode(CalibrationService, Node):
         # topics (hand_topics.py); the one-hand topics carry the hand labelled ``handedness``.
         self._hands: MultiHandTracker | None = None
         self._hand_topics: HandTopics | None = None
-        self._hand_models_logged: dict[str, HandShape] = {}
         self._last_hands: HandsResult | None = None  # (max_hands 2: the last frame's, for the histories)
         if self._settings.max_hands > 1:
             self._hands = self._new_hands()
@@ -373,7 +372,7 @@ class TrackerNode(CalibrationService, Node):
         self._fit_worker = FitWorker()  # the fits' child process, started with tracking
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
-            f"tracking the {'right' if self._settings.tracker.right_hand else 'left'} hand from "
+            f"tracking the {self._side} hand from "
             f"{self._image_sub.topic_name} + {self._info_sub.topic_name}"
         )
 
@@ -413,15 +412,27 @@ class TrackerNode(CalibrationService, Node):
         tracker's under its ``handedness``."""
         with self._tracker_lock:
             if self._hands is None:
-                return {"right" if self._tracker.config.right_hand else "left": self._tracker.model}
+                return {self._side: self._tracker.model}
             return {s: self._hands.model(s) for s in HANDS}
+
+    @property
+    def _side(self) -> str:
+        """The label of the one-hand topics' hand: ``right`` or ``left`` (``handedness``)."""
+        return "right" if self._settings.tracker.right_hand else "left"
 
     def _one_hand_model(self) -> HandModel:
         """The model of the one-hand topics' hand (the one-hand tracker's, or with max_hands 2
         that of the hand labelled ``handedness``)."""
         if self._hands is None:
             return self._tracker.model
-        return self._hands.model("right" if self._settings.tracker.right_hand else "left")
+        return self._hands.model(self._side)
+
+    def _log_model(self, side: str, model: HandModel) -> None:
+        """Log the shape of the model in use for the hand labelled ``side`` ("" with one hand) when
+        it changed: a calibration, or a new track of a small hand on the default's small size."""
+        if self._models_logged.get(side) != model.shape:
+            self._models_logged[side] = model.shape
+            self.get_logger().info(f"hand model in use{f' for the {side} hand' if side else ''}: {model.shape}")
 
     def _new_hands(self) -> MultiHandTracker:
         """The multi-hand tracker of max_hands 2, with each hand's model (saved or calibrated)."""
@@ -843,11 +854,9 @@ class TrackerNode(CalibrationService, Node):
             header, hands, depth, intr, self._settings.publish_wrist_joints, self._tf_publish()
         )
         for hand in hands.hands:
-            if hand.handedness in decisions and self._hand_models_logged.get(hand.handedness) != hand.model.shape:
-                # (a calibration, or a new track of a small hand on the default model's small size)
-                self.get_logger().info(f"hand model in use for the {hand.handedness} hand: {hand.model.shape}")
-                self._hand_models_logged[hand.handedness] = hand.model.shape
-        side = "right" if self._settings.tracker.right_hand else "left"
+            if hand.handedness in decisions:
+                self._log_model(hand.handedness, hand.model)
+        side = self._side
         mine = hands.hand(side)
         if mine is None or side not in decisions:
             total = hands.timings_ms.get("total", 0.0)
@@ -871,11 +880,8 @@ class TrackerNode(CalibrationService, Node):
         decision: HandDecision | None = None,
     ) -> None:
         model = self._one_hand_model()
-        logged = self._model_logged  # (max_hands 2: logged per hand, _process_hands)
-        if self._hands is None and result.pose is not None and (logged is None or logged.shape != model.shape):
-            # (a calibration, or a new track of a small hand on the default model's small size)
-            self.get_logger().info(f"hand model in use: {model.shape}")
-            self._model_logged = model
+        if self._hands is None and result.pose is not None:  # (max_hands 2: per hand, _process_hands)
+            self._log_model("", model)
         self._out.publish(header, decision, result, model, self._settings.publish_wrist_joints, self._tf_publish())
         if self._settings.debug_image or self._debug_pub.get_subscription_count() > 0:
             cfg = self._tracker.config
